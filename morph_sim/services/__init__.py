@@ -1,0 +1,1 @@
+"""Services: bus, sim (warehouse clock), agent, monitor, supervisor and the in-process lab."""
