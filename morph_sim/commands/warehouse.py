@@ -1,0 +1,116 @@
+"""``morph-sim warehouse``: one TA-RWARE heuristic episode in this process, with a summary (and optional images)."""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+NAME = "warehouse"
+HELP = "run TA-RWARE's heuristic controller for one episode and print deliveries, pick rate, clashes, stucks, speed"
+
+# TA-RWARE's scripts/run_heuristic.py reports pick rate as deliveries * 3600 / (5 * steps): 5 s of robot time a step.
+PICK_RATE_SECONDS_PER_STEP = 5.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from morph_sim.services.sim.layout import named_sizes
+
+    sizes = named_sizes()
+    defaults = ", ".join(f"{k} {a}+{p}" for k, (_, a, p) in sizes.items())
+    parser.add_argument("--scale", default="tiny", help=f"warehouse size: {', '.join(sizes)} (default tiny)")
+    parser.add_argument("--agvs", type=int, default=None, help=f"number of AGVs (default by scale: {defaults})")
+    parser.add_argument("--pickers", type=int, default=None, help="number of pickers (default by scale)")
+    parser.add_argument("--seed", type=int, default=0, help="episode seed (default 0)")
+    parser.add_argument("--steps", type=int, default=800,
+                        help="episode length (default 800, as the reference runs; the original registers 500)")
+    parser.add_argument("--reward", choices=("individual", "global"), default="individual")
+    parser.add_argument("--png", metavar="FILE", help="write the last frame as a PNG")
+    parser.add_argument("--gif", metavar="FILE", help="write an animated GIF of the episode")
+    parser.add_argument("--gif-every", type=int, default=2, metavar="K", help="GIF: keep every K-th step (default 2)")
+    parser.add_argument("--fps", type=float, default=10.0, help="GIF frames per second (default 10)")
+    parser.add_argument("--cell-px", type=int, default=20, help="image cell size in pixels (default 20)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from morph_sim.services.sim.heuristic import run_episode
+    from morph_sim.services.sim.warehouse import WarehouseConfig
+
+    if args.steps is not None and args.steps < 1:
+        raise ValueError(f"steps: must be >= 1, got {args.steps}")
+    if args.gif_every < 1:
+        raise ValueError(f"gif-every: must be >= 1, got {args.gif_every}")
+    if args.cell_px < 4:
+        raise ValueError(f"cell-px: must be >= 4, got {args.cell_px}")
+    try:
+        config = WarehouseConfig.named(args.scale, args.agvs, args.pickers, max_steps=args.steps,
+                                       reward_type=args.reward)
+    except ValueError as exc:  # pydantic's ValidationError is a ValueError; keep its field names, drop the URL
+        raise ValueError(_short(exc)) from None
+
+    frames = []
+    render_s = 0.0
+    caption = f"{args.scale} {config.agvs}+{config.pickers} seed {args.seed}"
+
+    console = Console(stderr=True)
+    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                        TextColumn("deliveries {task.fields[deliveries]}"), TimeRemainingColumn(),
+                        console=console, disable=args.no_progress, transient=True)
+    delivered = 0
+
+    with progress:
+        task = progress.add_task(caption, total=config.max_steps, deliveries=0)
+
+        def on_step(env, res):
+            nonlocal delivered, render_s
+            delivered += res.deliveries
+            if args.gif and (env.steps % args.gif_every == 0 or res.done):
+                t0 = time.perf_counter()
+                frames.append(env.frame(caption=caption))
+                render_s += time.perf_counter() - t0
+            if args.png and res.done:
+                t0 = time.perf_counter()
+                frames_last[0] = env.frame(caption=caption)
+                render_s += time.perf_counter() - t0
+            if env.steps % 10 == 0 or res.done:
+                progress.update(task, completed=env.steps, deliveries=delivered)
+
+        frames_last = [None]
+        result = run_episode(config, args.seed, on_step=on_step)
+
+    sim_seconds = max(result.seconds - render_s, 1e-9)
+    pick_rate = result.deliveries * 3600.0 / (PICK_RATE_SECONDS_PER_STEP * result.steps)
+    out = Console()
+    out.print(f"warehouse {caption}, {result.steps} steps")
+    out.print(f"  deliveries  {result.deliveries}")
+    out.print(f"  pick rate   {pick_rate:.1f} lines/h  (deliveries x 3600 / (5 s x steps), as the original)")
+    out.print(f"  clashes     {result.clashes}")
+    out.print(f"  stucks      {result.stucks}")
+    out.print(f"  return      {result.global_return:.1f}  (sum over agents and steps)")
+    out.print(f"  speed       {result.steps / sim_seconds:,.0f} steps/s  (simulation + controller)")
+    if args.png:
+        from morph_sim.services.sim.render import save_png
+
+        save_png(frames_last[0], args.png, cell_px=args.cell_px)
+        out.print(f"  png         {args.png}")
+    if args.gif:
+        from morph_sim.services.sim.render import write_gif
+
+        n = write_gif(frames, args.gif, fps=args.fps, cell_px=args.cell_px)
+        out.print(f"  gif         {args.gif} ({n} frames)")
+    return 0
+
+
+def _short(exc: Exception) -> str:
+    errors = getattr(exc, "errors", None)
+    if callable(errors):
+        parts = []
+        for e in errors():
+            loc = ".".join(str(p) for p in e.get("loc", ()))
+            msg = str(e.get("msg", "")).removeprefix("Value error, ")
+            parts.append(f"{loc}: {msg}" if loc else msg)
+        return "; ".join(parts)
+    return str(exc)

@@ -1,0 +1,123 @@
+"""The fork's A* and TA-RWARE's find_path rules against answers of the ORIGINAL code (tests/data/
+astar_cases_sample.json, source named in its meta), plus properties the heuristic relies on."""
+
+import json
+import random
+from pathlib import Path
+
+import pytest
+
+from morph_sim.services.sim.astar import INF, Planner, astar, neighbour_table
+from morph_sim.services.sim.layout import LayoutConfig, layout_for
+
+DATA = json.loads((Path(__file__).parent / "data" / "astar_cases_sample.json").read_text())
+CASES = DATA["cases"]
+PLANNERS: dict[str, Planner] = {}
+
+
+def _planner(size: str) -> Planner:
+    if size not in PLANNERS:
+        PLANNERS[size] = Planner(layout_for(LayoutConfig.named(size)))
+    return PLANNERS[size]
+
+
+def test_sample_covers_every_kind():
+    kinds = {c["kind"] for c in CASES}
+    assert kinds == {"agv_free", "picker_highway", "care_agents", "random_obst"}
+    assert len(CASES) >= 300
+    assert any(c["path"] is None for c in CASES)
+
+
+@pytest.mark.parametrize("kind", ["agv_free", "picker_highway", "care_agents", "random_obst"])
+def test_raw_search_matches_fork(kind):
+    for case in [c for c in CASES if c["kind"] == kind]:
+        grid = case["grid"]
+        H, W = len(grid), len(grid[0])
+        weights = [INF if ch == "1" else 1.0 for row in grid for ch in row]
+        s = case["start"][0] * W + case["start"][1]
+        g = case["goal"][0] * W + case["goal"][1]
+        got = astar(weights, H, W, s, g)
+        expected = case["path"]
+        assert (None if got is None else [[c // W, c % W] for c in got]) == expected, case
+
+
+@pytest.mark.parametrize("kind", ["agv_free", "picker_highway", "care_agents"])
+def test_find_path_matches_original(kind):
+    for case in [c for c in CASES if c["kind"] == kind]:
+        q = case["find_path"]
+        p = _planner(q["size"])
+        occ = [r * p.W + c for r, c in q["occupied"]] if q["care_for_agents"] else None
+        got = p.find_path((q["start"][1], q["start"][0]), (q["goal"][1], q["goal"][0]), q["agent_type"] == "PICKER", occ)
+        assert [list(c) for c in got] == case["find_path_result"], q
+
+
+def test_heap_ties_follow_libstdcxx_not_heapq():
+    """On an open grid many entries share a priority; the turn pattern of the answer depends on which tied entry
+    the heap surfaces first. These free-grid answers come from the compiled fork."""
+    free = [c for c in CASES if c["kind"] == "agv_free"]
+    turns = set()
+    for case in free:
+        path = case["path"]
+        dirs = [(b[0] - a[0], b[1] - a[1]) for a, b in zip(path, path[1:])]
+        turns.add(sum(1 for u, v in zip(dirs, dirs[1:]) if u != v))
+    assert {0, 1, 2} <= turns  # the sample exercises several turn patterns, all matched above
+
+
+def test_agv_free_grid_lengths_are_manhattan_tiny_exhaustive():
+    """The heuristic computes AGV distances in closed form; this holds for every pair on tiny (the same check over
+    every pair of small..extralarge was run once offline; sampled below)."""
+    lay = layout_for(LayoutConfig.named("tiny"))
+    H, W = lay.H, lay.W
+    nb = neighbour_table(H, W)
+    base = [1.0] * (H * W)
+    for s in range(H * W):
+        for g in range(H * W):
+            p = astar(list(base), H, W, s, g, nb)
+            assert len(p) - 1 == abs(s // W - g // W) + abs(s % W - g % W)
+
+
+@pytest.mark.parametrize("size", ["small", "medium", "large", "extralarge"])
+def test_agv_free_grid_lengths_are_manhattan_sampled(size):
+    p = _planner(size)
+    rng = random.Random(size)
+    cells = [(x, y) for y in range(p.H) for x in range(p.W)]
+    for _ in range(1500):
+        a, b = rng.choice(cells), rng.choice(cells)
+        assert len(p.find_path(a, b, picker=False)) == abs(a[0] - b[0]) + abs(a[1] - b[1])
+
+
+def test_picker_rules():
+    p = _planner("tiny")
+    # a goal (bottom row) is unreachable for pickers, reachable for AGVs
+    assert p.find_path((4, 12), (2, 14), picker=True) == []
+    assert p.find_path((4, 12), (2, 14), picker=False)[-1] == (2, 14)
+    # pickers cross no rack cell except their target
+    path = p.find_path((1, 5), (7, 5), picker=True)
+    assert path[-1] == (7, 5)
+    assert all(layout_for(LayoutConfig.named("tiny")).highway[y, x] for x, y in path[:-1])
+    # rack-crossing ban: from (2, 5) to the other half (3, 5) the picker leaves via the left highway cell, which is
+    # kept as the first path element
+    path = p.find_path((2, 5), (3, 5), picker=True)
+    assert path[0] == (1, 5) and path[-1] == (3, 5) and len(path) > 2
+    # own cell as target: empty path
+    assert p.find_path((4, 4), (4, 4), picker=False) == []
+
+
+def test_care_for_agents_avoids_occupied_cells_but_not_goal():
+    p = _planner("tiny")
+    W = p.W
+    wall = [y * W + 4 for y in range(0, 14)]  # column x = 4 blocked except the bottom row
+    path = p.find_path((0, 5), (8, 5), picker=False, occupied=wall)
+    assert all((x, y) not in {(4, yy) for yy in range(0, 14)} for x, y in path)
+    # an occupied goal cell is still a valid goal
+    assert p.find_path((0, 5), (4, 5), picker=False, occupied=[5 * W + 4])[-1] == (4, 5)
+
+
+def test_static_plans_are_cached_and_copied():
+    p = Planner(layout_for(LayoutConfig.named("tiny")))
+    a = p.find_path((0, 0), (10, 9), picker=False)
+    n = p.searches
+    b = p.find_path((0, 0), (10, 9), picker=False)
+    assert a == b and p.searches == n and a is not b
+    p.find_path((0, 0), (10, 9), picker=False, occupied=[])
+    assert p.searches == n + 1
