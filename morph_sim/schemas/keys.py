@@ -1,0 +1,325 @@
+"""Key expressions of a run: the ONE place that spells them, plus Zenoh's key-expression matching rules.
+
+Everything of a run lives under ``morph/<run>/``::
+
+    sim/tick                      Tick            sim -> all
+    sim/resolve                   Resolve         sim -> all
+    agent/<id>/ack                Ack             agent -> sim
+    agent/<agv>/request/<picker>  HelpRequest     AGV -> picker
+    agent/<picker>/reply/<agv>    HelpReply       picker -> AGV
+    agent/<picker>/commit         Commit          picker -> sim
+    agent/<id>/state              AgentState      agent -> monitor
+    metrics/<name>                MetricSample    monitor -> anyone
+    state/**                      (queryable)     monitor: latest values for late joiners
+    ctl/faults                    FaultCommand    operator -> everyone (put) / fault list (query)
+    ctl/stop                      Stop            operator/supervisor -> everyone
+    events/<source>               Event           anyone -> monitor
+    registry                      (queryable)     sim: RegistrationRequest -> RegistrationReply
+    alive/<id>                    liveliness token of a service or agent
+
+Why every agent-sent key starts with ``agent/<sender>/``: issue 7's access control lets an agent publish only under
+its own prefix, and the fault layer reads the link (sender, receiver) of a message off its key. So a help request is
+addressed ``agent/<agv>/request/<picker>`` (the picker subscribes to ``agent/*/request/<picker>``) and a commit is
+``agent/<picker>/commit`` rather than a shared ``sim/commit``.
+
+Matching follows Zenoh's rules: chunks are separated by ``/``; ``*`` matches exactly one chunk, ``**`` zero or more;
+chunks starting with ``@`` are verbatim (only matched by themselves, never by a wildcard); expressions must be
+canonical (``**/**`` and ``**/*`` are rejected, ``*/**`` is the canonical spelling). The sub-chunk wildcard ``$*`` is
+not supported by this project (both buses reject it).
+"""
+
+from __future__ import annotations
+
+import re
+from functools import lru_cache
+
+ROOT = "morph"
+
+# Characters allowed in a run id and in a single literal chunk we build: no '/', no wildcards, no '$#?' (Zenoh
+# reserves them), no spaces; printable so ids survive logs, file names and environment variables.
+_CHUNK_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]{0,63}$")
+_FORBIDDEN = set("#?$ \t\r\n")
+
+
+def check_chunk(value: str, what: str) -> str:
+    if not isinstance(value, str) or not _CHUNK_RE.match(value):
+        raise ValueError(
+            f"{what} {value!r} is not a valid key chunk: use 1-64 characters from A-Z a-z 0-9 _ . - "
+            "(not starting with '.' or '-'; no '/', '*', '$', '#', '?', spaces)"
+        )
+    return value
+
+
+def validate_run_id(run: str) -> str:
+    """Return ``run`` if it is a safe run id, else raise ValueError naming it."""
+    return check_chunk(run, "run id")
+
+
+@lru_cache(maxsize=8192)  # services validate the same few keys on every publish
+def validate_key_expr(expr: str) -> str:
+    """Return ``expr`` if it is a canonical key expression this project accepts, else raise ValueError."""
+    if not isinstance(expr, str) or not expr:
+        raise ValueError(f"key expression {expr!r} is empty")
+    if expr.startswith("/") or expr.endswith("/"):
+        raise ValueError(f"key expression {expr!r} must not start or end with '/'")
+    bad = _FORBIDDEN.intersection(expr)
+    if bad:
+        raise ValueError(f"key expression {expr!r} contains forbidden characters {''.join(sorted(bad))!r}")
+    chunks = expr.split("/")
+    for i, chunk in enumerate(chunks):
+        if chunk == "":
+            raise ValueError(f"key expression {expr!r} has an empty chunk (double '/')")
+        if "*" in chunk and chunk not in ("*", "**"):
+            raise ValueError(f"key expression {expr!r}: '*' must be a whole chunk, got {chunk!r}")
+        if chunk == "**" and i + 1 < len(chunks) and chunks[i + 1] in ("*", "**"):
+            canon = "/".join(_canonize(chunks))
+            raise ValueError(f"key expression {expr!r} is not canonical; write {canon!r}")
+    return expr
+
+
+def _canonize(chunks: list[str]) -> list[str]:
+    # Zenoh's canonical form: '**/*' -> '*/**', '**/**' -> '**'.
+    out = list(chunks)
+    changed = True
+    while changed:
+        changed = False
+        for i in range(len(out) - 1):
+            if out[i] == "**" and out[i + 1] == "**":
+                del out[i + 1]
+                changed = True
+                break
+            if out[i] == "**" and out[i + 1] == "*":
+                out[i], out[i + 1] = "*", "**"
+                changed = True
+                break
+    return out
+
+
+def is_concrete(key: str) -> bool:
+    """True if ``key`` names one key (no wildcard chunk)."""
+    return "*" not in key
+
+
+@lru_cache(maxsize=8192)
+def validate_key(key: str) -> str:
+    """A key to publish on: a valid key expression without wildcards."""
+    validate_key_expr(key)
+    if not is_concrete(key):
+        raise ValueError(f"key {key!r} contains a wildcard; publish needs a concrete key")
+    return key
+
+
+@lru_cache(maxsize=16384)
+def intersects(a: str, b: str) -> bool:
+    """True if some concrete key matches both expressions (Zenoh's ``KeyExpr.intersects``)."""
+    return _intersects(tuple(a.split("/")), tuple(b.split("/")))
+
+
+def matches(expr: str, key: str) -> bool:
+    """True if the concrete ``key`` is matched by ``expr``."""
+    return intersects(expr, key)
+
+
+def _verbatim(chunk: str) -> bool:
+    return chunk.startswith("@")
+
+
+def _intersects(a: tuple[str, ...], b: tuple[str, ...]) -> bool:
+    memo: dict[tuple[int, int], bool] = {}
+
+    def go(i: int, j: int) -> bool:
+        hit = memo.get((i, j))
+        if hit is not None:
+            return hit
+        if i == len(a) and j == len(b):
+            res = True
+        elif i == len(a):
+            res = all(c == "**" for c in b[j:])
+        elif j == len(b):
+            res = all(c == "**" for c in a[i:])
+        else:
+            ca, cb = a[i], b[j]
+            if ca == "**" or cb == "**":
+                res = False
+                if ca == "**":
+                    # '**' matches nothing more, or swallows b's chunk (never a verbatim one).
+                    res = go(i + 1, j) or (cb != "**" and not _verbatim(cb) and go(i, j + 1))
+                if not res and cb == "**":
+                    res = go(i, j + 1) or (ca != "**" and not _verbatim(ca) and go(i + 1, j))
+                if not res and ca == "**" and cb == "**":
+                    res = go(i + 1, j + 1)
+            elif ca == cb or (ca == "*" and not _verbatim(cb)) or (cb == "*" and not _verbatim(ca)):
+                res = go(i + 1, j + 1)
+            else:
+                res = False
+        memo[(i, j)] = res
+        return res
+
+    return go(0, 0)
+
+
+def _agent_chunk(agent: int | str) -> str:
+    if isinstance(agent, bool):
+        raise ValueError(f"agent id {agent!r} must be an int >= 0 or a service name")
+    if isinstance(agent, int):
+        if agent < 0:
+            raise ValueError(f"agent id {agent} must be >= 0")
+        return str(agent)
+    return check_chunk(agent, "agent id")
+
+
+def parse_agent_id(chunk: str) -> int | str:
+    """The agent id a key chunk stands for: an int for robots, the name for services (``sim``, ``monitor``)."""
+    return int(chunk) if chunk.isdigit() else chunk
+
+
+class RunKeys:
+    """Key expressions of one run. ``RunKeys("r1").tick == "morph/r1/sim/tick"``."""
+
+    def __init__(self, run: str):
+        self.run = validate_run_id(run)
+        self.prefix = f"{ROOT}/{run}"
+
+    def _k(self, *chunks: str) -> str:
+        return "/".join((self.prefix, *chunks))
+
+    # -- whole run ---------------------------------------------------------------------------------------------
+    @property
+    def everything(self) -> str:
+        return self._k("**")
+
+    # -- sim clock ---------------------------------------------------------------------------------------------
+    @property
+    def tick(self) -> str:
+        return self._k("sim", "tick")
+
+    @property
+    def resolve(self) -> str:
+        return self._k("sim", "resolve")
+
+    # -- agents ------------------------------------------------------------------------------------------------
+    def ack(self, agent: int | str) -> str:
+        return self._k("agent", _agent_chunk(agent), "ack")
+
+    @property
+    def acks(self) -> str:
+        return self._k("agent", "*", "ack")
+
+    def request(self, agv: int, picker: int) -> str:
+        return self._k("agent", _agent_chunk(agv), "request", _agent_chunk(picker))
+
+    def requests_to(self, picker: int) -> str:
+        return self._k("agent", "*", "request", _agent_chunk(picker))
+
+    @property
+    def requests(self) -> str:
+        return self._k("agent", "*", "request", "*")
+
+    def reply(self, picker: int, agv: int) -> str:
+        return self._k("agent", _agent_chunk(picker), "reply", _agent_chunk(agv))
+
+    def replies_to(self, agv: int) -> str:
+        return self._k("agent", "*", "reply", _agent_chunk(agv))
+
+    @property
+    def replies(self) -> str:
+        return self._k("agent", "*", "reply", "*")
+
+    def commit(self, picker: int) -> str:
+        return self._k("agent", _agent_chunk(picker), "commit")
+
+    @property
+    def commits(self) -> str:
+        return self._k("agent", "*", "commit")
+
+    def agent_state(self, agent: int | str) -> str:
+        return self._k("agent", _agent_chunk(agent), "state")
+
+    @property
+    def agent_states(self) -> str:
+        return self._k("agent", "*", "state")
+
+    def agent_prefix(self, agent: int | str) -> str:
+        """Everything an agent may publish (access-control prefix)."""
+        return self._k("agent", _agent_chunk(agent), "**")
+
+    # -- monitor -----------------------------------------------------------------------------------------------
+    def metric(self, name: str) -> str:
+        return self._k("metrics", *(check_chunk(c, "metric name chunk") for c in name.split("/")))
+
+    @property
+    def metrics(self) -> str:
+        return self._k("metrics", "**")
+
+    def latest(self, *chunks: str) -> str:
+        """A key of the monitor's latest-state queryable, e.g. ``latest("agent", "3")``."""
+        return self._k("state", *(check_chunk(c, "state key chunk") for c in chunks))
+
+    @property
+    def latest_all(self) -> str:
+        return self._k("state", "**")
+
+    # -- control, events, registry, liveliness -------------------------------------------------------------------
+    @property
+    def faults(self) -> str:
+        return self._k("ctl", "faults")
+
+    @property
+    def stop(self) -> str:
+        return self._k("ctl", "stop")
+
+    @property
+    def control(self) -> str:
+        return self._k("ctl", "**")
+
+    def event(self, source: int | str) -> str:
+        return self._k("events", _agent_chunk(source))
+
+    @property
+    def events(self) -> str:
+        return self._k("events", "*")
+
+    @property
+    def registry(self) -> str:
+        return self._k("registry")
+
+    def alive(self, agent: int | str) -> str:
+        return self._k("alive", _agent_chunk(agent))
+
+    @property
+    def alive_all(self) -> str:
+        return self._k("alive", "*")
+
+    # -- parsing -------------------------------------------------------------------------------------------------
+    def relative(self, key: str) -> list[str]:
+        """The chunks of ``key`` after ``morph/<run>/``; ValueError if the key is not of this run."""
+        head = self.prefix + "/"
+        if not key.startswith(head):
+            raise ValueError(f"key {key!r} is not under {head!r}")
+        return key[len(head):].split("/")
+
+    def sender_of(self, key: str) -> int | str | None:
+        """The agent that published ``key`` (``agent/<id>/…``), the service for ``sim/…``, else None."""
+        rel = self.relative(key)
+        if len(rel) >= 2 and rel[0] == "agent":
+            return parse_agent_id(rel[1])
+        if rel[0] == "sim":
+            return "sim"
+        if rel[0] == "events" and len(rel) == 2:
+            return parse_agent_id(rel[1])
+        return None
+
+    def recipient_of(self, key: str) -> int | str | None:
+        """The addressee of a point-to-point key (request/reply), ``sim`` for ack/commit, else None (broadcast)."""
+        rel = self.relative(key)
+        if len(rel) == 4 and rel[0] == "agent" and rel[2] in ("request", "reply"):
+            return parse_agent_id(rel[3])
+        if len(rel) == 3 and rel[0] == "agent" and rel[2] in ("ack", "commit"):
+            return "sim"
+        return None
+
+    def alive_id(self, key: str) -> int | str:
+        rel = self.relative(key)
+        if len(rel) != 2 or rel[0] != "alive":
+            raise ValueError(f"key {key!r} is not a liveliness key of run {self.run!r}")
+        return parse_agent_id(rel[1])

@@ -1,0 +1,263 @@
+"""Application-layer fault injection for the bus (DESIGN §4, issue 5): loss (Bernoulli, Gilbert–Elliott), latency
+(fixed, jitter, uniform/normal/pareto, correlation), duplicate, reorder and directional partitions, scoped by key
+expression and agent ids, with optional auto-heal, and a seeded RNG per (fault, link) so a run is reproducible.
+
+Pure core: :meth:`FaultLayer.fate` decides what happens to one message on one link and returns the delivery delays
+(``[]`` = dropped, ``[d]`` = delivered after d seconds, ``[d1, d2]`` = duplicated). The thin shell
+(:meth:`FaultLayer.on_deliver`, the bus's ingress seam) delivers at once or hands delayed copies to a scheduler:
+``loop.call_later`` by default (wall time); a virtual-time run passes its own scheduler that releases messages at
+the first phase boundary at or after their due sim time.
+
+Faults are applied at ingress, where both ends of the link are known (the sender from the sample header, the
+receiver is the bus that owns the layer), so each receiver keeps its own per-link random streams.
+Semantics follow ``tc netem``:
+
+* correlation c (percent): the uniform draw u is mixed with the previous one, u' = (1−c)·u + c·u_prev (the formula
+  Chaos Mesh documents), then used for the decision or the inverse CDF;
+* Gilbert–Elliott: per message, lose with probability 1−k in the good state and 1−h in the bad state, then move
+  good→bad with p and bad→good with r (simple Gilbert: 1−h = 1, 1−k = 0, so a burst lasts 1/r messages on average);
+* latency distributions with mean ``delay`` and spread ``jitter``: uniform on [delay−jitter, delay+jitter]; normal
+  N(delay, jitter) truncated at 0; pareto with mean ``delay`` and standard deviation ``jitter`` (shape
+  a = 1 + sqrt(1 + delay²/jitter²), scale delay·(a−1)/a);
+* reorder P gap G: every G-th message of a link is a candidate, and with probability P it skips the delay.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import math
+import random
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from statistics import NormalDist
+
+from morph_sim.schemas.faults import FaultSpec, Latency, Loss
+from morph_sim.schemas.messages import FaultCommand, FaultReply
+from morph_sim.schemas.keys import RunKeys, matches, parse_agent_id
+from morph_sim.services.bus.base import Sample
+
+_STD_NORMAL = NormalDist()
+_EPS = 1e-12
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# distributions (pure)
+# ---------------------------------------------------------------------------------------------------------------
+def pareto_params(mean: float, std: float) -> tuple[float, float]:
+    """(shape a, scale xm) of the Pareto distribution with this mean and standard deviation."""
+    a = 1.0 + math.sqrt(1.0 + (mean / std) ** 2)
+    return a, mean * (a - 1.0) / a
+
+
+def latency_quantile(lat: Latency, q: float) -> float:
+    """Quantile ``q`` of the configured latency distribution (no correlation), in seconds."""
+    q = min(max(q, _EPS), 1.0 - _EPS)
+    if lat.jitter == 0.0:
+        return lat.delay
+    if lat.distribution == "uniform":
+        return lat.delay - lat.jitter + 2.0 * lat.jitter * q
+    if lat.distribution == "normal":
+        return max(0.0, lat.delay + lat.jitter * _STD_NORMAL.inv_cdf(q))
+    if lat.delay == 0.0:
+        return 0.0
+    a, xm = pareto_params(lat.delay, lat.jitter)
+    return xm * (1.0 - q) ** (-1.0 / a)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# per (fault, link) state
+# ---------------------------------------------------------------------------------------------------------------
+@dataclass
+class _Link:
+    rng: random.Random
+    last: dict[str, float] = field(default_factory=dict)  # previous uniform draw per effect (correlation)
+    bad: bool = False  # Gilbert–Elliott state
+    count: int = 0  # messages seen (reorder gap)
+
+    def uniform(self, effect: str, correlation_pct: float) -> float:
+        u = self.rng.random()
+        if correlation_pct > 0.0:
+            c = correlation_pct / 100.0
+            prev = self.last.get(effect, u)
+            u = (1.0 - c) * u + c * prev
+        self.last[effect] = u
+        return u
+
+
+@dataclass
+class ActiveFault:
+    spec: FaultSpec
+    fault_id: str
+    started: float
+    expires: float | None
+
+    def applies(self, rel_key: str, sender: object, receiver: object) -> bool:
+        scope = self.spec.scope
+        if not matches(scope.key_expr, rel_key):
+            return False
+        if scope.agents is not None and sender not in scope.agents and receiver not in scope.agents:
+            return False
+        return True
+
+
+@dataclass
+class FaultStats:
+    seen: int = 0
+    dropped: int = 0
+    duplicated: int = 0
+    delayed: int = 0
+    partitioned: int = 0
+
+
+class FaultLayer:
+    """The fault layer of one receiver. Install with ``bus.set_interposer(FaultLayer(run, ...))``.
+
+    ``clock`` gives the current time in the unit faults are expressed in (sim seconds for virtual time, wall seconds
+    otherwise); it decides when a fault with a ``duration`` heals. ``schedule(delay, fn)`` runs ``fn`` after
+    ``delay`` of that time; default: the running loop's ``call_later`` (wall time).
+    """
+
+    def __init__(self, run: str, *, base_seed: int = 0, clock: Callable[[], float] = time.monotonic,
+                 schedule: Callable[[float, Callable[[], None]], object] | None = None,
+                 on_change: Callable[[str, ActiveFault], None] | None = None,
+                 loop: asyncio.AbstractEventLoop | None = None):
+        self.keys = RunKeys(run)
+        self.base_seed = int(base_seed)
+        self.clock = clock
+        self.schedule = schedule
+        self.on_change = on_change  # ("set" | "healed" | "reset", fault): for events in the run record
+        self.loop = loop  # needed when deliveries arrive on a transport thread (inline subscriptions)
+        self.stats = FaultStats()
+        self._faults: dict[str, ActiveFault] = {}
+        self._links: dict[tuple[str, object, object], _Link] = {}
+        self._auto_ids = itertools.count(1)
+
+    # -- control -----------------------------------------------------------------------------------------------
+    def set(self, spec: FaultSpec) -> str:
+        """Activate ``spec`` (replacing an active fault with the same id); returns its id."""
+        if spec.crash is not None and all(x is None for x in (spec.latency, spec.loss, spec.duplicate, spec.reorder,
+                                                                 spec.partition)):
+            raise ValueError("crash faults are carried out by the supervisor, not by the bus fault layer")
+        fault_id = spec.id or f"fault-{next(self._auto_ids)}"
+        now = self.clock()
+        fault = ActiveFault(spec, fault_id, now, None if spec.duration is None else now + spec.duration)
+        self._faults[fault_id] = fault
+        for key in [k for k in self._links if k[0] == fault_id]:  # a re-set fault starts fresh streams
+            del self._links[key]
+        if self.on_change:
+            self.on_change("set", fault)
+        return fault_id
+
+    def reset(self, fault_id: str | None = None) -> list[str]:
+        """Heal one fault, or all of them; returns the ids removed. Always succeeds."""
+        ids = list(self._faults) if fault_id is None else [fault_id] if fault_id in self._faults else []
+        for fid in ids:
+            fault = self._faults.pop(fid)
+            if self.on_change:
+                self.on_change("reset", fault)
+        self._links = {k: v for k, v in self._links.items() if k[0] in self._faults}
+        return ids
+
+    def apply(self, command: FaultCommand) -> FaultReply:
+        """Carry out a ``ctl/faults`` command; a rejected spec comes back as ``ok=False`` with the reason."""
+        try:
+            if command.op == "set":
+                assert command.spec is not None  # FaultCommand's validator guarantees it
+                self.set(command.spec)
+            elif command.op == "reset":
+                if command.fault_id is not None and command.fault_id not in self._faults:
+                    return FaultReply(ok=False, error=f"no active fault {command.fault_id!r}", active=self.active())
+                self.reset(command.fault_id)
+        except ValueError as exc:
+            return FaultReply(ok=False, error=str(exc), active=self.active())
+        return FaultReply(ok=True, active=self.active())
+
+    def active(self) -> list[FaultSpec]:
+        self._expire()
+        return [f.spec.model_copy(update={"id": f.fault_id}) for f in self._faults.values()]
+
+    def _expire(self) -> None:
+        now = self.clock()
+        for fid, fault in list(self._faults.items()):
+            if fault.expires is not None and now >= fault.expires:
+                del self._faults[fid]
+                if self.on_change:
+                    self.on_change("healed", fault)
+
+    # -- pure decision -----------------------------------------------------------------------------------------
+    def _link(self, fault: ActiveFault, sender: object, receiver: object) -> _Link:
+        key = (fault.fault_id, sender, receiver)
+        link = self._links.get(key)
+        if link is None:
+            seed = fault.spec.seed if fault.spec.seed is not None else self.base_seed
+            link = self._links[key] = _Link(random.Random(f"{seed}|{fault.fault_id}|{sender}|{receiver}"))
+        return link
+
+    def fate(self, key: str, sender: object, receiver: object) -> list[float]:
+        """Delivery delays for one message on link sender → receiver: [] dropped, [d] once, [d1, d2] duplicated."""
+        self._expire()
+        self.stats.seen += 1
+        if not self._faults:
+            return [0.0]
+        try:
+            rel = "/".join(self.keys.relative(key))
+        except ValueError:
+            return [0.0]  # not this run's traffic: untouched
+        delay = 0.0
+        copies = 1
+        for fault in self._faults.values():
+            if not fault.applies(rel, sender, receiver):
+                continue
+            spec = fault.spec
+            if spec.partition is not None and spec.partition.cuts(sender, receiver):
+                self.stats.partitioned += 1
+                self.stats.dropped += 1
+                return []
+            link = self._link(fault, sender, receiver)
+            link.count += 1
+            if spec.loss is not None and _lost(spec.loss, link):
+                self.stats.dropped += 1
+                return []
+            if spec.latency is not None:
+                skip = False
+                if spec.reorder is not None and link.count % spec.reorder.gap == 0:
+                    skip = link.uniform("reorder", spec.reorder.correlation) < spec.reorder.percent / 100.0
+                if not skip:
+                    u = link.uniform("latency", spec.latency.correlation)
+                    delay += latency_quantile(spec.latency, u)
+            if spec.duplicate is not None:
+                if link.uniform("duplicate", spec.duplicate.correlation) < spec.duplicate.percent / 100.0:
+                    copies = 2
+        if delay > 0.0:
+            self.stats.delayed += 1
+        if copies == 2:
+            self.stats.duplicated += 1
+        return [delay] * copies
+
+    # -- the bus seam ------------------------------------------------------------------------------------------
+    def on_publish(self, sample: Sample, send: Callable[[Sample], None]) -> None:
+        send(sample)  # faults are applied per link at the receiver
+
+    def on_deliver(self, sample: Sample, receiver: str, deliver: Callable[[Sample], None]) -> None:
+        sender = parse_agent_id(sample.sender) if sample.sender else ""
+        for delay in self.fate(sample.key, sender, parse_agent_id(receiver)):
+            if delay <= 0.0:
+                deliver(sample)
+            elif self.schedule is not None:
+                self.schedule(delay, lambda s=sample: deliver(s))
+            else:
+                loop = self.loop or asyncio.get_running_loop()
+                loop.call_soon_threadsafe(loop.call_later, delay, deliver, sample)
+
+
+def _lost(loss: Loss, link: _Link) -> bool:
+    if loss.model == "bernoulli":
+        return link.uniform("loss", loss.correlation) < (loss.percent or 0.0) / 100.0
+    p, r, one_minus_h, one_minus_k = loss.gilbert_elliott()
+    u = link.rng.random()
+    lost = u < (one_minus_h if link.bad else one_minus_k)
+    v = link.rng.random()
+    link.bad = (v >= r) if link.bad else (v < p)
+    return lost
