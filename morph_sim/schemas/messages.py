@@ -351,6 +351,7 @@ class FaultReply(Message):
     ok: bool
     error: str | None = None
     active: list[FaultSpec] = Field(default_factory=list)
+    source: str | None = Field(default=None, description="the process that answered (every process holds a layer)")
 
 
 class RegistrationRequest(Message):

@@ -440,20 +440,27 @@ class MorphPolicy(CoordinationPolicy):
     name: str = "morph"
     #: store identical reference replicas of co-owned agents once (see MorphBrains)
     share_replicas: bool = True
+    #: override of the preset's reset period (the shift experiment's phase length for MORPH-reset); None: keep
+    reset_every: int | None = None
 
     def __post_init__(self):
         loaded = load_preset(self.preset)
         if self.ablation not in (None, "full") and self.ablation not in ABLATIONS:
             raise ValueError(f"ablation: unknown {self.ablation!r} (known: {', '.join(ABLATIONS)})")
+        if self.reset_every is not None and self.reset_every < 0:
+            raise ValueError(f"reset_every: must be >= 0, got {self.reset_every}")
         loaded.resolve(self.ablation)
 
     @property
     def params(self) -> MorphParams:
-        return load_preset(self.preset).resolve(self.ablation)
+        params = load_preset(self.preset).resolve(self.ablation)
+        if self.reset_every is not None:
+            params = params.model_copy(update={"reset_every": self.reset_every})
+        return params
 
     def brains(self, fleet, owners, seed):
         preset = load_preset(self.preset)
-        return MorphBrains(fleet, owners, seed, preset.rules, preset.resolve(self.ablation), self.share_replicas)
+        return MorphBrains(fleet, owners, seed, preset.rules, self.params, self.share_replicas)
 
     def describe(self):
         return {"name": self.name, "preset": self.preset, "ablation": self.ablation or "full"}

@@ -298,6 +298,7 @@ class Bus(ABC):
         self._interposer: Interposer | None = None
         self._closed = False
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._clock: Callable[[], float] = time.time
 
     # -- lifecycle ------------------------------------------------------------------------------------------------
     @property
@@ -337,6 +338,11 @@ class Bus(ABC):
                             sample.sender, exc)
             return None
 
+    def set_clock(self, clock: Callable[[], float] | None) -> None:
+        """The clock that stamps ``sent_at`` on published samples: ``time.time`` (default, wall time) or a virtual-time
+        run's sim clock (``VirtualTime.now``), so that latency is measured and applied in sim seconds."""
+        self._clock = clock or time.time
+
     def set_interposer(self, interposer: Interposer | None) -> None:
         """Install (or remove, with None) the fault layer for this bus's egress and ingress."""
         self._interposer = interposer
@@ -358,7 +364,7 @@ class Bus(ABC):
         counter = self._seq.get(key)
         if counter is None:  # setdefault is atomic: inline handlers on another thread may publish too
             counter = self._seq.setdefault(key, itertools.count())
-        sample = Sample(key, data, self.identity, next(counter), time.time())
+        sample = Sample(key, data, self.identity, next(counter), self._clock())
         self.counters.published += 1
         if self._interposer is not None:
             self._interposer.on_publish(sample, lambda s: self._send(s, droppable))

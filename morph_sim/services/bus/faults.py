@@ -36,7 +36,9 @@ from statistics import NormalDist
 from morph_sim.schemas.faults import FaultSpec, Latency, Loss
 from morph_sim.schemas.messages import FaultCommand, FaultReply
 from morph_sim.schemas.keys import RunKeys, matches, parse_agent_id
-from morph_sim.services.bus.base import Sample
+from morph_sim.services.bus.base import Bus, Sample
+from morph_sim.services.bus.linkstats import LinkMeter
+from morph_sim.services.bus.vtime import VirtualTime
 
 _STD_NORMAL = NormalDist()
 _EPS = 1e-12
@@ -119,14 +121,23 @@ class FaultLayer:
     ``delay`` of that time; default: the running loop's ``call_later`` (wall time).
     """
 
-    def __init__(self, run: str, *, base_seed: int = 0, clock: Callable[[], float] = time.monotonic,
+    def __init__(self, run: str, *, base_seed: int = 0, clock: Callable[[], float] | None = None,
                  schedule: Callable[[float, Callable[[], None]], object] | None = None,
                  on_change: Callable[[str, ActiveFault], None] | None = None,
-                 loop: asyncio.AbstractEventLoop | None = None):
+                 loop: asyncio.AbstractEventLoop | None = None, vtime: VirtualTime | None = None,
+                 meter: LinkMeter | None = None):
         self.keys = RunKeys(run)
         self.base_seed = int(base_seed)
-        self.clock = clock
+        # virtual time: faults heal, messages wait and lateness is judged in sim seconds (see vtime.py)
+        self.vtime = vtime
+        self.clock = clock or (vtime.now if vtime is not None else time.monotonic)
         self.schedule = schedule
+        self.meter = meter  # measures what this receiver actually got (linkstats.py)
+        # called with (sample, fate) the moment a sample physically arrives, before it is dropped or held: a lockstep
+        # receiver counts arrivals here, so it never waits for a message the fault layer already decided to lose
+        self.on_fate: Callable[[Sample, list[float]], None] | None = None
+        if vtime is not None:
+            vtime.on_advance(lambda _now: self._expire())  # auto-heal is logged at the boundary it happens
         self.on_change = on_change  # ("set" | "healed" | "reset", fault): for events in the run record
         self.loop = loop  # needed when deliveries arrive on a transport thread (inline subscriptions)
         self.stats = FaultStats()
@@ -202,9 +213,12 @@ class FaultLayer:
         if not self._faults:
             return [0.0]
         try:
-            rel = "/".join(self.keys.relative(key))
+            chunks = self.keys.relative(key)
         except ValueError:
             return [0.0]  # not this run's traffic: untouched
+        if chunks[0] == "ctl":
+            return [0.0]  # control traffic (fault reset, stop) is never faulted: `reset` always works
+        rel = "/".join(chunks)
         delay = 0.0
         copies = 1
         for fault in self._faults.values():
@@ -242,14 +256,47 @@ class FaultLayer:
 
     def on_deliver(self, sample: Sample, receiver: str, deliver: Callable[[Sample], None]) -> None:
         sender = parse_agent_id(sample.sender) if sample.sender else ""
-        for delay in self.fate(sample.key, sender, parse_agent_id(receiver)):
+        fate = self.fate(sample.key, sender, parse_agent_id(receiver))
+        if self.on_fate is not None:
+            self.on_fate(sample, fate)
+        if self.meter is not None:
+            deliver = self._metered(deliver, receiver)
+        vt = self.vtime
+        for copy, delay in enumerate(fate):
             if delay <= 0.0:
-                deliver(sample)
+                deliver(sample)  # no latency: within its own phase, whatever clock stamped it
+            elif vt is not None:
+                # due at send time + latency, released at the first boundary at or after it; the tie order is the
+                # message's identity, not its arrival order (deterministic across processes)
+                vt.hold(sample.sent_at + delay, lambda s=sample: deliver(s),
+                        order=(sample.sender, sample.key, sample.seq, copy),
+                        deadline=vt.deadline_of(sample.sent_at))
             elif self.schedule is not None:
                 self.schedule(delay, lambda s=sample: deliver(s))
             else:
                 loop = self.loop or asyncio.get_running_loop()
                 loop.call_soon_threadsafe(loop.call_later, delay, deliver, sample)
+
+    def _metered(self, deliver: Callable[[Sample], None], receiver: str) -> Callable[[Sample], None]:
+        meter, vt = self.meter, self.vtime
+        assert meter is not None
+
+        def metered(sample: Sample) -> None:
+            if vt is not None:
+                now, late = vt.now(), vt.is_late(sample.sent_at)
+            else:
+                now, late = time.time(), False
+            meter.record(sample.key, sample.sender, sample.seq, sample.sent_at, now, late=late)
+            deliver(sample)
+        return metered
+
+
+def install(bus: Bus, layer: FaultLayer) -> FaultLayer:
+    """Put ``layer`` on ``bus``'s ingress; in virtual time also stamp the bus's samples with sim time."""
+    bus.set_interposer(layer)
+    if layer.vtime is not None:
+        bus.set_clock(layer.vtime.now)
+    return layer
 
 
 def _lost(loss: Loss, link: _Link) -> bool:

@@ -52,6 +52,9 @@ class CTAController:
         self.n = warehouse.num_agents
         self.grid_shape = (warehouse.H, warehouse.W)
         self.t = 0
+        #: the reference's demand-shift variant (shift.py, morph.md §7.2): when set to "left"/"right", queued
+        #: items on that half are assigned first and the others only when none of that half is waiting
+        self.assignment_side: str | None = None
         self._reset_state()
 
     def _reset_state(self) -> None:
@@ -98,7 +101,13 @@ class CTAController:
         wh = self.wh
         taken = set(self.items.values())
         x, y = wh.x, wh.y
-        for item in wh.queue:
+        items = wh.queue
+        if self.assignment_side is not None:
+            # shift.py: iterate over the "preferred" (queued, unassigned, on the active half) if any, else the rest
+            free = [it for it in wh.queue if it not in taken]
+            preferred = [it for it in free if wh.on_side(it, self.assignment_side)]
+            items = preferred or [it for it in free if it not in preferred]
+        for item in items:
             if item in taken:
                 continue
             avail = [

@@ -150,6 +150,10 @@ class Warehouse:
         self._global_reward = config.reward_type == "global"
         self.steps = 0
         self._rng: np.random.RandomState | None = None
+        #: demand shift (issue 8): None = requests drawn from every shelf (TA-RWARE); "left"/"right" = replacement
+        #: requests drawn only from shelves whose *current* cell has x < split_x ("left") or x >= split_x ("right")
+        self.demand_side: str | None = None
+        self.demand_split_x = self.W // 2  # shift.py's half_x = floor(W_grid / 2): 11 at Medium, 80/80 shelves
 
     # ------------------------------------------------------------------ reset
     def reset(self, seed: int | None = None) -> None:
@@ -198,6 +202,20 @@ class Warehouse:
                 self.agv_layer[c] = i + 1
             if self.carrying[i]:
                 self.carried_layer[c] = self.carrying[i]
+
+    def set_demand_side(self, side: str | None) -> None:
+        """Demand shift: draw replacement requests from one half of the shelves from now on (None: all).
+
+        Requests already in the queue stay (they are served as usual); the queue turns over one request per
+        counted delivery, each replacement drawn from the active half."""
+        if side not in (None, "left", "right"):
+            raise ValueError(f"demand_side: expected None, 'left' or 'right', got {side!r}")
+        self.demand_side = side
+
+    def on_side(self, shelf_id: int, side: str) -> bool:
+        """Whether shelf ``shelf_id`` currently stands in the ``side`` half (x < split_x is left)."""
+        left = self.shelf_x[shelf_id - 1] < self.demand_split_x
+        return left if side == "left" else not left
 
     @property
     def rng(self) -> np.random.RandomState:
@@ -553,6 +571,11 @@ class Warehouse:
             excluded = set(queue)
             excluded.update(s for s in self.carrying if s)
             candidates = [s for s in range(1, self.layout.num_shelves + 1) if s not in excluded]
+            if self.demand_side is not None:
+                # Same single draw per counted delivery, over the active half only; if that half has no free
+                # shelf left (never at the named sizes) the draw falls back to every free shelf.
+                active = [s for s in candidates if self.on_side(s, self.demand_side)]
+                candidates = active or candidates
             new = candidates[int(self._rng.randint(0, len(candidates)))]  # type: ignore[union-attr]
             queue[queue.index(sid)] = new
             aid = self.agv_layer[c]

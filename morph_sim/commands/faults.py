@@ -1,0 +1,137 @@
+"""``morph-sim faults set|list|reset``: runtime fault control of a running run over ``morph/<run>/ctl/faults``.
+
+The command is sent as a query, so every process of the run (each holds its own fault layer) applies it and answers;
+one JSON line is printed per answer. A spec is validated here first, so a bad one is rejected with the field that is
+wrong before anything is sent (exit 2); a process that rejects it answers ``ok: false`` with the reason (exit 1).
+
+    morph-sim faults set --run r1 --endpoint tcp/127.0.0.1:7447 --loss 20 --burst 4 --key 'agent/*/ack'
+    morph-sim faults set --run r1 --endpoint … --spec '{"latency": {"delay": 0.5, "jitter": 0.2}}'
+    morph-sim faults list --run r1 --endpoint …
+    morph-sim faults reset --run r1 --endpoint …            # heals everything, always
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import time
+
+NAME = "faults"
+HELP = "set, list or reset faults of a running run (ctl/faults)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="faults_op", metavar="OP", required=True)
+    for op, help_ in (("set", "activate a fault"), ("list", "list the active faults"),
+                      ("reset", "heal one fault (--id) or all of them")):
+        p = sub.add_parser(op, help=help_)
+        p.add_argument("--run", required=True, help="run id (key prefix morph/<run>/)")
+        p.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="Zenoh endpoint of the run")
+        p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for answers")
+        p.add_argument("--id", dest="fault_id", help="fault id (set: name it; reset: heal only this one)")
+        if op != "set":
+            continue
+        p.add_argument("--spec", help="the whole FaultSpec as JSON (other flags are then not allowed)")
+        p.add_argument("--loss", type=float, help="loss, percent")
+        p.add_argument("--burst", type=float, help="Gilbert–Elliott mean burst length (with --loss), messages")
+        p.add_argument("--delay", type=float, help="latency, seconds (sim seconds in virtual time)")
+        p.add_argument("--jitter", type=float, help="latency jitter, seconds")
+        p.add_argument("--distribution", choices=("uniform", "normal", "pareto"), help="latency distribution")
+        p.add_argument("--duplicate", type=float, help="duplicate, percent")
+        p.add_argument("--key", help="scope: key expression relative to morph/<run>/ (default **)")
+        p.add_argument("--agents", help="scope: comma-separated agent ids")
+        p.add_argument("--duration", type=float, help="auto-heal after this many seconds")
+        p.add_argument("--seed", type=int, help="seed of this fault's random streams")
+
+
+_FLAG_FIELDS = ("loss", "burst", "delay", "jitter", "distribution", "duplicate", "key", "agents", "duration", "seed")
+
+
+def build_command(args: argparse.Namespace):
+    """The FaultCommand the arguments describe; ValueError naming the bad field."""
+    from pydantic import ValidationError
+
+    from morph_sim.schemas.keys import validate_run_id
+    from morph_sim.schemas.messages import FaultCommand
+    from morph_sim.services.faults.schedule import _explain
+
+    validate_run_id(args.run)
+    if args.timeout <= 0:
+        raise ValueError(f"timeout: must be > 0, got {args.timeout}")
+    if args.faults_op != "set":
+        return FaultCommand(op=args.faults_op, fault_id=args.fault_id if args.faults_op == "reset" else None)
+    flags = {f: getattr(args, f) for f in _FLAG_FIELDS if getattr(args, f) is not None}
+    if args.spec is not None:
+        if flags:
+            raise ValueError(f"spec: --spec cannot be combined with --{', --'.join(flags)}")
+        try:
+            spec = json.loads(args.spec)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"spec: not valid JSON: {exc}") from None
+        if not isinstance(spec, dict):
+            raise ValueError("spec: must be a JSON object")
+    else:
+        spec = {}
+        if "loss" in flags:
+            spec["loss"] = ({"model": "gilbert_elliott", "percent": flags["loss"], "burst_length": flags["burst"]}
+                            if "burst" in flags else {"percent": flags["loss"]})
+        elif "burst" in flags:
+            raise ValueError("burst: needs --loss")
+        if "delay" in flags:
+            spec["latency"] = {"delay": flags["delay"], **({"jitter": flags["jitter"]} if "jitter" in flags else {}),
+                               **({"distribution": flags["distribution"]} if "distribution" in flags else {})}
+        elif "jitter" in flags or "distribution" in flags:
+            raise ValueError("jitter: --jitter and --distribution need --delay")
+        if "duplicate" in flags:
+            spec["duplicate"] = {"percent": flags["duplicate"]}
+        scope = {}
+        if "key" in flags:
+            scope["key_expr"] = flags["key"]
+        if "agents" in flags:
+            scope["agents"] = [a.strip() for a in flags["agents"].split(",") if a.strip()]
+        if scope:
+            spec["scope"] = scope
+        for name in ("duration", "seed"):
+            if name in flags:
+                spec[name] = flags[name]
+    if args.fault_id is not None:
+        spec["id"] = args.fault_id
+    # one id for the fault in every process's layer, so `reset --id` and the event log agree
+    spec.setdefault("id", time.strftime("op-%H%M%S", time.gmtime()))
+    try:
+        return FaultCommand(op="set", spec=spec)
+    except ValidationError as exc:
+        raise _explain(exc, "spec") from None
+
+
+async def send(endpoint: str, run: str, command, timeout: float = 2.0, bus=None) -> list:
+    """Send ``command`` as a query on ``morph/<run>/ctl/faults``; the FaultReply of every process that answered."""
+    from morph_sim.schemas.keys import RunKeys
+    from morph_sim.schemas.messages import FaultReply
+
+    own = bus is None
+    if own:
+        from morph_sim.services.supervisor.process import open_bus
+
+        bus = await open_bus(f"faults-cli-{int(time.time() * 1000) % 10**9}", connect=endpoint)
+    try:
+        replies = await bus.get(RunKeys(run).faults, payload=command, timeout=timeout)
+        out = []
+        for r in replies:
+            out.append(r.decode(FaultReply) if r.ok else FaultReply(ok=False, error=(r.error or b"").decode()))
+        return sorted(out, key=lambda r: r.source or "")
+    finally:
+        if own:
+            await bus.close()
+
+
+def run(args: argparse.Namespace) -> int:
+    command = build_command(args)
+    replies = asyncio.run(send(args.endpoint, args.run, command, args.timeout))
+    if not replies:
+        print(json.dumps({"ok": False, "error": f"no process of run {args.run!r} answered on {args.endpoint}"}))
+        return 1
+    for reply in replies:
+        print(reply.model_dump_json(exclude_none=True))
+    return 0 if all(r.ok for r in replies) else 1

@@ -1,0 +1,41 @@
+"""``morph-sim monitor``: metrics, metric streams, latest-state queryable and the run record, as its own process."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+NAME = "monitor"
+HELP = "run the monitor service (metrics, streams, run record) over Zenoh"
+# On SIGTERM the sim ends the run within a second (final tick, run.finished); the monitor waits that long for it so
+# the record says how the run ended, and still exits well within the supervisor's 3 s before SIGKILL.
+SIGNAL_GRACE = 1.5
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from morph_sim.services.runconfig import add_config_arguments
+
+    parser.add_argument("--max-rate", type=float, default=10.0,
+                        help="metric stream updates per second at most (0 = none; the record is always complete)")
+    parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+    add_config_arguments(parser, skip=("listen",))
+
+
+def run(args: argparse.Namespace) -> int:
+    from morph_sim.commands.sim import service_config
+    from morph_sim.services.monitor.service import MonitorService
+    from morph_sim.services.supervisor.process import exit_now, run_or_exit, serve, setup_logging
+
+    config = service_config(args)
+    if not config.endpoint:
+        raise ValueError("endpoint: the monitor needs --endpoint ENDPOINT (e.g. tcp/127.0.0.1:7447)")
+    if args.max_rate < 0:
+        raise ValueError(f"max_rate: must be >= 0, got {args.max_rate}")
+    setup_logging(args.log_level, "monitor")
+    result = run_or_exit(NAME, serve(
+        "monitor", lambda bus: MonitorService(config, bus, max_rate=args.max_rate, keep_rows=False),
+        lambda svc: svc.run(), lambda svc, why: svc.stop(grace=SIGNAL_GRACE), connect=config.endpoint))
+    print(json.dumps({"record": str(config.record_dir), "deliveries": result.deliveries_total,
+                      "rejected": result.rejected}))
+    exit_now(0)
+    return 1  # not reached

@@ -1,0 +1,36 @@
+"""``morph-sim run``: sim, agents and monitor in one process over LocalBus (deterministic, no network)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import time
+
+NAME = "run"
+HELP = "run all services in one process over the in-process bus (deterministic)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from morph_sim.services.runconfig import add_config_arguments
+
+    parser.add_argument("--no-record", action="store_true", help="do not write runs/<run-id>/")
+    add_config_arguments(parser, skip=("endpoint", "listen"))
+
+
+def run(args: argparse.Namespace) -> int:
+    from morph_sim.services.runconfig import config_from_args
+    from morph_sim.services.supervisor.local import run_local
+
+    config = config_from_args(args)
+    started = time.monotonic()
+    result = asyncio.run(run_local(config, record=not args.no_record))
+    wall = time.monotonic() - started
+    rows = result.monitor.rows
+    links = rows[-1]["links"] if rows else 0
+    print(f"run {config.run_id}: {config.scale} {config.n_agvs}+{config.n_pickers} policy {config.policy}"
+          f"{'/' + config.preset if config.policy == 'morph' else ''} seed {config.seed}: "
+          f"{result.sim.steps} ticks, {result.sim.deliveries} deliveries, {links} links at the end, "
+          f"{result.sim.steps / wall:.0f} ticks/s")
+    if not args.no_record:
+        print(f"record: {config.record_dir}")
+    return 0

@@ -1,0 +1,46 @@
+"""``morph-sim sim``: the warehouse clock service as its own process (it hosts the Zenoh endpoint by default)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+NAME = "sim"
+HELP = "run the sim clock service (warehouse + tick protocol) over Zenoh"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from morph_sim.services.runconfig import add_config_arguments
+
+    parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+    parser.add_argument("--no-wait-monitor", action="store_true", help="start without a monitor")
+    add_config_arguments(parser)
+
+
+def service_config(args: argparse.Namespace):
+    """Config of a standalone service: the run id must be given (flag or MORPH_RUN_ID), never generated."""
+    import os
+
+    from morph_sim.services.runconfig import RunConfig, config_from_args
+
+    if getattr(args, "cfg_run_id", None) is None and not os.environ.get(RunConfig.env_name("run_id")):
+        raise ValueError("run_id: a service process needs --run-id (or MORPH_RUN_ID) so it joins the right run")
+    return config_from_args(args)
+
+
+def run(args: argparse.Namespace) -> int:
+    from morph_sim.services.sim.clock import SimClock
+    from morph_sim.services.supervisor.process import exit_now, run_or_exit, serve, setup_logging
+
+    config = service_config(args)
+    if not config.listen and not config.endpoint:
+        raise ValueError("listen: the sim needs --listen ENDPOINT (host the run) or --endpoint ENDPOINT (router)")
+    setup_logging(args.log_level, "sim")
+    result = run_or_exit(NAME, serve(
+        "sim", lambda bus: SimClock(config, bus, wait_for_monitor=not args.no_wait_monitor),
+        lambda svc: svc.run(), lambda svc, why: svc.stop(why), listen=config.listen, connect=config.endpoint))
+    print(json.dumps({"steps": result.steps, "deliveries": result.deliveries, "rejected": result.rejected,
+                      "absences": result.absences, "ticks_per_s": round(result.ticks_per_s, 1),
+                      "stopped_early": result.stopped_early}))
+    exit_now(0)  # a run ended by a stop request is a clean end; errors exit non-zero with a traceback
+    return 1  # not reached

@@ -1,0 +1,53 @@
+"""``morph-sim up``: a distributed run on this machine — sim, one process per agent, monitor — over Zenoh."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+
+NAME = "up"
+HELP = "start a distributed run: sim (Zenoh endpoint), one process per agent, monitor; live progress"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from morph_sim.services.runconfig import add_config_arguments
+
+    parser.add_argument("--quiet", action="store_true", help="no live progress line")
+    add_config_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from morph_sim.services.runconfig import config_from_args
+    from morph_sim.services.supervisor.launcher import StartError, Supervisor
+
+    config = config_from_args(args)
+    console = Console(stderr=True)
+    status = None
+    if not args.quiet:
+        status = console.status("starting …")
+        status.start()
+
+    def show(progress, line: str) -> None:
+        if status is not None:
+            status.update(line)
+        if progress.finished:
+            console.print(line)
+
+    supervisor = Supervisor(config, on_progress=show)
+    try:
+        code = asyncio.run(supervisor.run())
+    except StartError as exc:
+        if status is not None:
+            status.stop()
+        print(f"morph-sim up: error: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        if status is not None:
+            status.stop()
+    restarts = sum(c.restarts for c in supervisor.children.values())
+    print(f"run {config.run_id}: {len(supervisor.children)} processes, {restarts} restarts, "
+          f"{'completed' if code == 0 else 'interrupted'}; record: {config.record_dir}")
+    return code

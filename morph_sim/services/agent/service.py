@@ -1,0 +1,293 @@
+"""The agent service: one robot's coordination brain, learning and deciding from messages only.
+
+It owns that robot's :class:`~morph_sim.services.agent.policies.Brains` (its plasticity state and its own seeded
+RNG) and nothing else. Per tick ``t`` (DESIGN §3):
+
+* on ``Tick`` it rebuilds the observation from the message alone, applies the plasticity update of step t−1,
+  and, as an AGV that needs a picker, picks a candidate by the policy's rule, draws its gate and on success sends a
+  ``HelpRequest`` to that picker; then it acks (with its out-links, for the monitor);
+* as a picker, on ``Resolve`` it waits for the requests it was told to expect, takes the first in mission order
+  (deterministic), sends ``Commit`` to the sim and ``HelpReply`` to every requester;
+* every ``state_every`` ticks (and at the final tick) it publishes its state (row of W, links, h, η).
+
+The final tick (``t == steps``) only reports the last step: the agent learns and acks, and never asks.
+Bad input never stops the agent: rejected messages are counted and logged.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from morph_sim.schemas import Ack, AgentState, Commit, Event, HelpReply, HelpRequest, Phase, Resolve, Stop, Tick
+from morph_sim.schemas.keys import RunKeys
+from morph_sim.services.agent.policies import Fleet, MorphBrains
+from morph_sim.services.bus.base import Bus, Sample
+from morph_sim.services.rejects import Rejects
+from morph_sim.services.runconfig import RunConfig
+from morph_sim.services.sim.clock import observation_from_tick
+
+log = logging.getLogger("morph_sim.agent")
+
+STOP_GRACE = 3.0  # seconds an agent waits for the sim's end of run after someone else's stop
+
+def _ack_fields() -> set[str]:
+    return set(Ack.model_fields)
+
+
+@dataclass
+class AgentCounters:
+    ticks: int = 0
+    requests: int = 0
+    commits: int = 0
+    rejected: int = 0
+
+
+class AgentService:
+    """Agent ``agent_id`` of the run of ``config`` over ``bus``. ``await run()`` until stop."""
+
+    def __init__(self, config: RunConfig, bus: Bus, agent_id: int):
+        if not 0 <= agent_id < config.n_agents:
+            raise ValueError(f"id: agent {agent_id} outside 0..{config.n_agents - 1} for this fleet")
+        self.config = config
+        self._rejects = Rejects(log, f"agent {agent_id}")
+        self.bus = bus
+        self.id = agent_id
+        self.keys = RunKeys(config.run_id)
+        self.is_agv = agent_id < config.n_agvs
+        self.role = "agv" if self.is_agv else "picker"
+        fleet = Fleet(config.n_agvs, config.n_pickers, config.scale)
+        self.brains = config.make_policy().brains(fleet, [agent_id], config.seed)
+        self.counters = AgentCounters()
+        self.last_t = -1
+        self._ack_extras = _ack_fields() & {"links", "eta"}
+        self._stop = asyncio.Event()
+        self._seq = 0
+        # picker side: requests received per tick, and the resolve being decided
+        self._inbox: dict[int, dict[int, HelpRequest]] = {}
+        self._pending: tuple[int, list[int]] | None = None
+        self._pending_timer: asyncio.TimerHandle | None = None
+        self._stop_timer: asyncio.TimerHandle | None = None
+
+    def _reject(self, what: str, why: object) -> None:
+        self._rejects.count(what, why)
+        self.counters.rejected = self._rejects.total
+
+    # -- lifecycle -----------------------------------------------------------------------------------------------------
+    async def run(self) -> AgentCounters:
+        k, bus = self.keys, self.bus
+        await bus.subscribe(k.tick, self._on_tick)
+        await bus.subscribe(k.event("sim"), self._on_probe)
+        await bus.subscribe(k.stop, self._on_stop)
+        if not self.is_agv:
+            await bus.subscribe(k.resolve, self._on_resolve)
+            await bus.subscribe(k.requests_to(self.id), self._on_request)
+        else:
+            await bus.subscribe(k.replies_to(self.id), self._on_reply)
+        # the token last: once the sim sees it, the subscriptions above are declared
+        token = await bus.declare_token(k.alive(self.id))
+        await self._stop.wait()
+        for timer in (self._pending_timer, self._stop_timer):
+            if timer is not None:
+                timer.cancel()
+        await token.close()
+        return self.counters
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def _on_stop(self, sample: Sample) -> None:
+        try:
+            sample.decode(Stop)
+        except ValueError as exc:
+            self._reject(sample.key, exc)
+            return
+        if sample.sender == "sim":
+            self._stop.set()
+        elif self._stop_timer is None:
+            # someone else's stop: the sim ends the run (final tick, then its own stop); leave anyway if it cannot
+            self._stop_timer = asyncio.get_running_loop().call_later(STOP_GRACE, self._stop.set)
+
+    async def _on_probe(self, sample: Sample) -> None:
+        if self._stop.is_set():
+            return  # a stopped agent is gone, even while its session closes
+        try:
+            msg = sample.decode(Event)
+        except ValueError as exc:
+            self._reject(sample.key, exc)
+            return
+        if msg.kind == "ready.probe":
+            await self.bus.publish(self.keys.event(self.id), Event(
+                kind="ready.ack", source=self.id, details={"round": msg.details.get("round", 0), "role": self.role}))
+
+    def _next_seq(self) -> int:
+        self._seq += 1
+        return self._seq
+
+    # -- tick ------------------------------------------------------------------------------------------------------------
+    async def _on_tick(self, sample: Sample) -> None:
+        if self._stop.is_set():
+            return  # a stopped agent is gone, even while its session closes
+        try:
+            tick = sample.decode(Tick)
+            if tick.n != self.config.n_agents:
+                raise ValueError(f"tick has {tick.n} robots, this fleet {self.config.n_agents}")
+            obs = observation_from_tick(tick, self.config.steps)
+        except (ValueError, IndexError) as exc:
+            self._reject(sample.key, exc)
+            return
+        if tick.t <= self.last_t:
+            return  # a duplicate or stale tick: each tick is learnt from once
+        self.last_t = tick.t
+        self.counters.ticks += 1
+        final = tick.t >= self.config.steps or bool(getattr(obs, "final", False))
+        if not final or not self.brains.memoryless:
+            # the final tick only reports the last step: a memoryless brain has nothing to learn from it
+            self.brains.learn(obs)
+        asked: list[int] = []
+        if self.is_agv and not final and obs.needs_picker[self.id]:
+            picker = self.brains.candidate(self.id, obs)
+            if picker >= 0:
+                p = self.brains.probability(self.id, picker, obs)
+                ask = self.brains.draw(self.id) < p if self.brains.draws else p >= 1.0
+                if ask:
+                    tx, ty = (int(v) for v in obs.target[self.id])
+                    await self.bus.publish(self.keys.request(self.id, picker), HelpRequest(
+                        t=tick.t, agv=self.id, picker=picker, target_x=tx, target_y=ty,
+                        mission=int(obs.mission[self.id]), seq=self._next_seq()))
+                    self.counters.requests += 1
+                    asked.append(picker)
+        extras = {}
+        if "links" in self._ack_extras:
+            extras["links"] = np.flatnonzero(self.brains.link_rows()[0]).tolist()
+        if "eta" in self._ack_extras and isinstance(self.brains, MorphBrains):
+            extras["eta"] = float(self.brains.state.eta)
+        # Without per-tick links in the ack (older wire schema) the state row carries them every tick.
+        publish_state = tick.t % self.config.state_every == 0 or final or "links" not in self._ack_extras
+        ack = Ack(t=tick.t, agent=self.id, phase=Phase.TICK, requests_sent=asked, seq=self._next_seq(), **extras)
+        if publish_state and (final or "links" not in self._ack_extras):
+            # Before the ack, on the same link: the last state must reach the monitor before the run ends, and a
+            # state that carries the per-tick links of step t−1 before tick t+1 (the monitor closes row t−1 then).
+            await self.bus.publish(self.keys.agent_state(self.id), self.state_message(tick.t))
+            publish_state = False
+        await self.bus.publish(self.keys.ack(self.id), ack)  # the ack first: it is on the sim's critical path
+        if publish_state:
+            # still before this agent's ack of t+1, hence before tick t+2, when the monitor closes row t
+            await self.bus.publish(self.keys.agent_state(self.id), self.state_message(tick.t))
+
+    def state_message(self, t: int) -> AgentState:
+        b = self.brains
+        w = b.weight_rows()[0]
+        a = b.link_rows()[0]
+        n = len(w)
+        theta = np.zeros(n)
+        age = np.zeros(n, dtype=int)
+        h = eta = d_hat = 0.0
+        if isinstance(b, MorphBrains):
+            s = b.state
+            if b.preset == "reference":
+                theta, age = s.theta_bcm[0, self.id], s.age[0, self.id]
+            else:
+                theta, age = s.theta_bcm[0], s.age[0]
+            h, eta, d_hat = float(b.h()[0]), float(s.eta), float(s.dhat)
+        return AgentState(
+            agent=self.id, role=self.role, t=t, w_row=[float(v) for v in w], a_row=[bool(v) for v in a],
+            theta_row=[float(v) for v in theta], age_row=[int(v) for v in age], h=h, eta=eta, d_hat=d_hat,
+            seq=self._next_seq())
+
+    # -- AGV side --------------------------------------------------------------------------------------------------------
+    def _on_reply(self, sample: Sample) -> None:
+        # World state is authoritative (the next tick tells the AGV whether a picker comes); replies are only checked.
+        try:
+            msg = sample.decode(HelpReply)
+        except ValueError as exc:
+            self._reject(sample.key, exc)
+            return
+        if msg.agv != self.id:
+            self._reject(sample.key, f"reply addressed to AGV {msg.agv}")
+
+    # -- picker side -----------------------------------------------------------------------------------------------------
+    def _on_request(self, sample: Sample) -> None:
+        if self._stop.is_set():
+            return  # a stopped agent is gone, even while its session closes
+        try:
+            msg = sample.decode(HelpRequest)
+            sender = self.keys.sender_of(sample.key)
+        except ValueError as exc:
+            self._reject(sample.key, exc)
+            return
+        if msg.picker != self.id or sender != msg.agv:
+            self._reject(sample.key, f"request {msg.agv}->{msg.picker} on key of {sender}")
+            return
+        if msg.t < self.last_t:
+            return  # stale: the protocol drops it
+        self._inbox.setdefault(msg.t, {})[msg.agv] = msg
+        self._try_decide()
+
+    def _on_resolve(self, sample: Sample) -> None:
+        if self._stop.is_set():
+            return  # a stopped agent is gone, even while its session closes
+        try:
+            msg = sample.decode(Resolve)
+        except ValueError as exc:
+            self._reject(sample.key, exc)
+            return
+        expected = msg.expected(self.id)
+        if not expected or msg.t < self.last_t:
+            return
+        self._pending = (msg.t, expected)
+        if self._pending_timer is not None:
+            self._pending_timer.cancel()
+        # Lockstep: wait for every expected request; past the deadline decide over those that arrived.
+        wait = self.config.phase_timeout if self.config.mode == "lockstep" else 0.4 * self.config.period
+        self._pending_timer = asyncio.get_running_loop().call_later(wait, self._decide_now)
+        self._try_decide()
+
+    def _try_decide(self) -> None:
+        if self._pending is None:
+            return
+        t, expected = self._pending
+        got = self._inbox.get(t, {})
+        if all(a in got for a in expected):
+            self._decide()
+
+    def _decide_now(self) -> None:
+        self._pending_timer = None
+        if self._pending is not None:
+            self._decide()
+
+    def _decide(self) -> None:
+        assert self._pending is not None
+        t, expected = self._pending
+        self._pending = None
+        if self._pending_timer is not None:
+            self._pending_timer.cancel()
+            self._pending_timer = None
+        got = self._inbox.pop(t, {})
+        for old in [s for s in self._inbox if s <= t]:
+            del self._inbox[old]
+        chosen = next((a for a in expected if a in got), None)  # first in the sim's mission order
+        self.bus._spawn(self._answer(t, expected, got, chosen), "decide")
+
+    async def _answer(self, t: int, expected: list[int], got: dict[int, HelpRequest], chosen: int | None) -> None:
+        k = self.keys
+        if chosen is not None:
+            await self.bus.publish(k.commit(self.id), Commit(t=t, picker=self.id, agv=chosen, seq=self._next_seq()))
+            self.counters.commits += 1
+        else:
+            await self.bus.publish(k.ack(self.id), Ack(t=t, agent=self.id, phase=Phase.RESOLVE,
+                                                       seq=self._next_seq()))
+        for agv in expected:
+            if agv in got:
+                await self.bus.publish(k.reply(self.id, agv), HelpReply(
+                    t=t, picker=self.id, agv=agv, accepted=agv == chosen, seq=self._next_seq()))
+
+
+async def run_agent(config: RunConfig, bus: Bus, agent_id: int) -> AgentCounters:
+    return await AgentService(config, bus, agent_id).run()
+
+
+__all__ = ["AgentCounters", "AgentService", "run_agent"]

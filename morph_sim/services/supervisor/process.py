@@ -1,0 +1,71 @@
+"""Running one service as its own OS process over Zenoh (``morph-sim sim|agent|monitor``).
+
+Opens the session (the sim listens as the Zenoh router of the run unless an external endpoint is given; every other
+process connects as a client — peers do not route between each other, see docs/services.md), turns SIGTERM/SIGINT
+into the service's own stop, and always closes the session within a bounded time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+import sys
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+log = logging.getLogger("morph_sim.process")
+
+
+def setup_logging(level: str = "WARNING", name: str = "") -> None:
+    logging.basicConfig(level=getattr(logging, level.upper(), logging.WARNING), stream=sys.stderr,
+                        format=f"%(asctime)s {name} %(levelname)s %(name)s: %(message)s")
+
+
+async def open_bus(identity: str, *, listen: str | None = None, connect: str | None = None):
+    from morph_sim.services.bus.zenoh_bus import ZenohBus
+
+    if listen:
+        return await ZenohBus.open(identity, listen=listen, mode="router")
+    if not connect:
+        raise ValueError("endpoint: a distributed service needs --endpoint (or --listen for the sim)")
+    return await ZenohBus.open(identity, connect=connect, mode="client")
+
+
+async def serve(identity: str, make: Callable[[Any], Any], run: Callable[[Any], Awaitable[Any]],
+                stop: Callable[[Any, str], None], *, listen: str | None = None, connect: str | None = None
+                ) -> Any:
+    """Open the bus, build the service with ``make(bus)``, ``await run(service)``; signals call ``stop``."""
+    bus = await open_bus(identity, listen=listen, connect=connect)
+    loop = asyncio.get_running_loop()
+    try:
+        service = make(bus)
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, stop, service, signal.Signals(sig).name)
+        return await run(service)
+    finally:
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            try:
+                loop.remove_signal_handler(sig)
+            except Exception:
+                pass
+        await bus.close()
+
+
+def exit_now(code: int) -> None:
+    """Leave without interpreter teardown: Zenoh's native threads can abort a normal exit (zenoh.md §8.1)."""
+    import os
+
+    sys.stdout.flush()
+    sys.stderr.flush()
+    logging.shutdown()
+    os._exit(code)
+
+
+def run_or_exit(command: str, main: Awaitable[Any]) -> Any:
+    """``asyncio.run(main)``; a session that cannot open ends the process with one clear line and status 1."""
+    try:
+        return asyncio.run(main)
+    except ConnectionError as exc:
+        print(f"morph-sim {command}: error: {exc}", file=sys.stderr)
+        exit_now(1)

@@ -1,0 +1,210 @@
+"""Runtime fault control (issue 5): the ctl/faults controller in every process, the TOML schedule, the
+``morph-sim faults`` command (over real Zenoh), events with sim time, and ``reset`` that always heals."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import textwrap
+
+import pytest
+
+from morph_sim.commands import faults as faults_cmd
+from morph_sim.schemas import Event, FaultCommand, FaultReply, FaultSpec, Latency, Loss, Partition, RunKeys
+from morph_sim.schemas.faults import Crash
+from morph_sim.services.bus import LocalNetwork
+from morph_sim.services.bus.faults import FaultLayer, install
+from morph_sim.services.bus.vtime import VirtualTime
+from morph_sim.services.faults.controller import FaultController
+from morph_sim.services.faults.schedule import load_schedule, parse_schedule
+
+RUN = "fc"
+K = RunKeys(RUN)
+
+
+async def drain() -> None:
+    for _ in range(5):
+        await asyncio.sleep(0)
+
+
+async def start_processes(net: LocalNetwork, vt: VirtualTime, names=("sim", "1", "2"), **kw):
+    """One bus, fault layer and controller per participant, as separate processes would each have."""
+    out = {}
+    for name in names:
+        bus = net.session(name)
+        layer = install(bus, FaultLayer(RUN, base_seed=1, vtime=vt))
+        ctl = FaultController(bus, RUN, [layer], clock=vt.now, dt=1.0, events=name == "sim", **kw)
+        await ctl.start()
+        out[name] = (bus, layer, ctl)
+    return out
+
+
+async def test_query_reaches_every_process_and_events_carry_sim_time() -> None:
+    net, vt = LocalNetwork(), VirtualTime(dt=1.0)
+    procs = await start_processes(net, vt)
+    operator = net.session("operator")
+    events: list[Event] = []
+    await operator.subscribe(K.events, lambda s: events.append(s.decode(Event)))
+    vt.advance(3.0)
+    spec = FaultSpec(id="cut", partition=Partition(from_agents=[1], to_agents=["sim"], direction="to"), duration=2.0)
+    replies = [r.decode(FaultReply) for r in await operator.get(K.faults, payload=FaultCommand(op="set", spec=spec))]
+    assert sorted(r.source for r in replies) == ["1", "2", "sim"] and all(r.ok for r in replies)
+    assert all([s.id for s in layer.active()] == ["cut"] for _, layer, _ in procs.values())
+    listed = await operator.get(K.faults)  # a bare query lists
+    assert all([s.id for s in r.decode(FaultReply).active] == ["cut"] for r in listed)
+    for b in (3.5, 4.0, 4.5, 5.0):
+        vt.advance(b)
+    await drain()
+    assert all(layer.active() == [] for _, layer, _ in procs.values())  # auto-healed in every process
+    assert [(e.kind, e.t, e.sim_time, e.details["fault_id"]) for e in events] == [
+        ("fault.set", 3, 3.0, "cut"), ("fault.healed", 5, 5.0, "cut")]  # from the sim only, once each
+    for bus, _, _ in procs.values():
+        await bus.close()
+    await operator.close()
+
+
+async def test_reset_always_heals_everything_even_under_a_total_partition() -> None:
+    net, vt = LocalNetwork(), VirtualTime(dt=1.0)
+    procs = await start_processes(net, vt)
+    operator = net.session("operator")
+    cmd = FaultCommand(op="set", spec=FaultSpec(id="dark", loss=Loss(percent=100)))
+    await operator.get(K.faults, payload=cmd)
+    await operator.get(K.faults, payload=FaultCommand(op="set", spec=FaultSpec(id="slow", latency=Latency(delay=9))))
+    await operator.publish(K.faults, FaultCommand(op="reset"))  # a put: control traffic is never faulted
+    await drain()
+    assert all(layer.active() == [] for _, layer, _ in procs.values())
+    bad = [r.decode(FaultReply) for r in await operator.get(K.faults, payload=FaultCommand(op="reset",
+                                                                                          fault_id="nope"))]
+    assert all(not r.ok and "nope" in r.error for r in bad)
+    junk = [r.decode(FaultReply) for r in await operator.get(K.faults, payload=b"\x93garbage")]
+    assert all(not r.ok and r.error.startswith("bad fault command") for r in junk)
+    for bus, _, _ in procs.values():
+        await bus.close()
+    await operator.close()
+
+
+async def test_crash_goes_to_the_supervisor_hook_or_is_rejected() -> None:
+    net, vt = LocalNetwork(), VirtualTime(dt=1.0)
+    seen: list[FaultSpec] = []
+    bus = net.session("supervisor")
+    ctl = FaultController(bus, RUN, [], clock=vt.now, on_crash=lambda s: seen.append(s) or None)
+    crash = FaultSpec(id="k", crash=Crash(agent=3, every=100))
+    assert ctl.handle(FaultCommand(op="set", spec=crash)).ok and seen == [crash]
+    plain = FaultController(net.session("1"), RUN, [FaultLayer(RUN)], clock=vt.now)
+    reply = plain.handle(FaultCommand(op="set", spec=crash))
+    assert not reply.ok and "supervisor" in reply.error
+
+
+SCHEDULE = textwrap.dedent("""
+    [[at]]
+    tick = 2
+    [at.spec]
+    id = "burst"
+    duration = 3.0
+    [at.spec.loss]
+    model = "gilbert_elliott"
+    percent = 20
+    burst_length = 4
+
+    [[at]]
+    time = 1.5
+    [at.spec]
+    id = "slow"
+    latency = { delay = 0.5, jitter = 0.1, distribution = "normal" }
+
+    [[at]]
+    tick = 8
+    op = "reset"
+""")
+
+
+async def test_schedule_applies_commands_at_their_sim_time(tmp_path) -> None:
+    path = tmp_path / "faults.toml"
+    path.write_text(SCHEDULE)
+    schedule = load_schedule(path)
+    assert [(at, c.op) for at, c in schedule.timeline(1.0)] == [(1.5, "set"), (2.0, "set"), (8.0, "reset")]
+    net, vt = LocalNetwork(), VirtualTime(dt=1.0)
+    bus = net.session("sim")
+    layer = install(bus, FaultLayer(RUN, vtime=vt))
+    ctl = FaultController(bus, RUN, [layer], clock=vt.now, events=True, schedule=schedule)
+    vt.on_advance(ctl.advance)
+    active = []
+    for k in range(20):
+        vt.advance(k * 0.5)
+        active.append((k * 0.5, sorted(s.id for s in layer.active())))
+    assert active[2] == (1.0, []) and active[3] == (1.5, ["slow"]) and active[4] == (2.0, ["burst", "slow"])
+    assert active[10] == (5.0, ["slow"]) and active[16] == (8.0, [])
+    assert [(e.kind, e.sim_time) for e in ctl.log] == [
+        ("fault.set", 1.5), ("fault.set", 2.0), ("fault.healed", 5.0), ("fault.reset", 8.0)]
+    await bus.close()
+
+
+@pytest.mark.parametrize(("text", "names"), [
+    ("[[at]]\ntick = 1\n[at.spec.loss]\npercent = 120\n", "at[0].spec.loss.percent"),
+    ("[[at]]\ntick = 1\ntime = 2.0\nop = 'reset'\n", "at[0]"),
+    ("[[at]]\ntick = 1\n[at.spec]\nlatency = { delay = -1 }\n", "at[0].spec.latency.delay"),
+    ("[[at]]\ntick = 1\nop = 'set'\n", "spec"),
+    ("[[at]]\ntik = 1\nop = 'reset'\n", "at[0].tik"),
+])
+def test_schedule_errors_name_the_field(text: str, names: str) -> None:
+    import tomllib
+
+    with pytest.raises(ValueError, match=r"schedule: .*" + names.replace("[", r"\[").replace("]", r"\]")):
+        parse_schedule(tomllib.loads(text))
+
+
+def cli_args(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    faults_cmd.add_arguments(parser)
+    return parser.parse_args(argv)
+
+
+def test_cli_builds_commands_and_rejects_bad_specs_naming_the_field() -> None:
+    cmd = faults_cmd.build_command(cli_args("set", "--run", RUN, "--loss", "20", "--burst", "4", "--key",
+                                            "agent/*/ack", "--agents", "1,2", "--id", "b", "--duration", "10"))
+    assert cmd.spec.loss.model == "gilbert_elliott" and cmd.spec.loss.burst_length == 4
+    assert cmd.spec.scope.agents == [1, 2] and cmd.spec.id == "b" and cmd.spec.duration == 10
+    cmd = faults_cmd.build_command(cli_args("set", "--run", RUN, "--spec", '{"latency": {"delay": 0.5}}'))
+    assert cmd.spec.latency.delay == 0.5 and cmd.spec.id  # an id is always assigned, the same in every process
+    assert faults_cmd.build_command(cli_args("reset", "--run", RUN)).fault_id is None
+    for argv, field in [(("--loss", "150"), "spec.loss.percent"), (("--delay", "-1"), "spec.latency.delay"),
+                        (("--burst", "3"), "burst"), (("--key", "a/**/**"), "spec.scope.key_expr"),
+                        (("--spec", '{"loss": {"percent": 5}, "bogus": 1}'), "spec.bogus"),
+                        (("--spec", "{"), "spec"), ((), "spec")]:
+        with pytest.raises(ValueError, match=field.replace(".", r"\.")):
+            faults_cmd.build_command(cli_args("set", "--run", RUN, *argv))
+
+
+async def test_cli_over_zenoh_sets_lists_and_resets(capsys) -> None:
+    from morph_sim.services.bus.zenoh_bus import ZenohBus, endpoint, free_port
+
+    ep = endpoint(free_port())
+    vt = VirtualTime(dt=1.0)
+    sim = await ZenohBus.open("sim", listen=ep, mode="router")
+    agent = await ZenohBus.open("4", connect=ep, mode="client")
+    layers = {}
+    try:
+        for bus in (sim, agent):
+            layers[bus.identity] = layer = install(bus, FaultLayer(RUN, vtime=vt))
+            await FaultController(bus, RUN, [layer], clock=vt.now, events=bus is sim).start()
+        for _ in range(100):  # declarations propagate: wait until both controllers answer
+            if len(await sim.get(K.faults, timeout=0.5)) == 2:
+                break
+            await asyncio.sleep(0.05)
+        code = await asyncio.to_thread(faults_cmd.run, cli_args(
+            "set", "--run", RUN, "--endpoint", ep, "--delay", "0.5", "--id", "slow"))
+        lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+        assert code == 0 and sorted(x["source"] for x in lines) == ["4", "sim"]
+        assert all([s.id for s in layer.active()] == ["slow"] for layer in layers.values())
+        code = await asyncio.to_thread(faults_cmd.run, cli_args("list", "--run", RUN, "--endpoint", ep))
+        assert code == 0 and all(json.loads(x)["active"][0]["id"] == "slow"
+                                 for x in capsys.readouterr().out.splitlines())
+        code = await asyncio.to_thread(faults_cmd.run, cli_args("reset", "--run", RUN, "--endpoint", ep, "--id",
+                                                                "nope"))
+        assert code == 1 and "nope" in capsys.readouterr().out
+        code = await asyncio.to_thread(faults_cmd.run, cli_args("reset", "--run", RUN, "--endpoint", ep))
+        assert code == 0 and all(layer.active() == [] for layer in layers.values())
+    finally:
+        await agent.close()
+        await sim.close()

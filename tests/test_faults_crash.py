@@ -1,0 +1,70 @@
+"""Process faults (issue 5): the crash planner's schedule (at a tick, every k ticks, a seeded random agent) and the
+faulter's signals on a real child process (SIGSTOP/SIGCONT, SIGKILL), by pid."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import subprocess
+import sys
+
+
+from morph_sim.schemas import FaultCommand, FaultSpec
+from morph_sim.schemas.faults import Crash
+from morph_sim.services.bus import LocalNetwork
+from morph_sim.services.faults.controller import FaultController
+from morph_sim.services.faults.crash import CrashPlanner, ProcessFaulter
+
+
+def test_planner_at_tick_every_k_and_seeded_random_agent() -> None:
+    plan = CrashPlanner(n_agents=8, seed=3)
+    assert plan.add(FaultSpec(id="a", crash=Crash(agent=2, at_tick=5))) is None
+    assert plan.add(FaultSpec(id="b", crash=Crash(agent=1, every=100))) is None
+    assert plan.add(FaultSpec(id="c", crash=Crash(every=50, signal="pause", pause_for=2.0))) is None
+    assert "outside" in plan.add(FaultSpec(crash=Crash(agent=8, at_tick=1)))
+    hits = {t: [(a.fault_id, a.agent) for a in plan.due(t)] for t in range(0, 301) if plan.due(t)}
+    assert sorted(hits) == [5, 50, 100, 150, 200, 250, 300]
+    assert hits[5] == [("a", 2)] and [f for f, _ in hits[100]] == ["b", "c"] and hits[100][0] == ("b", 1)
+    randoms = [hits[t][-1][1] for t in (50, 100, 150, 200, 250, 300)]
+    assert len(set(randoms)) > 1 and all(0 <= a < 8 for a in randoms)
+    again = CrashPlanner(n_agents=8, seed=3)
+    again.add(FaultSpec(id="c", crash=Crash(every=50, signal="pause", pause_for=2.0)))
+    assert [again.due(t)[0].agent for t in (50, 100, 150, 200, 250, 300)] == randoms  # same seed, same victims
+
+
+def test_controller_routes_crash_specs_to_the_planner() -> None:
+    plan = CrashPlanner(n_agents=4)
+    ctl = FaultController(LocalNetwork().session("supervisor"), "cr", [], clock=lambda: 0.0, on_crash=plan.add)
+    assert ctl.handle(FaultCommand(op="set", spec=FaultSpec(id="k", crash=Crash(agent=3, every=100)))).ok
+    bad = ctl.handle(FaultCommand(op="set", spec=FaultSpec(crash=Crash(agent=9, at_tick=1))))
+    assert not bad.ok and "agent 9" in bad.error
+    assert [a.agent for a in plan.due(200)] == [3] and [e.kind for e in ctl.log] == ["fault.crash"]
+
+
+def _state(pid: int) -> str:
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().rsplit(")", 1)[1].split()[0]
+
+
+async def test_faulter_pauses_resumes_and_kills_a_real_process() -> None:
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(20)"])
+    try:
+        plan = CrashPlanner(n_agents=2)
+        plan.add(FaultSpec(id="p", crash=Crash(agent=1, at_tick=1, signal="pause", pause_for=0.2)))
+        plan.add(FaultSpec(id="k", crash=Crash(agent=1, at_tick=3)))
+        plan.add(FaultSpec(id="gone", crash=Crash(agent=0, at_tick=3)))
+        faulter = ProcessFaulter(lambda agent: child.pid if agent == 1 else None)
+        [pause] = plan.due(1)
+        assert faulter.execute(pause) == child.pid
+        await asyncio.sleep(0.05)
+        assert _state(child.pid) == "T"  # stopped
+        await asyncio.sleep(0.4)
+        assert _state(child.pid) in ("S", "R")  # continued after pause_for
+        kill, absent = plan.due(3)
+        assert faulter.execute(kill) == child.pid and faulter.execute(absent) is None
+        assert child.wait(timeout=5) == -signal.SIGKILL
+    finally:
+        if child.poll() is None:
+            os.kill(child.pid, signal.SIGKILL)
+            child.wait(timeout=5)

@@ -1,0 +1,69 @@
+"""The fault experiment (issue 5) in its reduced CI form: the sweep runs, is deterministic per seed, loss costs
+dispatches exactly where the protocol says, and the plot and JSON are written."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from morph_sim.services.lab.faults_experiment import fault_spec, run_experiment, run_fault_episode
+
+
+def test_no_fault_point_loses_nothing_and_is_deterministic() -> None:
+    a = run_fault_episode("MORPH (reference)", "bernoulli", 0, seed=3, steps=120)
+    b = run_fault_episode("MORPH (reference)", "bernoulli", 0, seed=3, steps=120)
+    assert a.lost_attempts == 0 and a.attempts > 0
+    assert (a.deliveries, a.mean_links, a.dispatch_delay) == (b.deliveries, b.mean_links, b.dispatch_delay)
+
+
+def test_loss_costs_dispatches_at_the_rate_four_messages_imply() -> None:
+    ep = run_fault_episode("Full-Graph", "bernoulli", 30, seed=1, steps=300)
+    # request, ack, resolve and commit must all arrive: P(lost) = 1 − 0.7⁴ ≈ 0.76 (per resolved attempt)
+    assert 0.6 < ep.lost_attempts / ep.attempts < 0.85
+    again = run_fault_episode("Full-Graph", "bernoulli", 30, seed=1, steps=300)
+    assert (again.attempts, again.lost_attempts, again.deliveries) == (ep.attempts, ep.lost_attempts, ep.deliveries)
+
+
+def test_latency_beyond_the_phase_makes_every_message_late() -> None:
+    ep = run_fault_episode("TSG", "latency", 1.0, seed=1, steps=150)
+    assert ep.attempts > 0 and ep.lost_attempts == ep.attempts and ep.deliveries == 0
+    assert math.isnan(ep.dispatch_delay)
+
+
+def test_fault_spec_rejects_unknown_kinds() -> None:
+    assert fault_spec("bernoulli", 0, 1) is None
+    assert fault_spec("bursty", 20, 1).loss.burst_length == 4
+    with pytest.raises(ValueError, match="kind"):
+        fault_spec("jam", 10, 1)
+
+
+def test_reduced_experiment_writes_json_and_plot(tmp_path) -> None:
+    out = run_experiment(tmp_path, quick=True)
+    rows = json.loads((tmp_path / "faults.json").read_text())["rows"]
+    assert (tmp_path / "faults.png").stat().st_size > 10_000 and rows == out["rows"]
+    by = {(r["condition"], r["kind"], r["level"]): r for r in rows}
+    clean, lossy = by[("Full-Graph", "bernoulli", 0.0)], by[("Full-Graph", "bernoulli", 30.0)]
+    assert clean["lost_share"] == 0 and lossy["lost_share"] > 0.5
+    assert lossy["dispatch_delay"] > clean["dispatch_delay"]
+
+
+@pytest.mark.parametrize(("condition", "lab_condition", "preset"), [
+    ("MORPH (reference)", "morph", "reference"), ("MORPH (paper)", "morph", "paper"), ("TSG", "tsg", "reference")])
+def test_zero_fault_point_is_the_lab_episode(condition: str, lab_condition: str, preset: str) -> None:
+    """Without faults the experiment's protocol is the lab's DESIGN protocol, tick for tick."""
+    from morph_sim.services.lab.runner import EpisodeSpec, run_episode
+
+    ours = run_fault_episode(condition, "bernoulli", 0, seed=42, steps=200)
+    lab = run_episode(EpisodeSpec(scale="tiny", condition=lab_condition, preset=preset, seed=42, steps=200,
+                                  fiedler_every=1000))
+    assert ours.deliveries == lab.summary["deliveries"]
+    assert ours.attempts == lab.summary["dispatched"]
+
+
+@pytest.mark.slow
+def test_full_experiment_within_ten_minutes(tmp_path) -> None:
+    out = run_experiment(tmp_path)
+    assert out["wall_s"] < 600
+    assert {r["seeds"] for r in out["rows"]} == {5}

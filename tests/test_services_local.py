@@ -1,0 +1,237 @@
+"""The services (sim clock, agents, monitor) over LocalBus in one event loop: protocol, record, presence, config."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import numpy as np
+import pytest
+
+from morph_sim.cli import build_parser
+from morph_sim.schemas import Stop
+from morph_sim.schemas.keys import RunKeys
+from morph_sim.services.bus.local import LocalNetwork
+from morph_sim.services.lab.runner import EpisodeSpec, run_episode
+from morph_sim.services.monitor.recorder import COLUMNS, read_metrics, read_snapshots
+from morph_sim.services.runconfig import RunConfig, add_config_arguments, config_from_args
+from morph_sim.services.sim.clock import make_controller, observation_from_tick, tick_from_observation, world_fields
+from morph_sim.services.supervisor.graph import PROGRAM, process_graph
+from morph_sim.services.supervisor.local import run_local
+
+
+def cfg(tmp_path, **kw) -> RunConfig:
+    base = dict(run_id="t", scale="tiny", policy="morph", steps=60, seed=42, output_dir=tmp_path)
+    base.update(kw)
+    return RunConfig(**base)
+
+
+async def test_local_run_end_to_end_writes_the_record(tmp_path):
+    config = cfg(tmp_path, steps=60, state_every=10, snapshot_every=20)
+    run = await run_local(config)
+    assert run.sim.steps == 60 and run.sim.rejected == 0 and run.monitor.rejected == 0
+    rows = run.monitor.rows
+    assert [r["t"] for r in rows] == list(range(60))
+    # the monitor's deliveries, from Tick messages only, equal the sim's own per-step count
+    assert [r["deliveries"] for r in rows] == run.sim.per_tick_deliveries
+    assert rows[-1]["deliveries_total"] == run.sim.deliveries
+    assert all(r["acks"] == config.n_agents for r in rows)
+    # pickers committed exactly what the sim applied (two-phase protocol ran)
+    assert sum(r["commits"] for r in rows) >= run.sim.commits_applied > 0
+    d = config.record_dir
+    manifest = json.loads((d / "manifest.json").read_text())
+    assert manifest["config"]["seed"] == 42 and manifest["versions"]["numpy"] == np.__version__
+    assert "command_line" in manifest and "git_revision" in manifest
+    on_disk = read_metrics(d)
+    assert list(on_disk[0]) == list(COLUMNS) and len(on_disk) == 60
+    assert [int(r["deliveries"]) for r in on_disk] == run.sim.per_tick_deliveries
+    snaps = read_snapshots(d)
+    assert sorted(snaps) == [0, 20, 40, 60]
+    assert snaps[60]["W"].shape == (config.n_agents, config.n_agents)
+    events = [json.loads(line)["kind"] for line in (d / "events.jsonl").read_text().splitlines()]
+    assert events[0] == "run.started" and events[-1] == "run.finished"
+    summary = json.loads((d / "summary.json").read_text())
+    assert summary["deliveries_total"] == run.sim.deliveries and summary["steps"] == 60
+
+
+async def test_local_run_is_deterministic(tmp_path):
+    a = await run_local(cfg(tmp_path, run_id="a", policy="morph", preset="paper"), record=False)
+    b = await run_local(cfg(tmp_path, run_id="b", policy="morph", preset="paper"), record=False)
+    assert a.monitor.rows == b.monitor.rows
+    assert sorted(a.monitor.snapshots) == sorted(b.monitor.snapshots)
+    for t in a.monitor.snapshots:
+        np.testing.assert_array_equal(a.monitor.snapshots[t][0], b.monitor.snapshots[t][0])
+
+
+@pytest.mark.parametrize("policy,preset", [("morph", "reference"), ("morph", "paper"), ("full", "reference"),
+                                           ("tsg", "reference"), ("proximity", "reference"), ("none", "reference"),
+                                           ("constant", "reference")])
+async def test_services_equal_the_lab(tmp_path, policy, preset):
+    """DESIGN §2: the lab drives the pure core directly; it must give the services' trajectories."""
+    steps = 80
+    spec = EpisodeSpec(scale="tiny", condition=policy, seed=7, steps=steps, preset=preset,
+                       radius=4 if policy == "proximity" else None)
+    lab = run_episode(spec)
+    run = await run_local(cfg(tmp_path, policy=policy, preset=preset, seed=7, steps=steps, radius=4), record=False)
+    cum = np.array([r["deliveries_total"] for r in run.monitor.rows], dtype=float)
+    np.testing.assert_array_equal(cum, lab.ticks["deliveries"])
+    np.testing.assert_array_equal(run.monitor.snapshots[steps][0], lab.final_weights)
+    links = np.array([r["links"] for r in run.monitor.rows], dtype=float)
+    np.testing.assert_array_equal(links, lab.ticks["links"])
+    if policy == "morph":
+        eta = np.array([r["eta"] for r in run.monitor.rows], dtype=float)
+        np.testing.assert_allclose(eta, lab.ticks["eta"], rtol=0, atol=1e-12)
+
+
+def test_tick_message_round_trips_the_observation():
+    config = RunConfig(run_id="x", scale="tiny", steps=5)
+    ctl = make_controller(config)
+    for _ in range(3):
+        obs = ctl.begin_tick()
+        ctl.commit([])
+        ctl.finish_tick()
+    obs = ctl.begin_tick()
+    names = ("cells", "mission", "target", "task", "needs_picker", "free_picker", "request_order",
+             "prev_mission", "prev_target", "prev_task", "delivered", "reward", "loader", "handled")
+    handled_seen = 0
+    for _ in range(120):  # until loads and unloads have happened, so `handled` is exercised
+        back = observation_from_tick(tick_from_observation(obs, obs.t * 1.0, world_fields(ctl, obs)), 1000)
+        for name in names:
+            np.testing.assert_array_equal(getattr(back, name), getattr(obs, name), err_msg=name)
+        handled_seen += int(obs.handled.sum())
+        ctl.commit([(p, a) for a, p in zip(obs.requesters().tolist(), np.flatnonzero(obs.free_picker).tolist())])
+        ctl.finish_tick()
+        obs = ctl.begin_tick()
+    assert handled_seen > 0
+    final = ctl.final_observation()
+    assert observation_from_tick(tick_from_observation(final, 0.0, world_fields(ctl, final)), final.t).final
+    back = observation_from_tick(tick_from_observation(obs, 3.0, world_fields(ctl, obs)))
+    for name in names:
+        np.testing.assert_array_equal(getattr(back, name), getattr(obs, name), err_msg=name)
+    assert (back.t, back.n_agvs, back.n_pickers, back.grid_shape, back.has_previous) == \
+        (obs.t, obs.n_agvs, obs.n_pickers, obs.grid_shape, obs.has_previous)
+
+
+async def test_absent_agent_does_not_stall_the_run(tmp_path):
+    """An agent that leaves (its liveliness token goes) is absent: the sim stops waiting for it and goes on."""
+    config = cfg(tmp_path, steps=40, phase_timeout=30.0)
+    net = LocalNetwork()
+    from morph_sim.services.agent.service import AgentService
+    from morph_sim.services.monitor.service import MonitorService
+    from morph_sim.services.sim.clock import SimClock
+
+    monitor = MonitorService(config, net.session("monitor"), record=False)
+    agents = [AgentService(config, net.session(f"agent-{i}"), i) for i in range(config.n_agents)]
+    ticks_seen = []
+    sim = SimClock(config, net.session("sim"), on_tick=lambda t, obs: ticks_seen.append(t))
+    tasks = [asyncio.create_task(s.run()) for s in (monitor, *agents)]
+
+    async def leave():
+        while len(ticks_seen) < 10:
+            await asyncio.sleep(0)
+        agents[1].stop()  # AGV 1 leaves mid-run
+
+    leaver = asyncio.create_task(leave())
+    result = await asyncio.wait_for(sim.run(), 20)
+    await asyncio.wait_for(asyncio.gather(*tasks, leaver), 10)
+    assert result.steps == 40 and result.absences == 1
+    assert 1 not in sim.present()
+    assert sim.ctl.idle == {1} and sim.ctl.actions()[1] == 0  # its robot gets no new target
+    assert agents[1].counters.ticks < 40 <= agents[0].counters.ticks
+
+
+async def test_stop_on_ctl_stop(tmp_path):
+    config = cfg(tmp_path, steps=100_000)
+    net = LocalNetwork()
+    operator = net.session("operator")
+
+    async def stop_soon():
+        await asyncio.sleep(0.5)
+        await operator.publish(RunKeys(config.run_id).stop, Stop(reason="operator"))
+
+    stopper = asyncio.create_task(stop_soon())
+    run = await asyncio.wait_for(run_local(config, network=net), 30)
+    await stopper
+    assert run.sim.stopped_early == "operator" and 0 < run.sim.steps < 100_000
+    assert len(run.monitor.rows) == run.sim.steps  # every completed step is in the record
+    summary = json.loads((config.record_dir / "summary.json").read_text())
+    assert summary["finished"]["stopped_early"] == "operator"
+    await operator.close()
+
+
+async def test_paced_mode_runs_at_the_period(tmp_path):
+    config = cfg(tmp_path, steps=10, mode="paced", period=0.05)
+    loop = asyncio.get_running_loop()
+    t0 = loop.time()
+    run = await run_local(config, record=False)
+    assert run.sim.steps == 10 and loop.time() - t0 >= 9 * 0.05
+
+
+# -- configuration -------------------------------------------------------------------------------------------------
+def test_runconfig_env_flags_and_argv_agree():
+    c = RunConfig(run_id="r1", scale="small", policy="proximity", radius=3, seed=5, steps=77, mode="paced")
+    assert RunConfig.from_env(c.to_env()) == c
+    import argparse
+
+    p = argparse.ArgumentParser()
+    add_config_arguments(p)
+    assert config_from_args(p.parse_args(c.to_argv()), environ={}) == c
+    # flags override the environment, the environment overrides the defaults
+    env = {"MORPH_SEED": "9", "MORPH_STEPS": "12", "MORPH_RUN_ID": "e"}
+    got = config_from_args(p.parse_args(["--steps", "13"]), environ=env)
+    assert (got.seed, got.steps, got.run_id) == (9, 13, "e")
+    assert c.n_agvs == 8 and c.n_pickers == 4 and c.role_of(0) == "agv" and c.role_of(11) == "picker"
+
+
+@pytest.mark.parametrize("field,value", [("scale", "huge"), ("policy", "magic"), ("seed", "-1"), ("steps", "0"),
+                                         ("run_id", "a/b"), ("endpoint", "127.0.0.1:7447"), ("mode", "fast"),
+                                         ("ablation", "nope")])
+def test_runconfig_rejects_bad_values_naming_the_field(field, value):
+    with pytest.raises(ValueError, match=field):
+        RunConfig.from_env({"MORPH_RUN_ID": "ok", RunConfig.env_name(field): value})
+
+
+def test_process_graph_is_real_cli_invocations():
+    config = RunConfig(run_id="g", scale="tiny", policy="morph", steps=10)
+    specs = process_graph(config, "tcp/127.0.0.1:7447")
+    assert [s.name for s in specs] == ["sim"] + [f"agent-{i}" for i in range(8)] + ["monitor"]
+    parser = build_parser()
+    for spec in specs:
+        assert spec.argv[0] == PROGRAM
+        args = parser.parse_args(list(spec.argv[1:]))  # every flag is real
+        assert args.command == spec.role
+        assert config_from_args(args, environ={}).run_id == "g"
+        assert spec.env["ZENOH_RUNTIME"].startswith("(rx:")
+    assert specs[0].argv[-2:] == ("--listen", "tcp/127.0.0.1:7447")
+    assert all(s.argv[-2:] == ("--endpoint", "tcp/127.0.0.1:7447") for s in specs[1:])
+    assert [s.restart for s in specs] == ["never"] + ["on-failure"] * 8 + ["never"]
+    external = process_graph(config.model_copy(update={"endpoint": "tcp/127.0.0.1:9000"}), "tcp/127.0.0.1:9000")
+    assert external[0].argv[-2:] == ("--endpoint", "tcp/127.0.0.1:9000")
+
+
+async def test_monitor_answers_late_joiners_with_the_latest_state(tmp_path):
+    from morph_sim.schemas import AgentState, MetricSample
+
+    config = cfg(tmp_path, steps=400)
+    net = LocalNetwork()
+    joiner = net.session("late-joiner")
+    keys = RunKeys(config.run_id)
+    answers = {}
+
+    async def join_late():
+        while True:
+            replies = await joiner.get(keys.latest_all, timeout=1.0)
+            if any("/metrics/" in r.key for r in replies):
+                answers.update({r.key: r for r in replies})
+                return
+            await asyncio.sleep(0.05)
+
+    task = asyncio.create_task(join_late())
+    run = await asyncio.wait_for(run_local(config, network=net, record=False), 60)
+    await asyncio.wait_for(task, 5)
+    metric = answers[keys.latest("metrics", "deliveries_total")].decode(MetricSample)
+    assert 0 <= metric.t < 400 and metric.value <= run.sim.deliveries
+    states = [k for k in answers if "/state/agent/" in k]
+    assert len(states) == config.n_agents
+    assert answers[keys.latest("agent", "3")].decode(AgentState).agent == 3
+    await joiner.close()

@@ -1,0 +1,216 @@
+"""``morph-sim up``: real OS processes over Zenoh on loopback. Every pid is checked gone afterwards (psutil).
+
+Each test bounds every wait and kills whatever it started by pid if something goes wrong.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+
+from morph_sim.services.monitor.recorder import read_metrics
+from morph_sim.services.runconfig import RunConfig
+
+UP_TIMEOUT = 120
+
+
+def up_argv(tmp_path: Path, run_id: str, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", "tiny", "--run-id", run_id,
+            "--output-dir", str(tmp_path), *extra]
+
+
+def descendants(pid: int) -> set[int]:
+    try:
+        return {p.pid for p in psutil.Process(pid).children(recursive=True)}
+    except psutil.NoSuchProcess:
+        return set()
+
+
+def alive(pids) -> list[int]:
+    out = []
+    for pid in pids:
+        try:
+            if psutil.Process(pid).status() != psutil.STATUS_ZOMBIE:
+                out.append(pid)
+        except psutil.NoSuchProcess:
+            pass
+    return out
+
+
+def kill_all(pids) -> None:
+    for pid in pids:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+
+def start_up(argv) -> subprocess.Popen:
+    return subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def watch(proc: subprocess.Popen, until, timeout: float) -> set[int]:
+    """Collect the up's descendant pids while waiting for ``until()`` (or the process's end)."""
+    seen: set[int] = set()
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        seen |= descendants(proc.pid)
+        if until() or proc.poll() is not None:
+            return seen
+        time.sleep(0.05)
+    return seen
+
+
+def test_up_runs_to_completion_and_leaves_no_process(tmp_path):
+    proc = start_up(up_argv(tmp_path, "done", "--policy", "morph", "--steps", "40"))
+    seen: set[int] = set()
+    try:
+        seen = watch(proc, lambda: False, UP_TIMEOUT)
+        out, err = proc.communicate(timeout=10)
+        assert proc.returncode == 0, err
+        assert "completed" in out
+        assert len(seen) >= 10  # sim + 8 agents + monitor
+        rows = read_metrics(tmp_path / "done")
+        assert [int(r["t"]) for r in rows] == list(range(40))
+        assert all(int(r["acks"]) == 8 for r in rows)
+    finally:
+        left = alive(seen | {proc.pid})
+        kill_all(left)
+    assert left == [], f"processes left behind: {left}"
+
+
+def test_sigterm_ends_every_process_within_5s(tmp_path):
+    proc = start_up(up_argv(tmp_path, "term", "--policy", "full", "--steps", "1000000"))
+    seen: set[int] = set()
+    metrics = tmp_path / "term" / "metrics.csv"
+    try:
+        seen = watch(proc, lambda: metrics.exists() and metrics.stat().st_size > 200, UP_TIMEOUT)
+        assert proc.poll() is None, proc.communicate()[1]
+        seen |= descendants(proc.pid)
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=10)
+        elapsed = time.monotonic() - t0
+        assert elapsed < 5.0, f"up took {elapsed:.1f} s to end"
+        assert proc.returncode != 0  # interrupted, not completed
+        deadline = time.monotonic() + 1.0
+        while alive(seen) and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.communicate(timeout=10)
+        left = alive(seen | {proc.pid})
+        kill_all(left)
+    assert len(seen) >= 10
+    assert left == [], f"processes left behind: {left}"
+    # the record of the interrupted run is complete up to where it stopped
+    summary = (tmp_path / "term" / "summary.json").read_text()
+    assert "stopped_early" in summary
+
+
+def test_up_restarts_an_agent_that_dies(tmp_path):
+    proc = start_up(up_argv(tmp_path, "crash", "--policy", "full", "--steps", "1000000", "--phase-timeout", "5"))
+    metrics = tmp_path / "crash" / "metrics.csv"
+    seen: set[int] = set()
+    try:
+        seen = watch(proc, lambda: metrics.exists() and metrics.stat().st_size > 200, UP_TIMEOUT)
+
+        def agent_pids(agent: int) -> list[int]:
+            out = []
+            for pid in descendants(proc.pid):
+                try:
+                    cmd = psutil.Process(pid).cmdline()
+                except psutil.NoSuchProcess:
+                    continue
+                if "agent" in cmd and cmd[cmd.index("--id") + 1] == str(agent):
+                    out.append(pid)
+            return out
+
+        victim = agent_pids(2)
+        assert len(victim) == 1
+        os.kill(victim[0], signal.SIGKILL)
+        restarted: list[int] = []
+
+        def rejoined() -> bool:
+            restarted[:] = [p for p in agent_pids(2) if p != victim[0]]
+            if not restarted:
+                return False
+            rows = read_metrics(tmp_path / "crash")
+            return len(rows) > 5 and int(rows[-1]["acks"]) == 8 and any(int(r["acks"]) == 7 for r in rows)
+
+        seen |= watch(proc, rejoined, 60)
+        assert restarted and rejoined(), "agent 2 was not restarted or did not rejoin"
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=10)
+        events = (tmp_path / "crash" / "events.jsonl").read_text()
+        assert '"agent.restart"' in events and '"agent": 2' in events  # the restart is in the run record
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.communicate(timeout=10)
+        left = alive(seen | {proc.pid})
+        kill_all(left)
+    assert left == [], f"processes left behind: {left}"
+
+
+def test_up_fails_clearly_when_nothing_listens_on_the_endpoint(tmp_path):
+    from morph_sim.services.bus.zenoh_bus import free_port
+
+    proc = start_up(up_argv(tmp_path, "nolisten", "--steps", "5", "--endpoint", f"tcp/127.0.0.1:{free_port()}"))
+    try:
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 1
+    assert "nothing listens on the Zenoh endpoint" in err
+
+
+async def test_supervisor_reports_a_process_that_cannot_start(tmp_path):
+    """A child that exits before the run starts makes the supervisor fail with its name and log; nothing is left."""
+    from morph_sim.services.supervisor.launcher import StartError, Supervisor
+
+    config = RunConfig(run_id="broken", scale="tiny", steps=5, output_dir=tmp_path, ready_timeout=60)
+    sup = Supervisor(config)
+    child = sup.children["agent-3"]
+    child.spec = dataclasses.replace(child.spec, argv=(*child.spec.argv, "--no-such-flag"))
+    try:
+        with pytest.raises(StartError, match="agent-3 exited with status 2") as info:
+            await asyncio.wait_for(sup.run(), UP_TIMEOUT)
+        assert "--no-such-flag" in str(info.value)  # the log tail shows argparse's complaint
+    finally:
+        left = alive(sup.all_pids)
+        kill_all(left)
+    assert sup.all_pids and left == []
+
+
+def test_up_joins_an_existing_router_with_endpoint(tmp_path):
+    """``--endpoint``: every process, the sim included, is a client of a router that is already running."""
+    from morph_sim.services.bus.zenoh_bus import endpoint, free_port, zenoh, zenoh_config
+
+    ep = endpoint(free_port())
+    router = zenoh.open(zenoh_config(listen=ep, mode="router"))
+    proc = start_up(up_argv(tmp_path, "ext", "--policy", "tsg", "--steps", "30", "--endpoint", ep))
+    seen: set[int] = set()
+    try:
+        seen = watch(proc, lambda: False, UP_TIMEOUT)
+        out, err = proc.communicate(timeout=10)
+        assert proc.returncode == 0, err
+        sim_log = (tmp_path / "ext" / "logs" / "sim.log").read_text()
+        assert f"--endpoint {ep}" in sim_log and "--listen" not in sim_log
+        assert len(read_metrics(tmp_path / "ext")) == 30
+    finally:
+        router.close()
+        left = alive(seen | {proc.pid})
+        kill_all(left)
+    assert left == [], f"processes left behind: {left}"
