@@ -30,19 +30,7 @@ ROLE_RESTART = {"never": "no", "on-failure": "on-failure"}
 PROMETHEUS_FLAG_EXISTS = any(v.flag == "--prometheus-port" for v in envconfig.command_variables("monitor"))
 
 
-def _agent_claims() -> bool:
-    """True once `morph-sim agent` accepts no --id (it then claims one from the sim's registry)."""
-    try:
-        return build_parser().parse_args(["agent", "--endpoint", "tcp/127.0.0.1:1"]).id is None
-    except SystemExit:
-        return False
-
-
-AGENT_CLAIMS = _agent_claims()
-# Until the agent command claims its id (request C1 in /work/ref/requests_from_containers.md) the agent service's
-# command is expected to fail the checks below; strict, so the marks must go once it lands.
-AGENT_PENDING = pytest.mark.xfail(not AGENT_CLAIMS, strict=True, reason="morph-sim agent without --id (C1)")
-ROLES = ["sim", "monitor", pytest.param("agent", marks=AGENT_PENDING)]
+ROLES = ["sim", "monitor", "agent"]
 
 
 def _seconds(text: str) -> float:
@@ -109,8 +97,6 @@ def test_every_command_is_a_real_cli_invocation(name):
         assert args.id is None  # the agents claim their id: their command must not pin one
 
 
-@pytest.mark.xfail(not PROMETHEUS_FLAG_EXISTS, strict=True,
-                   reason="monitor --prometheus-port arrives with issue 6; compose already passes it")
 def test_the_monitor_serves_prometheus_on_the_published_port():
     argv = _argv("monitor", {"MORPH_PROMETHEUS_PORT": "9500"})
     args = _parse(argv)
@@ -321,8 +307,6 @@ def test_the_services_pass_the_healthcheck_and_stop_within_the_grace_period(tmp_
         assert _run_check(SERVICES["sim"]["healthcheck"]["test"], port) == 0
         where = f"tcp/127.0.0.1:{port}"
         agent_argv = [c.replace("tcp/sim:7447", where) for c in _argv("agent")[1:]]
-        if not AGENT_CLAIMS:  # started the supervisor's way until the agent command can claim (C1)
-            agent_argv += ["--id", "0"]
         monitor_argv = [c.replace("tcp/sim:7447", where) for c in _without_prometheus(_argv("monitor"))[1:]]
         procs.append(subprocess.Popen(cli + agent_argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT))
         procs.append(subprocess.Popen(cli + monitor_argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT))
@@ -371,11 +355,9 @@ def test_the_deploy_guide_lists_every_variable_and_sample():
     assert pin and pin.group(1) == "1.10.2"
 
 
-@AGENT_PENDING
 def test_a_compose_shaped_run_completes_with_agents_that_claim_their_ids(tmp_path):
     """Live, on 127.0.0.1: the compose commands (sim listening, monitor, 8 agents WITHOUT --id, each with its own
     instance name as Compose's hostnames would give) run a short lock-step run to the end."""
-    assert AGENT_CLAIMS, "morph-sim agent still requires --id"
     from morph_sim.services.bus.zenoh_bus import free_port
 
     port = free_port()

@@ -50,6 +50,7 @@ def ticks(draw: st.DrawFn, max_n: int = 40) -> Tick:
         prev_target_y=per(tys), prev_task=per(st.integers(0, 500)), reward=per(finite),
         delivered_by=draw(st.lists(ids, max_size=3)), loader=per(opt_ids),
         loads=draw(st.lists(st.tuples(ids, ids), max_size=4)), unloads=draw(st.lists(st.tuples(ids, ids), max_size=4)),
+        handled=per(st.booleans()), final=draw(st.booleans()),
     )
 
 
@@ -210,7 +211,7 @@ def _tick(n: int = 3, **changes: object) -> dict:
         target_y=[-1] * n, task=[0] * n, needs_picker=[False] * n, partner=[-1] * n, mission_order=[],
         free_pickers=[], request_queue=[], has_previous=True, prev_mission=[0] * n, prev_target_x=[-1] * n,
         prev_target_y=[-1] * n, prev_task=[0] * n, reward=[0.0] * n, delivered_by=[], loader=[-1] * n, loads=[],
-        unloads=[],
+        unloads=[], handled=[False] * n,
     )
     body.update(changes)
     return body
@@ -330,7 +331,8 @@ def test_tick_at_128_robots_stays_small() -> None:
         busy=[True] * n, mission=[1, 2, 3, 0] * 32, target_x=[29] * n, target_y=[39] * n, task=[250] * n,
         partner=list(range(-1, 127)), mission_order=list(range(85)), free_pickers=list(range(85, 128)),
         request_queue=list(range(100, 160)), prev_mission=[1] * n, prev_target_x=[29] * n, prev_target_y=[39] * n,
-        prev_task=[250] * n, reward=[-0.001] * n, delivered_by=[1, 2], loader=[-1] * n, loads=[(1, 90)]))
+        prev_task=[250] * n, reward=[-0.001] * n, delivered_by=[1, 2], loader=[-1] * n, loads=[(1, 90)],
+        handled=[False] * n))
     wire = encode(tick)
     assert len(wire) < 5000, len(wire)  # ~34 B per robot, most of it the float64 rewards
     assert decode(wire, Tick) == tick

@@ -204,7 +204,7 @@ def test_process_graph_is_real_cli_invocations():
         assert spec.env["ZENOH_RUNTIME"].startswith("(rx:")
     assert specs[0].argv[-2:] == ("--listen", "tcp/127.0.0.1:7447")
     assert all(s.argv[-2:] == ("--endpoint", "tcp/127.0.0.1:7447") for s in specs[1:])
-    assert [s.restart for s in specs] == ["never"] + ["on-failure"] * 8 + ["never"]
+    assert [s.restart for s in specs] == ["never"] + ["on-failure"] * 8 + ["on-failure"]  # monitor: issue 6
     external = process_graph(config.model_copy(update={"endpoint": "tcp/127.0.0.1:9000"}), "tcp/127.0.0.1:9000")
     assert external[0].argv[-2:] == ("--endpoint", "tcp/127.0.0.1:9000")
 

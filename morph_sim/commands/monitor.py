@@ -18,7 +18,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-rate", type=float, default=10.0,
                         help="metric stream updates per second at most (0 = none; the record is always complete)")
     parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+    parser.add_argument("--prometheus-port", type=int, default=None,
+                        help="serve Prometheus /metrics on 127.0.0.1:PORT (compose uses 9464; default: off)")
+    parser.add_argument("--prometheus-host", default="127.0.0.1",
+                        help="address of the /metrics endpoint (0.0.0.0 inside a container)")
     add_config_arguments(parser, skip=("listen",))
+    from morph_sim.services.envconfig import apply_env_defaults
+
+    apply_env_defaults(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -32,8 +39,18 @@ def run(args: argparse.Namespace) -> int:
     if args.max_rate < 0:
         raise ValueError(f"max_rate: must be >= 0, got {args.max_rate}")
     setup_logging(args.log_level, "monitor")
+    port = None if args.prometheus_port in (None, "") else int(args.prometheus_port)
+
+    def make(bus):
+        svc = MonitorService(config, bus, max_rate=float(args.max_rate), keep_rows=False)
+        if port is not None:
+            from morph_sim.services.monitor.prometheus import PrometheusExporter
+
+            PrometheusExporter(svc, port, args.prometheus_host)  # daemon thread; lives as long as the process
+        return svc
+
     result = run_or_exit(NAME, serve(
-        "monitor", lambda bus: MonitorService(config, bus, max_rate=args.max_rate, keep_rows=False),
+        "monitor", make,
         lambda svc: svc.run(), lambda svc, why: svc.stop(grace=SIGNAL_GRACE), connect=config.endpoint))
     print(json.dumps({"record": str(config.record_dir), "deliveries": result.deliveries_total,
                       "rejected": result.rejected}))

@@ -118,11 +118,13 @@ class Tick(Message):
                                                  "the delivered shelf, else -1")
     loads: list[tuple[RobotId, RobotId]] = Field(description="(AGV, picker) co-located at a load in step t−1")
     unloads: list[tuple[RobotId, RobotId]] = Field(description="(AGV, picker) co-located at an unload in step t−1")
+    handled: list[bool] = Field(description="robots that took part in a load or unload in step t−1")
+    final: bool = Field(default=False, description="the report after the last step: agents learn, nobody asks")
 
     PER_ROBOT: ClassVar[tuple[str, ...]] = (
         "y", "heading", "is_agv", "busy", "carrying", "carrying_requested", "mission", "target_x", "target_y",
         "task", "needs_picker", "partner", "prev_mission", "prev_target_x", "prev_target_y", "prev_task", "reward",
-        "loader",
+        "loader", "handled",
     )
     ROBOT_IDS: ClassVar[tuple[str, ...]] = ("mission_order", "free_pickers", "delivered_by", "partner", "loader")
 
@@ -174,6 +176,11 @@ class Ack(Message):
     phase: Phase = Phase.TICK
     requests_sent: list[RobotId] = Field(default_factory=list, description="picker ids asked this tick")
     seq: Seq = 0
+    # Phase TICK only, optional (older agents omit them): the monitor's per-tick link and η streams come from the
+    # acks, so an agent publishes its full AgentState only every k ticks.
+    links: list[RobotId] | None = Field(
+        default=None, description="out-links after the plasticity update of step t−1 (robot ids j with A[i,j]=1)")
+    eta: Finite | None = Field(default=None, description="the agent's η after that update")
 
 
 class Resolve(Message):

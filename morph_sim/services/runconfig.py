@@ -61,6 +61,10 @@ class RunConfig(BaseModel):
     ready_timeout: float = Field(default=120.0, gt=0.0, description="wall seconds to wait for every agent before tick 0")
     state_every: int = Field(default=10, ge=1, description="k: agents publish their state every k ticks")
     snapshot_every: int = Field(default=50, ge=1, description="monitor: W/A snapshot every this many ticks")
+    cold_restart: bool = Field(
+        default=False, description="a restarted agent starts from zero instead of the monitor's latest state")
+    fault_schedule: Path | None = Field(
+        default=None, description="TOML schedule of timed faults (docs/faults.md); crash faults go to the supervisor")
     endpoint: str | None = Field(
         default=None, description="Zenoh endpoint to connect to (e.g. tcp/127.0.0.1:7447); None = LocalBus/listen")
     listen: str | None = Field(default=None, description="Zenoh endpoint the sim listens on (supervisor sets it)")

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,7 +50,11 @@ class AgentCounters:
 class AgentService:
     """Agent ``agent_id`` of the run of ``config`` over ``bus``. ``await run()`` until stop."""
 
-    def __init__(self, config: RunConfig, bus: Bus, agent_id: int):
+    def __init__(self, config: RunConfig, bus: Bus, agent_id: int, *, restore: bool = True):
+        # restore (issue 5): a (re)started agent loads its plasticity state from the monitor's latest states
+        # (state/agent/*) before it joins; a first start finds none. restore=False is the cold restart.
+        self.restore = restore
+        self.restored_from: AgentState | None = None
         if not 0 <= agent_id < config.n_agents:
             raise ValueError(f"id: agent {agent_id} outside 0..{config.n_agents - 1} for this fleet")
         self.config = config
@@ -71,6 +76,10 @@ class AgentService:
         self._pending: tuple[int, list[int]] | None = None
         self._pending_timer: asyncio.TimerHandle | None = None
         self._stop_timer: asyncio.TimerHandle | None = None
+        # The hot path (tick, request, resolve) runs inline on the transport's receive thread; the resolve deadline
+        # fires on the loop. This lock keeps the picker's inbox and pending resolve consistent between the two.
+        self._lock = threading.RLock()
+        self._loop: asyncio.AbstractEventLoop | None = None
 
     def _reject(self, what: str, why: object) -> None:
         self._rejects.count(what, why)
@@ -79,22 +88,47 @@ class AgentService:
     # -- lifecycle -----------------------------------------------------------------------------------------------------
     async def run(self) -> AgentCounters:
         k, bus = self.keys, self.bus
-        await bus.subscribe(k.tick, self._on_tick)
+        self._loop = asyncio.get_running_loop()
+        restored = await self._restore() if self.restore else None
+        # inline: the lock-step hot path skips the hop to the loop (3-4x the tick rate over Zenoh, zenoh.md §4c)
+        await bus.subscribe(k.tick, self._on_tick, inline=True)
         await bus.subscribe(k.event("sim"), self._on_probe)
         await bus.subscribe(k.stop, self._on_stop)
         if not self.is_agv:
-            await bus.subscribe(k.resolve, self._on_resolve)
-            await bus.subscribe(k.requests_to(self.id), self._on_request)
+            await bus.subscribe(k.resolve, self._on_resolve, inline=True)
+            await bus.subscribe(k.requests_to(self.id), self._on_request, inline=True)
         else:
-            await bus.subscribe(k.replies_to(self.id), self._on_reply)
+            await bus.subscribe(k.replies_to(self.id), self._on_reply, inline=True)
         # the token last: once the sim sees it, the subscriptions above are declared
         token = await bus.declare_token(k.alive(self.id))
+        if restored is not None:  # published once the session is established, so the record does not miss it
+            await bus.publish(k.event(self.id), restored)
         await self._stop.wait()
         for timer in (self._pending_timer, self._stop_timer):
             if timer is not None:
                 timer.cancel()
         await token.close()
         return self.counters
+
+    async def _restore(self) -> Event | None:
+        """Load the monitor's latest states into the brain; the ``agent.restored`` event to publish, if any."""
+        from morph_sim.services.faults.restore import fetch_states, restore_brains
+
+        try:
+            states = await fetch_states(self.bus, self.config.run_id, timeout=1.0)
+            restored = restore_brains(self.brains, self.id, states)
+            self.restored_from = states.get(self.id)
+        except Exception as exc:  # a failed restore is a cold start, never a crash
+            self._reject("state/agent", f"restore failed: {exc}")
+            return None
+        if restored is None:
+            return None
+        log.info("agent %d: restored state of tick %d", self.id, restored)
+        return Event(
+            kind="agent.restored", source=self.id, t=restored,
+            # the row the brain holds now (read back from it, not copied from the state): the record can show that a
+            # restarted agent resumed with the W row last published (issue 5 acceptance)
+            details={"from_t": restored, "w_row": self.state_message(restored).w_row})
 
     def stop(self) -> None:
         self._stop.set()
@@ -128,7 +162,7 @@ class AgentService:
         return self._seq
 
     # -- tick ------------------------------------------------------------------------------------------------------------
-    async def _on_tick(self, sample: Sample) -> None:
+    def _on_tick(self, sample: Sample) -> None:
         if self._stop.is_set():
             return  # a stopped agent is gone, even while its session closes
         try:
@@ -155,7 +189,7 @@ class AgentService:
                 ask = self.brains.draw(self.id) < p if self.brains.draws else p >= 1.0
                 if ask:
                     tx, ty = (int(v) for v in obs.target[self.id])
-                    await self.bus.publish(self.keys.request(self.id, picker), HelpRequest(
+                    self.bus.put(self.keys.request(self.id, picker), HelpRequest(
                         t=tick.t, agv=self.id, picker=picker, target_x=tx, target_y=ty,
                         mission=int(obs.mission[self.id]), seq=self._next_seq()))
                     self.counters.requests += 1
@@ -171,12 +205,12 @@ class AgentService:
         if publish_state and (final or "links" not in self._ack_extras):
             # Before the ack, on the same link: the last state must reach the monitor before the run ends, and a
             # state that carries the per-tick links of step t−1 before tick t+1 (the monitor closes row t−1 then).
-            await self.bus.publish(self.keys.agent_state(self.id), self.state_message(tick.t))
+            self.bus.put(self.keys.agent_state(self.id), self.state_message(tick.t))
             publish_state = False
-        await self.bus.publish(self.keys.ack(self.id), ack)  # the ack first: it is on the sim's critical path
+        self.bus.put(self.keys.ack(self.id), ack)  # the ack first: it is on the sim's critical path
         if publish_state:
             # still before this agent's ack of t+1, hence before tick t+2, when the monitor closes row t
-            await self.bus.publish(self.keys.agent_state(self.id), self.state_message(tick.t))
+            self.bus.put(self.keys.agent_state(self.id), self.state_message(tick.t))
 
     def state_message(self, t: int) -> AgentState:
         b = self.brains
@@ -224,8 +258,9 @@ class AgentService:
             return
         if msg.t < self.last_t:
             return  # stale: the protocol drops it
-        self._inbox.setdefault(msg.t, {})[msg.agv] = msg
-        self._try_decide()
+        with self._lock:
+            self._inbox.setdefault(msg.t, {})[msg.agv] = msg
+            self._try_decide()
 
     def _on_resolve(self, sample: Sample) -> None:
         if self._stop.is_set():
@@ -238,13 +273,22 @@ class AgentService:
         expected = msg.expected(self.id)
         if not expected or msg.t < self.last_t:
             return
-        self._pending = (msg.t, expected)
-        if self._pending_timer is not None:
-            self._pending_timer.cancel()
-        # Lockstep: wait for every expected request; past the deadline decide over those that arrived.
-        wait = self.config.phase_timeout if self.config.mode == "lockstep" else 0.4 * self.config.period
-        self._pending_timer = asyncio.get_running_loop().call_later(wait, self._decide_now)
-        self._try_decide()
+        with self._lock:
+            self._pending = (msg.t, expected)
+            self._try_decide()
+            if self._pending is not None:
+                # Lockstep: wait for every expected request; past the deadline decide over those that arrived.
+                wait = self.config.phase_timeout if self.config.mode == "lockstep" else 0.4 * self.config.period
+                assert self._loop is not None
+                self._loop.call_soon_threadsafe(self._arm_deadline, msg.t, wait)
+
+    def _arm_deadline(self, t: int, wait: float) -> None:  # on the loop
+        with self._lock:
+            if self._pending is None or self._pending[0] != t:
+                return  # decided already
+            if self._pending_timer is not None:
+                self._pending_timer.cancel()
+            self._pending_timer = self._loop.call_later(wait, self._decide_now, t)
 
     def _try_decide(self) -> None:
         if self._pending is None:
@@ -254,35 +298,35 @@ class AgentService:
         if all(a in got for a in expected):
             self._decide()
 
-    def _decide_now(self) -> None:
-        self._pending_timer = None
-        if self._pending is not None:
-            self._decide()
+    def _decide_now(self, t: int) -> None:  # on the loop, at the resolve's deadline
+        with self._lock:
+            self._pending_timer = None
+            if self._pending is not None and self._pending[0] == t:
+                self._decide()
 
     def _decide(self) -> None:
         assert self._pending is not None
         t, expected = self._pending
         self._pending = None
-        if self._pending_timer is not None:
-            self._pending_timer.cancel()
-            self._pending_timer = None
+        timer, self._pending_timer = self._pending_timer, None
+        if timer is not None:
+            self._loop.call_soon_threadsafe(timer.cancel)  # TimerHandle.cancel is not thread-safe
         got = self._inbox.pop(t, {})
         for old in [s for s in self._inbox if s <= t]:
             del self._inbox[old]
         chosen = next((a for a in expected if a in got), None)  # first in the sim's mission order
-        self.bus._spawn(self._answer(t, expected, got, chosen), "decide")
+        self._answer(t, expected, got, chosen)
 
-    async def _answer(self, t: int, expected: list[int], got: dict[int, HelpRequest], chosen: int | None) -> None:
+    def _answer(self, t: int, expected: list[int], got: dict[int, HelpRequest], chosen: int | None) -> None:
         k = self.keys
         if chosen is not None:
-            await self.bus.publish(k.commit(self.id), Commit(t=t, picker=self.id, agv=chosen, seq=self._next_seq()))
+            self.bus.put(k.commit(self.id), Commit(t=t, picker=self.id, agv=chosen, seq=self._next_seq()))
             self.counters.commits += 1
         else:
-            await self.bus.publish(k.ack(self.id), Ack(t=t, agent=self.id, phase=Phase.RESOLVE,
-                                                       seq=self._next_seq()))
+            self.bus.put(k.ack(self.id), Ack(t=t, agent=self.id, phase=Phase.RESOLVE, seq=self._next_seq()))
         for agv in expected:
             if agv in got:
-                await self.bus.publish(k.reply(self.id, agv), HelpReply(
+                self.bus.put(k.reply(self.id, agv), HelpReply(
                     t=t, picker=self.id, agv=agv, accepted=agv == chosen, seq=self._next_seq()))
 
 

@@ -82,18 +82,20 @@ def _as_list(value: str | Iterable[str] | None) -> list[str]:
 
 
 def zenoh_config(*, listen: str | Iterable[str] | None = None, connect: str | Iterable[str] | None = None,
-                 mode: str = "peer", lowlatency: bool = True, connect_timeout: float = 10.0) -> zenoh.Config:
+                 mode: str = "peer", lowlatency: bool = True, connect_timeout: float = 10.0,
+                 base: zenoh.Config | None = None) -> zenoh.Config:
     """The project's Zenoh configuration: explicit endpoints, scouting off, low-latency unicast.
 
     ``connect_timeout`` bounds how long opening a session waits for its connect endpoints (then it fails with a
-    clear error instead of hanging).
+    clear error instead of hanging). ``base`` is a deployment's own config (e.g. user/password for an ACL router,
+    read from ``ZENOH_CONFIG``); these settings are written on top of it.
     """
     listen_l, connect_l = _as_list(listen), _as_list(connect)
     if mode not in ("peer", "client", "router"):
         raise ValueError(f"zenoh mode {mode!r} must be peer, client or router")
     if not listen_l and not connect_l:
         raise ValueError("zenoh endpoint: give listen (the process that hosts the endpoint) or connect (the others)")
-    cfg = zenoh.Config()
+    cfg = zenoh.Config() if base is None else base
     cfg.insert_json5("mode", json.dumps(mode))
     cfg.insert_json5("scouting/multicast/enabled", "false")
     cfg.insert_json5("scouting/gossip/enabled", "false")

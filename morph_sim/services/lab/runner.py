@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from morph_sim.services.agent.observation import TickObservation
 from morph_sim.services.agent.policies import (
@@ -62,12 +62,14 @@ CONDITIONS: dict[str, tuple[str, str, str | None]] = {
 SCALE_STUDY = ("none", "proximity", "tsg", "v1", "no_threshold", "no_reward", "no_neuromod", "morph", "full")
 
 
-def make_condition_policy(condition: str, preset: str = "reference", radius: int | None = None) -> CoordinationPolicy:
+def make_condition_policy(condition: str, preset: str = "reference", radius: int | None = None,
+                          reset_every: int | None = None) -> CoordinationPolicy:
     if condition not in CONDITIONS:
         raise ValueError(f"condition: unknown {condition!r} (known: {', '.join(CONDITIONS)})")
     _, kind, ablation = CONDITIONS[condition]
     if kind == "morph":
-        return MorphPolicy(preset=preset, ablation=ablation)
+        return MorphPolicy(preset=preset, ablation=ablation,
+                           reset_every=reset_every if ablation == "reset_at_boundary" else None)
     if kind == "proximity":
         if radius is None:
             raise ValueError("radius: the proximity condition needs a radius (or calibration)")
@@ -89,9 +91,30 @@ class EpisodeSpec(BaseModel):
     dispatch: Literal["concurrent", "sequential"] = "concurrent"
     shared_stream: bool = False
     fiedler_every: int = Field(default=1, ge=1, description="compute λ₂ every this many ticks")
+    #: demand shift (issue 8): the side of each consecutive ``phase_steps``-long phase; empty = no shift
+    demand_phases: tuple[Literal["left", "right"], ...] = ()
+    phase_steps: int = Field(default=400, ge=1)
+    #: "requests": new requests drawn from the active half (the paper); "assignment": shift.py's filter;
+    #: "none": phases only mark boundaries (the no-shift control: same episode length, same resets)
+    demand_mode: Literal["requests", "assignment", "none"] = "requests"
+    #: bursty message loss (Gilbert–Elliott, mean burst 4 messages) on the dispatch messages, in percent; 0 = none.
+    #: The same model as the fault experiment (lab/faults_experiment.py): a gate that opened dispatches only if its
+    #: HelpRequest and Ack arrive on time, and the sim's Resolve and the picker's Commit too; Ticks are not faulted.
+    loss_percent: float = Field(default=0.0, ge=0.0, lt=100.0)
+
+    @model_validator(mode="after")
+    def _phases_fill_episode(self) -> EpisodeSpec:
+        if self.demand_phases and self.steps != len(self.demand_phases) * self.phase_steps:
+            raise ValueError(f"steps: {self.steps} != {len(self.demand_phases)} phases × {self.phase_steps} steps")
+        return self
 
     def policy(self) -> CoordinationPolicy:
-        return make_condition_policy(self.condition, self.preset, self.radius)
+        # MORPH-reset clears its state at every phase boundary of a shift episode
+        reset = self.phase_steps if self.demand_phases else None
+        return make_condition_policy(self.condition, self.preset, self.radius, reset_every=reset)
+
+    def boundaries(self) -> list[int]:
+        return [p * self.phase_steps for p in range(len(self.demand_phases))] if self.demand_phases else [0]
 
     @property
     def key(self) -> str:
@@ -105,6 +128,7 @@ class DispatchStats:
     p_sum: float = 0.0
     w_positive: int = 0  # decisions where the gate was above its floor
     divergent_ticks: int = 0  # ticks where the other dispatch mode would have committed differently
+    lost_messages: int = 0  # resolved requests whose Resolve/Commit was lost (message-loss runs)
 
 
 def _gate(brains: Brains, agv: int, picker: int, obs: TickObservation, u: float | None) -> tuple[bool, float]:
@@ -178,6 +202,29 @@ def dispatch_tick(
     return commits
 
 
+def _lossy_dispatch(obs: TickObservation, brains: Brains, layer, stats: DispatchStats) -> list[tuple[int, int]]:
+    """Concurrent dispatch whose messages go through the fault layer's decision (lab/faults_experiment.py)."""
+    from morph_sim.services.lab import faults_experiment as fx
+
+    requests = []
+    for agv in obs.requesters().tolist():
+        cand = brains.candidate(agv, obs)
+        if cand < 0:
+            continue
+        ok, p = _gate(brains, agv, cand, obs, brains.draw(agv) if brains.draws else None)
+        _count(stats, ok, p, brains)
+        if ok and fx._on_time(layer, fx.K.request(agv, cand), agv, cand) and fx._on_time(
+                layer, fx.K.ack(agv), agv, "sim"):
+            requests.append((agv, cand))
+    commits = []
+    for picker, agv in resolve_requests(requests):
+        if fx._on_time(layer, fx.K.resolve, "sim", picker) and fx._on_time(layer, fx.K.commit(picker), picker, "sim"):
+            commits.append((picker, agv))
+            layer.fate(fx.K.reply(picker, agv), picker, agv)  # sent; a lost reply is healed by the next Tick
+    stats.lost_messages += len(requests) - len(commits)
+    return commits
+
+
 def _dedupe_cells(obs: TickObservation, commits) -> set[tuple[int, int]]:
     seen, out = set(), set()
     for picker, agv in commits:
@@ -204,10 +251,17 @@ class EpisodeResult:
     wall_s: float
     final_weights: np.ndarray | None = field(default=None, repr=False)
     final_links: np.ndarray | None = field(default=None, repr=False)
+    mean_distance: np.ndarray | None = field(default=None, repr=False)
+    tracker: metrics.LinkTracker | None = field(default=None, repr=False)
+    snapshots: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
 
 
-def run_episode(spec: EpisodeSpec, trace_hook=None) -> EpisodeResult:
-    """Run one episode on the pure core. ``trace_hook(obs, brains)`` is called after each update."""
+def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> EpisodeResult:
+    """Run one episode on the pure core. ``trace_hook(obs, brains)`` is called after each update.
+
+    ``snapshot_ticks``: copies of the team's W after the update that opens each of these ticks (tick T: the
+    final update), returned in ``EpisodeResult.snapshots``.
+    """
     t0 = time.perf_counter()
     cfg = WarehouseConfig.named(spec.scale, max_steps=max(spec.steps, 1) + 1)
     wh = Warehouse(cfg)
@@ -251,9 +305,28 @@ def run_episode(spec: EpisodeSpec, trace_hook=None) -> EpisodeResult:
             if k in cols:
                 cols[k][step] = v
 
+    layer = None
+    if spec.loss_percent > 0:
+        if spec.dispatch != "concurrent" or spec.shared_stream:
+            raise ValueError("loss_percent: message loss is modelled for concurrent dispatch with per-agent draws")
+        from morph_sim.services.bus.faults import FaultLayer
+        from morph_sim.services.lab import faults_experiment as fx
+
+        layer = FaultLayer(fx.RUN, base_seed=spec.seed)
+        layer.set(fx.fault_spec("bursty", spec.loss_percent, spec.seed))
+    snaps = set(snapshot_ticks)
+    snapshots: dict[int, np.ndarray] = {}
     for t in range(T):
+        if spec.demand_phases and t % spec.phase_steps == 0:
+            side = spec.demand_phases[t // spec.phase_steps]
+            if spec.demand_mode == "requests":
+                wh.set_demand_side(side)
+            elif spec.demand_mode == "assignment":
+                cta.assignment_side = side
         obs = cta.begin_tick()
         brains.learn(obs)
+        if t in snaps:
+            snapshots[t] = brains.team_weights().copy()
         if t > 0 and not brains.memoryless:
             record(t - 1)
         if brains.memoryless:
@@ -262,7 +335,10 @@ def run_episode(spec: EpisodeSpec, trace_hook=None) -> EpisodeResult:
             trace_hook(obs, brains)
         c = obs.cells
         dist_sum += np.abs(c[:, None, 0] - c[None, :, 0]) + np.abs(c[:, None, 1] - c[None, :, 1])
-        commits = dispatch_tick(obs, brains, spec.dispatch, shared, stats)
+        if layer is not None:
+            commits = _lossy_dispatch(obs, brains, layer, stats)
+        else:
+            commits = dispatch_tick(obs, brains, spec.dispatch, shared, stats)
         committed += len(cta.commit(commits))
         cta.finish_tick()
         cols["deliveries"][t] = cta.deliveries
@@ -273,6 +349,8 @@ def run_episode(spec: EpisodeSpec, trace_hook=None) -> EpisodeResult:
     if not brains.memoryless:
         brains.learn(final)
         record(T - 1)
+        if T in snaps:
+            snapshots[T] = brains.team_weights().copy()
         if trace_hook is not None:
             trace_hook(final, brains)
 
@@ -314,7 +392,8 @@ def run_episode(spec: EpisodeSpec, trace_hook=None) -> EpisodeResult:
             summary["spearman_agv_picker"] = metrics.spearman_agv_picker(W, mean_dist, is_agv, n_permutations=0).rho
             summary["spearman_all_pairs"] = metrics.spearman_reference_pairs(W, mean_dist).rho
     summary["wall_s"] = time.perf_counter() - t0
-    return EpisodeResult(spec, cols, summary, summary["wall_s"], W, A)
+    return EpisodeResult(spec, cols, summary, summary["wall_s"], W, A, mean_dist,
+                         tracker if not brains.memoryless else None, snapshots)
 
 
 def _rules(policy: MorphPolicy) -> str:

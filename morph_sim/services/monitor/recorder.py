@@ -6,6 +6,8 @@ Files:
 * ``metrics.csv`` — one row per tick (columns :data:`COLUMNS`), appended and flushed at least once a second;
 * ``events.jsonl`` — one JSON object per event (run start/finish, faults, crashes, restarts, rejects …);
 * ``snapshots/t<tick>.npz`` — periodic W and A matrices assembled from the agents' published state rows;
+* ``positions.csv`` — per tick: every robot's x, y, heading and carrying flag (``t, x0…, y0…, dir0…, carry0…``);
+* ``links.csv`` — per row t: the undirected links as ``i-j`` pairs separated by spaces (replays the topology);
 * ``summary.json`` — totals written at the end of the run.
 
 Every experiment table can be recomputed from these files alone.
@@ -102,11 +104,22 @@ class Recorder:
             self._write_json(mpath, manifest(config, manifest_extra))
         metrics = self.dir / "metrics.csv"
         fresh = not metrics.exists() or metrics.stat().st_size == 0
+        #: (last row t, its deliveries_total) of the record a restarted monitor continues, else None
+        self.resume_from: tuple[int, int] | None = None
+        if not fresh:
+            for name in ("metrics.csv", "events.jsonl", "positions.csv", "links.csv"):
+                _trim_partial_line(self.dir / name)  # a killed monitor may have left half a line
+            rows = read_metrics(self.dir)
+            last = rows[-1] if rows else None
+            self.resume_from = (int(last["t"]), int(last["deliveries_total"] or 0)) if last else (-1, 0)
         self._metrics_file = open(metrics, "a", newline="", encoding="utf-8")
         self._csv = csv.writer(self._metrics_file)
         if fresh:
             self._csv.writerow(COLUMNS)
         self._events_file = open(self.dir / "events.jsonl", "a", encoding="utf-8")
+        self.resumed = not fresh  # a restarted monitor appends to the record (it declares the gap)
+        self._positions_file = open(self.dir / "positions.csv", "a", encoding="utf-8")
+        self._links_file = open(self.dir / "links.csv", "a", encoding="utf-8")
         self._last_flush = time.monotonic()
         self.rows = 0
         self.closed = False
@@ -126,6 +139,13 @@ class Recorder:
         self._events_file.write(json.dumps(data, sort_keys=True, default=str) + "\n")
         self._maybe_flush()
 
+    def positions(self, t: int, x, y, heading, carrying) -> None:
+        self._positions_file.write(",".join(map(str, (t, *x, *y, *heading, *(int(c) for c in carrying)))) + "\n")
+
+    def links(self, t: int, A: np.ndarray) -> None:
+        pairs = np.argwhere(np.triu(A | A.T, k=1))
+        self._links_file.write(f"{t}," + " ".join(f"{i}-{j}" for i, j in pairs) + "\n")
+
     def snapshot(self, t: int, W: np.ndarray, A: np.ndarray) -> Path:
         path = self.dir / "snapshots" / f"t{t:07d}.npz"
         tmp = path.with_name(path.stem + ".tmp.npz")
@@ -141,6 +161,8 @@ class Recorder:
         if force or now - self._last_flush >= FLUSH_SECONDS:
             self._metrics_file.flush()
             self._events_file.flush()
+            self._positions_file.flush()
+            self._links_file.flush()
             self._last_flush = now
 
     def flush(self) -> None:
@@ -153,6 +175,18 @@ class Recorder:
         self.flush()
         self._metrics_file.close()
         self._events_file.close()
+        self._positions_file.close()
+        self._links_file.close()
+
+
+def _trim_partial_line(path: Path) -> None:
+    """Cut an unterminated last line (a write interrupted by a kill), so appended lines stay whole."""
+    if not path.exists() or path.stat().st_size == 0:
+        return
+    data = path.read_bytes()
+    if not data.endswith(b"\n"):
+        with open(path, "r+b") as f:
+            f.truncate(data.rfind(b"\n") + 1)
 
 
 def read_metrics(directory: Path) -> list[dict[str, str]]:

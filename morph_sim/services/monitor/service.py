@@ -32,11 +32,13 @@ from morph_sim.schemas.keys import RunKeys, intersects
 from morph_sim.services.bus.base import Bus, Query, Sample
 from morph_sim.services.monitor import metrics as M
 from morph_sim.services.monitor.recorder import Recorder
+from morph_sim.services.monitor.streams import MessageStats
 from morph_sim.services.rejects import Rejects
 from morph_sim.services.runconfig import RunConfig
 
 log = logging.getLogger("morph_sim.monitor")
 
+ROW_GRACE_TICKS = 8
 STREAMS = ("deliveries", "deliveries_total", "requests", "commits", "links", "lambda2", "eta", "acks",
            "w_agv_agv", "w_agv_picker", "w_picker_picker")
 ACK_HAS_LINKS = "links" in Ack.model_fields  # the wire schema's per-tick link report (else: state rows)
@@ -97,10 +99,19 @@ class MonitorService:
         self._done = False
         self._stop_timer: asyncio.TimerHandle | None = None
         self._link_shift = 1 if config.policy == "morph" else 0
+        self.stats = MessageStats(self.n, config.dt)  # message streams (counts, drops, latency, dispatch)
+        # issue 5 (F3): per key class sent / delivered / dropped / duplicated / late and latency, from the samples'
+        # own headers, published as link/* metrics every k (state_every) ticks
+        from morph_sim.services.bus.linkstats import LinkMeter
+
+        self.link_meter = LinkMeter(f"morph/{config.run_id}")
+        self.latest_links: list[MetricSample] = []
+        self._links_due = False
 
     def _reject(self, what: str, why: object) -> None:
         self._rejects.count(what, why)
         self.result.rejected = self._rejects.total
+        self.stats.rejected = self._rejects.total
 
     # -- lifecycle -----------------------------------------------------------------------------------------------------
     async def run(self) -> MonitorResult:
@@ -133,6 +144,11 @@ class MonitorService:
         head = rel[0]
         kind = head if head != "agent" or len(rel) < 3 else rel[2]
         self.result.messages[kind] = self.result.messages.get(kind, 0) + 1
+        self.stats.observe(kind, sample.key, sample.sender, sample.seq, sample.sent_at)
+        if sample.sender:
+            # wall stamps (paced / up): latency as seen here; sim-time stamps (virtual time) carry no wall latency
+            sent = sample.sent_at
+            self.link_meter.record(sample.key, sample.sender, sample.seq, sent, time.time() if sent > 1e8 else sent)
         try:
             if head == "sim" and rel[1:] == ["tick"]:
                 self._on_tick(sample.decode(Tick))
@@ -168,6 +184,8 @@ class MonitorService:
             raise ValueError(f"tick has {tick.n} robots, this fleet {self.n}")
         if tick.t <= self._last_tick:
             return
+        if self._last_tick < 0 and self.recorder is not None and self.recorder.resume_from is not None:
+            self._resume(tick.t)
         self._last_tick = tick.t
         if tick.t > 0:
             prev = self._row(tick.t - 1)
@@ -177,7 +195,23 @@ class MonitorService:
             row = self._row(tick.t)
             if row is not None:
                 row.sim_time = tick.sim_time
-        self._finalize(upto=tick.t - 2)
+        if self.recorder is not None:
+            self.recorder.positions(tick.t, tick.x, tick.y, tick.heading, tick.carrying)
+        # Row t-2 is due once tick t arrives, but its acks (and the link reports of t-1) travel on other paths than
+        # the sim's ticks and may reach the monitor after tick t: a row that still misses an agent's report waits
+        # up to ROW_GRACE_TICKS more ticks (an absent agent's row is then written without it).
+        self._finalize(upto=tick.t - 2, grace=ROW_GRACE_TICKS)
+
+    def _resume(self, first_tick: int) -> None:
+        # A restarted monitor appends to its predecessor's record: rows from the first tick it sees (the first it can
+        # see whole), the cumulative count continued, and the rows in between declared lost (a gap event).
+        last_row, total = self.recorder.resume_from
+        self._total = total
+        self._next_row = max(first_tick, last_row + 1)
+        kind = "monitor.gap" if self._next_row > last_row + 1 else "monitor.resumed"
+        self.recorder.event(Event(kind=kind, source="monitor", t=first_tick, details={
+            "first": last_row + 1, "last": self._next_row - 1, "reason": "monitor restarted"}).model_dump(mode="json"))
+        self.recorder.flush()
 
     def _check_sender(self, chunk: str, agent: int) -> None:
         if chunk != str(agent):
@@ -194,6 +228,8 @@ class MonitorService:
             if row is not None and ack.agent not in row.ackers:
                 row.ackers.add(ack.agent)
                 row.requests += len(ack.requests_sent)
+                if ack.requests_sent:
+                    self.stats.requested(ack.t, ack.agent)
         if ACK_HAS_LINKS:
             self._links_from(ack.t, ack.agent, getattr(ack, "links", None) or [], getattr(ack, "eta", None))
 
@@ -215,6 +251,7 @@ class MonitorService:
         row = self._row(commit.t)
         if row is not None:
             row.commits += 1
+        self.stats.committed(commit.t, commit.agv)
 
     def _on_state(self, state: AgentState, chunk: str) -> None:
         self._check_sender(chunk, state.agent)
@@ -264,9 +301,15 @@ class MonitorService:
             self.recorder.event(event.model_dump(mode="json"))
 
     # -- rows ------------------------------------------------------------------------------------------------------------
-    def _finalize(self, upto: int) -> None:
+    def _row_complete(self, row: Row) -> bool:
+        return len(row.ackers) >= self.n and (not ACK_HAS_LINKS or len(row.links) >= self.n)
+
+    def _finalize(self, upto: int, grace: int = 0) -> None:
         while self._next_row <= upto:
             t = self._next_row
+            pending = self._rows.get(t)
+            if t > upto - grace and (pending is None or not self._row_complete(pending)):
+                break
             row = self._rows.pop(t, None) or Row(t)
             self._emit(row)
             self._next_row += 1
@@ -293,6 +336,7 @@ class MonitorService:
             self.result.rows.append(values)
         if self.recorder is not None:
             self.recorder.row(values)
+            self.recorder.links(row.t, A)
         self._queue_metrics(values)
 
     def _queue_metrics(self, values: dict) -> None:
@@ -304,9 +348,21 @@ class MonitorService:
             if v is None or (isinstance(v, float) and not math.isfinite(v)):
                 continue
             samples.append(MetricSample(name=name, t=t, sim_time=sim_time, value=float(v)))
+        samples += self.stats.samples(values)
         for s in samples:
             self.latest_metric[s.name] = s
-        self._pending_publish = samples
+        if t % self.config.state_every == 0:
+            # one sample per (counter, key class): kept apart from latest_metric (one value per name), and carried
+            # to the next decimated publish so a k-tick snapshot is never skipped
+            self.latest_links = self.link_meter.metrics(t, sim_time, self.bus.identity)
+            self._links_due = True
+        if self._links_due and (self.max_rate <= 0 or time.monotonic() - self._last_publish >= 1.0 / self.max_rate):
+            samples = samples + self.latest_links
+            self._links_due = False
+        # per stream the newest sample since the last publication: a sparse stream (dispatch_delay) is not lost
+        pending = {s.name: s for s in self._pending_publish}
+        pending.update((s.name, s) for s in samples)
+        self._pending_publish = list(pending.values())
         now = time.monotonic()
         if self.max_rate > 0 and now - self._last_publish >= 1.0 / self.max_rate:
             self._last_publish = now
@@ -329,6 +385,7 @@ class MonitorService:
         summary = {
             "run_id": self.config.run_id, "steps": self._next_row, "deliveries_total": self._total,
             "rejected": self.result.rejected, "mean_links": self._links_sum / max(1, self._next_row),
+            "sequence_gaps": self.stats.gaps,  # messages lost on the way to the monitor (per sender and key)
             "messages": dict(sorted(self.result.messages.items())),
             "finished": self.result.finished,
             "final_links": self._last_values.get("links"),

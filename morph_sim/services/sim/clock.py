@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -38,6 +39,7 @@ from morph_sim.services.bus.base import Bus, LivelinessEvent, Sample
 from morph_sim.services.rejects import Rejects
 from morph_sim.services.runconfig import RunConfig
 from morph_sim.services.sim.cta import CTAController
+from morph_sim.services.sim.registry import mount_registry
 from morph_sim.services.sim.warehouse import Warehouse, WarehouseConfig
 
 log = logging.getLogger("morph_sim.sim")
@@ -82,30 +84,31 @@ def _wire_extras(obs: TickObservation) -> dict:
 def observation_from_tick(tick: Tick, steps: int | None = None) -> TickObservation:
     """The policy's observation rebuilt from a Tick message alone (inverse of :func:`tick_from_observation`)."""
     n = tick.n
-    is_agv = np.asarray(tick.is_agv, dtype=bool)
-    n_agvs = int(is_agv.sum())
+    # One conversion for every per-robot integer field (each agent does this every tick): rows of one block.
+    ints = np.array([tick.x, tick.y, tick.target_x, tick.target_y, tick.prev_target_x, tick.prev_target_y,
+                     tick.mission, tick.prev_mission, tick.task, tick.prev_task, tick.loader], dtype=np.int64)
+    flags = np.array([tick.is_agv, tick.needs_picker], dtype=bool).reshape(2, n)
+    n_agvs = int(np.count_nonzero(flags[0]))
     free = np.zeros(n, dtype=bool)
-    free[np.asarray(tick.free_pickers, dtype=np.int64)] = True
+    free[tick.free_pickers] = True
     delivered = np.zeros(n, dtype=bool)
-    delivered[np.asarray(tick.delivered_by, dtype=np.int64)] = True
+    delivered[tick.delivered_by] = True
     return TickObservation(
         t=tick.t, n_agvs=n_agvs, n_pickers=n - n_agvs, grid_shape=(tick.grid_rows, tick.grid_cols),
-        cells=np.stack([np.asarray(tick.x, dtype=np.int64), np.asarray(tick.y, dtype=np.int64)], axis=1),
-        mission=np.asarray(tick.mission, dtype=np.int8),
-        target=np.stack([np.asarray(tick.target_x, dtype=np.int64), np.asarray(tick.target_y, dtype=np.int64)],
-                        axis=1),
-        task=np.asarray(tick.task, dtype=np.int64),
-        needs_picker=np.asarray(tick.needs_picker, dtype=bool),
+        cells=ints[0:2].T.copy(),
+        mission=ints[6].astype(np.int8),
+        target=ints[2:4].T.copy(),
+        task=ints[8].copy(),
+        needs_picker=flags[1].copy(),
         free_picker=free,
-        request_order=np.asarray(tick.mission_order, dtype=np.int64),
+        request_order=np.array(tick.mission_order, dtype=np.int64),
         has_previous=bool(tick.has_previous),
-        prev_mission=np.asarray(tick.prev_mission, dtype=np.int8),
-        prev_target=np.stack([np.asarray(tick.prev_target_x, dtype=np.int64),
-                              np.asarray(tick.prev_target_y, dtype=np.int64)], axis=1),
-        prev_task=np.asarray(tick.prev_task, dtype=np.int64),
+        prev_mission=ints[7].astype(np.int8),
+        prev_target=ints[4:6].T.copy(),
+        prev_task=ints[9].copy(),
         delivered=delivered,
-        reward=np.asarray(tick.reward, dtype=float),
-        loader=np.asarray(tick.loader, dtype=np.int64),
+        reward=np.array(tick.reward, dtype=float),
+        loader=ints[10].copy(),
         **_handled_and_final(tick, n, steps),
     )
 
@@ -212,28 +215,50 @@ class SimResult:
 
 
 class _Phase:
-    """Who must still answer in the current phase, and a future that resolves when nobody is left."""
+    """Who must still answer in the current phase, and a future that resolves when nobody is left.
+
+    Answers arrive on the transport's receive thread (inline handlers) or on the loop; ``lock`` guards ``waiting``
+    and the answers recorded with it, and ``close`` (on the loop, when the phase ends) makes later answers stale.
+    """
 
     def __init__(self, t: int, phase: int, waiting: set[int]):
         self.t = t
         self.phase = phase
         self.waiting = set(waiting)
-        self.done = asyncio.get_running_loop().create_future()
+        self.held: set[int] = set()  # answers held by the fault layer (virtual time): accepted if released in time
+        self.lock = threading.Lock()
+        self.closed = False
+        self._loop = asyncio.get_running_loop()
+        self.done = self._loop.create_future()
         if not self.waiting:
             self.done.set_result(None)
 
     def answered(self, agent: int) -> None:
-        self.waiting.discard(agent)
-        if not self.waiting and not self.done.done():
+        """Call with ``lock`` held, from any thread."""
+        if agent in self.waiting:
+            self.waiting.discard(agent)
+            if not self.waiting:
+                self._loop.call_soon_threadsafe(self._finish)
+
+    def _finish(self) -> None:
+        if not self.done.done():
             self.done.set_result(None)
+
+    def close(self) -> None:
+        with self.lock:
+            self.closed = True
 
 
 class SimClock:
     """Runs ``config.steps`` ticks over ``bus``. ``await run()`` returns a :class:`SimResult`."""
 
     def __init__(self, config: RunConfig, bus: Bus, *, wait_for_monitor: bool = True,
-                 on_tick: Callable[[int, TickObservation], None] | None = None):
+                 on_tick: Callable[[int, TickObservation], None] | None = None, faults=None):
         self.config = config
+        # issue 5: a FaultRuntime (morph_sim.services.faults.runtime) whose layer sits on this bus; phases then end
+        # when every answer has *arrived* (delivered, held or dropped by the layer) and at each phase boundary the
+        # runtime releases what is due, so a lost or late answer costs that agent its tick, never a hang.
+        self.faults = faults
         self._rejects = Rejects(log, "sim")
         self.bus = bus
         self.keys = RunKeys(config.run_id)
@@ -283,8 +308,10 @@ class SimClock:
         if isinstance(who, int) and self._running and self._stop is None:
             self.result.absences += 1
             log.info("sim: agent %s absent (%s)", who, why)
-            if self._phase is not None:
-                self._phase.answered(who)
+            ph = self._phase
+            if ph is not None:
+                with ph.lock:
+                    ph.answered(who)
 
     def _on_event(self, sample: Sample) -> None:
         try:
@@ -321,6 +348,36 @@ class SimClock:
             self._phase.done.set_result(None)
 
     # -- tick traffic ------------------------------------------------------------------------------------------------
+    def _on_arrival(self, sample: Sample, fate: list[float]) -> None:
+        """Fault layer hook: an ack or commit physically arrived. Dropped: the sender has answered (no action this
+        tick). Held: it has answered too, and its answer counts if released by the phase's boundary."""
+        if fate and min(fate) <= 0.0:
+            return  # delivered now: the handler records it
+        ph = self._phase
+        rel = sample.key.rsplit("/", 1)[-1]
+        if ph is None or rel not in ("ack", "commit"):
+            return
+        try:
+            msg = sample.decode(Ack if rel == "ack" else Commit)
+        except ValueError:
+            return  # the handler rejects it if it is ever delivered
+        who = msg.agent if rel == "ack" else msg.picker
+        if msg.t != ph.t or (rel == "ack" and msg.phase != ph.phase) or (rel == "commit" and ph.phase != Phase.RESOLVE):
+            return
+        with ph.lock:
+            if ph.closed or who not in ph.waiting:
+                return
+            if fate:
+                ph.held.add(who)
+            ph.answered(who)
+
+    def _boundary(self, t: int, phase: int) -> None:
+        """Virtual time: reach the boundary that closes ``phase`` of tick ``t`` (releases held answers)."""
+        if self.faults is not None:
+            from morph_sim.services.bus.vtime import boundaries
+
+            self.faults.advance(boundaries(t, self.config.dt)[1 if phase == Phase.TICK else 2])
+
     def _on_ack(self, sample: Sample) -> None:
         try:
             msg = sample.decode(Ack)
@@ -332,13 +389,17 @@ class SimClock:
         if sender != msg.agent:
             self._reject(sample.key, f"ack of agent {msg.agent} on the key of {sender}")
             return
-        if ph is None or msg.t != ph.t or msg.phase != ph.phase or msg.agent not in ph.waiting:
-            return  # stale or duplicate: the protocol ignores it
-        if ph.phase == Phase.TICK:
-            asked = [p for p in msg.requests_sent if self.config.n_agvs <= p < self.n]
-            if msg.agent < self.config.n_agvs and asked:
-                self._requests[msg.agent] = asked[:1]  # one request per AGV per tick
-        ph.answered(msg.agent)
+        if ph is None or msg.t != ph.t or msg.phase != ph.phase:
+            return  # stale: the protocol ignores it
+        with ph.lock:
+            if ph.closed or (msg.agent not in ph.waiting and msg.agent not in ph.held):
+                return  # late or duplicate
+            ph.held.discard(msg.agent)
+            if ph.phase == Phase.TICK:
+                asked = [p for p in msg.requests_sent if self.config.n_agvs <= p < self.n]
+                if msg.agent < self.config.n_agvs and asked:
+                    self._requests[msg.agent] = asked[:1]  # one request per AGV per tick
+            ph.answered(msg.agent)
 
     def _on_commit(self, sample: Sample) -> None:
         try:
@@ -351,24 +412,35 @@ class SimClock:
         if sender != msg.picker:
             self._reject(sample.key, f"commit of picker {msg.picker} on the key of {sender}")
             return
-        if ph is None or ph.phase != Phase.RESOLVE or msg.t != ph.t or msg.picker not in ph.waiting:
+        if ph is None or ph.phase != Phase.RESOLVE or msg.t != ph.t:
             return
         if msg.agv not in self._expected.get(msg.picker, ()):
             self._reject(sample.key, f"picker {msg.picker} committed to AGV {msg.agv}, which did not ask it")
             return
-        self._commits[msg.picker] = msg.agv
-        ph.answered(msg.picker)
+        with ph.lock:
+            if ph.closed or (msg.picker not in ph.waiting and msg.picker not in ph.held):
+                return
+            ph.held.discard(msg.picker)
+            self._commits[msg.picker] = msg.agv
+            ph.answered(msg.picker)
 
     # -- main ----------------------------------------------------------------------------------------------------------
     async def run(self) -> SimResult:
         k = self.keys
         bus = self.bus
         token = await bus.declare_token(k.alive("sim"))
-        await bus.subscribe(k.acks, self._on_ack)
-        await bus.subscribe(k.commits, self._on_commit)
+        if self.faults is not None:
+            layer = next((x for x in self.faults.layers if x is bus._interposer), None) or self.faults.attach(bus)
+            layer.on_fate = self._on_arrival
+            await self.faults.start()
+        # inline: acks and commits are counted on the receive thread; only a phase's end wakes the loop
+        await bus.subscribe(k.acks, self._on_ack, inline=True)
+        await bus.subscribe(k.commits, self._on_commit, inline=True)
         await bus.subscribe(k.events, self._on_event)
         await bus.subscribe(k.stop, self._on_stop)
         await bus.subscribe_liveliness(k.alive_all, self._on_alive, history=True)
+        # agents started without an id claim one here (morph/<run>/registry) before they declare their token
+        self.registry = await mount_registry(bus, k, self.config.n_agvs, self.config.n_pickers)
         prober = asyncio.get_running_loop().create_task(self._probe_loop())
         try:
             await self._wait_ready()
@@ -396,6 +468,7 @@ class SimClock:
                 await asyncio.wait_for(self._ready_changed.wait(), 0.1)
             except asyncio.TimeoutError:
                 pass
+        await self.registry.close()
         await token.close()
         return r
 
@@ -452,6 +525,8 @@ class SimClock:
         except asyncio.TimeoutError:
             pass
         finally:
+            self._boundary(ph.t, ph.phase)
+            ph.close()
             self._phase = None
         if ph.waiting and self.config.mode == "lockstep" and self._stop is None:
             for who in sorted(ph.waiting):
@@ -489,6 +564,8 @@ class SimClock:
             t = obs.t
             if self.on_tick is not None:
                 self.on_tick(t, obs)
+            if self.faults is not None:
+                self.faults.advance(t * cfg.dt)  # tick start: schedule, heals, what is due
             self._requests = {}
             self._commits = {}
             self._expected = {}
@@ -496,6 +573,7 @@ class SimClock:
             tick = tick_from_observation(obs, t * cfg.dt, world_fields(self.ctl, obs))
             t1 = time.monotonic()
             spent["controller"] += t1 - started
+            self._phase = ph  # before the tick goes out: inline acks may arrive before _collect starts
             await self.bus.publish(k.tick, tick)
             await self._collect(ph, self._deadline(started, Phase.TICK))
             t2 = time.monotonic()
@@ -510,6 +588,7 @@ class SimClock:
                 self._expected = expected
                 pickers = sorted(expected)
                 ph = _Phase(t, Phase.RESOLVE, {p for p in pickers if p in self.present()})
+                self._phase = ph
                 await self.bus.publish(k.resolve, Resolve(t=t, pickers=pickers,
                                                           requesters=[expected[p] for p in pickers]))
                 await self._collect(ph, self._deadline(started, Phase.RESOLVE))
@@ -530,6 +609,7 @@ class SimClock:
         # the final tick: agents apply the update of the last step, nobody dispatches
         obs = self.ctl.final_observation()
         ph = _Phase(obs.t, Phase.TICK, self.present())
+        self._phase = ph
         await self.bus.publish(k.tick, tick_from_observation(obs, obs.t * cfg.dt, world_fields(self.ctl, obs)))
         wait = 0.5 if self._stop is not None else cfg.phase_timeout if cfg.mode == "lockstep" else cfg.period
         await self._collect(ph, time.monotonic() + wait)

@@ -71,6 +71,7 @@ def process_graph(config: RunConfig, endpoint: str) -> list[ProcessSpec]:
         specs.append(ProcessSpec(
             f"agent-{agent}", "agent", (PROGRAM, "agent", "--id", str(agent), *shared, "--endpoint", endpoint),
             dict(CHILD_ENV), "on-failure", agent))
+    # on-failure: a restarted monitor appends to the same run record and declares the rows it missed (issue 6)
     specs.append(ProcessSpec("monitor", "monitor", (PROGRAM, "monitor", *shared, "--endpoint", endpoint),
-                             dict(CHILD_ENV), "never"))
+                             dict(CHILD_ENV), "on-failure"))
     return specs

@@ -31,7 +31,11 @@ log = logging.getLogger("morph_sim.supervisor")
 
 TERM_GRACE = 3.0  # seconds between SIGTERM and SIGKILL
 SHUTDOWN_BOUND = 5.0
-MAX_RESTARTS = 5  # per agent; a crash loop is a failure, not something to retry forever
+# A crash loop is a failure, not something to retry forever: at most MAX_RESTARTS unplanned restarts of one child
+# within RESTART_WINDOW wall seconds. Kills the supervisor carries out itself (crash faults, issue 5) do not count, so
+# "kill agent k every 100 ticks" runs for any number of steps.
+MAX_RESTARTS = 5
+RESTART_WINDOW = 60.0
 _PR_SET_PDEATHSIG = 1
 
 
@@ -56,6 +60,8 @@ class Child:
     exit_codes: list[int] = field(default_factory=list)
     pids: list[int] = field(default_factory=list)  # every pid this child ever had (tests check they are gone)
     reaped: set[int] = field(default_factory=set)  # pids whose exit was handled
+    failures: list[float] = field(default_factory=list)  # monotonic times of unplanned restarts (crash-loop budget)
+    planned: dict[int, bool] = field(default_factory=dict)  # pid killed by a crash fault -> restart it cold?
 
     @property
     def pid(self) -> int | None:
@@ -64,13 +70,18 @@ class Child:
     def alive(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
 
-    def start(self) -> None:
+    def restart_allowed(self, now: float) -> bool:
+        self.failures = [x for x in self.failures if now - x < RESTART_WINDOW]
+        return len(self.failures) < MAX_RESTARTS
+
+    def start(self, extra: tuple[str, ...] = ()) -> None:
+        """``extra`` flags go after the spec's (argparse: the last one wins), e.g. ``--cold-restart True``."""
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         with open(self.log_path, "ab") as out:
-            out.write(f"--- start {' '.join(self.spec.argv)} at {time.time():.3f}\n".encode())
+            out.write(f"--- start {' '.join(self.spec.argv + extra)} at {time.time():.3f}\n".encode())
             out.flush()
             self.proc = subprocess.Popen(
-                self.spec.command(), env=self.spec.environment(), stdin=subprocess.DEVNULL, stdout=out,
+                self.spec.command() + list(extra), env=self.spec.environment(), stdin=subprocess.DEVNULL, stdout=out,
                 stderr=subprocess.STDOUT, start_new_session=True, preexec_fn=_die_with_parent, close_fds=True)
         self.pids.append(self.proc.pid)
 
@@ -136,11 +147,41 @@ class Supervisor:
         self.ready_timeout = config.ready_timeout if ready_timeout is None else ready_timeout
         self.stop_requested: str | None = None
         self.events: list[tuple[float, str, str]] = []
+        # Crash faults (issue 5): specs from the schedule file or `morph-sim faults set` land in the planner (the
+        # ctl/faults controller's on_crash hook); each tick the due actions are carried out on the agents' pids.
+        from morph_sim.services.faults.crash import CrashPlanner, ProcessFaulter
+        from morph_sim.services.faults.schedule import load_schedule
+
+        self.schedule = load_schedule(config.fault_schedule) if config.fault_schedule else None  # bad file: fail now
+        self.planner = CrashPlanner(config.n_agents, config.seed)
+        # pause_for is in sim seconds: paced runs map it through the period, lock-step runs at 1 wall s per sim s
+        self.faulter = ProcessFaulter(self._agent_pid,
+                                      time_scale=config.period / config.dt if config.mode == "paced" else 1.0)
+        self._crash_t = -1  # last tick whose crash actions were carried out
 
     # -- bookkeeping -------------------------------------------------------------------------------------------------
     @property
     def all_pids(self) -> list[int]:
         return [pid for child in self.children.values() for pid in child.pids]
+
+    def _agent_pid(self, agent: int) -> int | None:
+        child = self.children.get(f"agent-{agent}")
+        return child.pid if child is not None and child.alive() else None
+
+    async def _crashes(self, bus, keys, controller) -> None:
+        """Carry out the crash actions of every tick reached since the last call (the metric stream may skip)."""
+        while self._crash_t < self.progress.t:
+            self._crash_t += 1
+            t = self._crash_t
+            controller.advance(t * self.config.dt)  # scheduled commands of this tick (crash specs reach the planner)
+            for action in self.planner.due(t):
+                child = self.children.get(f"agent-{action.agent}")
+                pid = self.faulter.execute(action)
+                if pid is not None and child is not None and action.signal == "kill":
+                    child.planned[pid] = action.cold_restart or self.config.cold_restart
+                self._event("crash", f"{action.signal} agent {action.agent} (pid {pid}) at tick {t}")
+                await self._publish_event(bus, keys, "agent.crash", agent=action.agent, signal=action.signal,
+                                          pid=pid, fault_id=action.fault_id, tick=t)
 
     def _event(self, kind: str, what: str) -> None:
         self.events.append((time.time(), kind, what))
@@ -238,7 +279,7 @@ class Supervisor:
         return await ZenohBus.open("supervisor", connect=self.endpoint)
 
     async def _watch(self, bus) -> int:
-        from morph_sim.schemas import MetricSample, Stop
+        from morph_sim.schemas import MetricSample, Stop, Tick
         from morph_sim.schemas.keys import RunKeys
 
         keys = RunKeys(self.config.run_id)
@@ -252,6 +293,22 @@ class Supervisor:
                 self.progress.update(msg.name, msg.t, msg.value)
 
         await bus.subscribe(keys.metrics, on_metric)
+
+        def on_tick(sample) -> None:  # every tick (the metric stream is decimated): crash faults hit their tick
+            try:
+                t = sample.decode(Tick).t
+            except ValueError:
+                return
+            if self.progress.t < t < self.config.steps:  # (a final Tick t = steps closes the run)
+                self.progress.update("tick", t, float("nan"))
+
+        await bus.subscribe(keys.tick, on_tick)
+        from morph_sim.services.faults.controller import FaultController
+
+        controller = FaultController(  # no fault layers here: the supervisor only carries out crash faults
+            bus, self.config.run_id, [], clock=lambda: max(self.progress.t, 0) * self.config.dt, dt=self.config.dt,
+            on_crash=self.planner.add, schedule=self.schedule)
+        await controller.start()
         ready_deadline = time.monotonic() + self.ready_timeout
         last_shown = 0.0
         while True:
@@ -272,6 +329,8 @@ class Supervisor:
                 await self._wait_exit([c for c in self.children.values() if c.spec.role == "monitor"], 10.0)
                 return 0
             running = self.progress.t >= 0
+            if running:
+                await self._crashes(bus, keys, controller)
             for child in self.children.values():
                 if child.spec.role == "sim" or child.alive() or child.pid in child.reaped:
                     continue
@@ -281,13 +340,19 @@ class Supervisor:
                 if not running and code != 0:
                     raise StartError(f"{child.spec.name} exited with status {code} before the run started:\n"
                                      f"{child.log_tail()}")
-                if child.spec.restart == "on-failure" and code != 0 and child.restarts < MAX_RESTARTS:
+                planned = child.pid in child.planned
+                if child.spec.restart == "on-failure" and code != 0 and (
+                        planned or child.restart_allowed(time.monotonic())):
                     old_pid = child.pid
+                    cold = child.planned.pop(old_pid, False)
+                    if not planned:
+                        child.failures.append(time.monotonic())
                     child.restarts += 1
-                    child.start()
+                    child.start(("--cold-restart", "True") if cold else ())
                     self._event("restart", f"{child.spec.name} exited with {code}; restarted as pid {child.pid}")
                     await self._publish_event(bus, keys, "agent.restart", agent=child.spec.agent, exit_code=code,
-                                              old_pid=old_pid, pid=child.pid, restarts=child.restarts)
+                                              old_pid=old_pid, pid=child.pid, restarts=child.restarts,
+                                              planned=planned, cold=cold)
                 elif child.spec.role == "monitor" and code != 0:
                     raise StartError(f"monitor exited with status {code}:\n{child.log_tail()}")
                 # otherwise it finished for good (after the run's stop): nothing to do

@@ -26,21 +26,26 @@ class LocalRun:
 
 
 async def run_local(config: RunConfig, *, record: bool = True, network: LocalNetwork | None = None,
-                    on_bus: Callable[[str, Bus], None] | None = None) -> LocalRun:
-    """Run ``config`` in this loop. ``on_bus(name, bus)`` sees every session (tests install fault layers there)."""
+                    on_bus: Callable[[str, Bus], None] | None = None, faults=None) -> LocalRun:
+    """Run ``config`` in this loop. ``on_bus(name, bus)`` sees every session (tests install fault layers there).
+
+    ``faults``: a FaultRuntime (issue 5) for the sim's session; every session then stamps its samples with the
+    runtime's sim clock, so latency is applied in sim seconds (virtual time)."""
     net = network or LocalNetwork()
     buses: list[Bus] = []
 
     def session(name: str) -> Bus:
         bus = net.session(name)
         buses.append(bus)
+        if faults is not None and faults.vtime is not None:
+            bus.set_clock(faults.now)
         if on_bus is not None:
             on_bus(name, bus)
         return bus
 
     monitor = MonitorService(config, session("monitor"), record=record)
     agents = [AgentService(config, session(f"agent-{i}"), i) for i in range(config.n_agents)]
-    sim = SimClock(config, session("sim"))
+    sim = SimClock(config, session("sim"), faults=faults)
     tasks = [asyncio.create_task(monitor.run(), name="monitor")]
     tasks += [asyncio.create_task(a.run(), name=f"agent-{a.id}") for a in agents]
     try:

@@ -22,14 +22,36 @@ def setup_logging(level: str = "WARNING", name: str = "") -> None:
                         format=f"%(asctime)s {name} %(levelname)s %(name)s: %(message)s")
 
 
-async def open_bus(identity: str, *, listen: str | None = None, connect: str | None = None):
-    from morph_sim.services.bus.zenoh_bus import ZenohBus
+ZENOH_CONFIG_ENV = "ZENOH_CONFIG"  # path of a Zenoh config file (zenoh's own convention): credentials, TLS …
 
-    if listen:
-        return await ZenohBus.open(identity, listen=listen, mode="router")
-    if not connect:
+
+def base_zenoh_config(environ: dict[str, str] | None = None):
+    """The deployment's Zenoh config named by ``ZENOH_CONFIG`` (e.g. deploy/zenoh/client-agent-0.json5, which
+    carries the user/password an ACL router checks), or None. A bad path or file is a ValueError naming it."""
+    import os
+
+    import zenoh
+
+    path = (os.environ if environ is None else environ).get(ZENOH_CONFIG_ENV)
+    if not path:
+        return None
+    try:
+        return zenoh.Config.from_file(path)
+    except Exception as exc:  # zenoh raises its own ZError for a missing or malformed file
+        raise ValueError(f"{ZENOH_CONFIG_ENV}: cannot read Zenoh config {path!r}: {exc}") from None
+
+
+async def open_bus(identity: str, *, listen: str | None = None, connect: str | None = None):
+    from morph_sim.services.bus.zenoh_bus import ZenohBus, zenoh_config
+
+    if not listen and not connect:
         raise ValueError("endpoint: a distributed service needs --endpoint (or --listen for the sim)")
-    return await ZenohBus.open(identity, connect=connect, mode="client")
+    # our endpoints, mode and transport settings go on top of the deployment's file (if any)
+    mode = "router" if listen else "client"
+    config = zenoh_config(listen=listen, connect=None if listen else connect, mode=mode,
+                          base=base_zenoh_config())
+    return await ZenohBus.open(identity, listen=listen, connect=None if listen else connect, mode=mode,
+                               config=config)
 
 
 async def serve(identity: str, make: Callable[[Any], Any], run: Callable[[Any], Awaitable[Any]],

@@ -1,0 +1,25 @@
+"""``morph-sim report RUN_DIR…``: a Markdown report with figures and a warehouse GIF from one or more run records."""
+
+from __future__ import annotations
+
+import argparse
+
+NAME = "report"
+HELP = "Markdown report (figures, warehouse GIF) of one or more run records"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("run_dirs", nargs="+", help="run record directories (runs/<run-id>)")
+    parser.add_argument("--out", default=None, help="report directory (default: <first RUN_DIR>/report)")
+    parser.add_argument("--no-gif", action="store_true", help="skip the warehouse animation")
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from morph_sim.services.monitor.report import write_report
+
+    out = Path(args.out) if args.out else Path(args.run_dirs[0]) / "report"
+    md = write_report([Path(d) for d in args.run_dirs], out, gif=not args.no_gif)
+    print(md)
+    return 0

@@ -1,0 +1,162 @@
+"""Crash faults under ``morph-sim up`` (issue 5): real OS processes over Zenoh on loopback.
+
+A schedule file asks for "kill agent k every 100 ticks"; the supervisor carries it out by pid (SIGKILL), restarts
+the agent, which restores its brain from the monitor's latest state and rejoins. The run completes with every tick
+in the record. Every wait is bounded; whatever the test started is killed by pid on failure.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from morph_sim.schemas import AgentState, Event
+from morph_sim.schemas.keys import RunKeys
+from morph_sim.services.bus.zenoh_bus import ZenohBus, endpoint, free_port
+from morph_sim.services.monitor.recorder import read_metrics
+
+from test_up import alive, descendants, kill_all
+
+UP_TIMEOUT = 150
+VICTIM = 6  # a picker at tiny (5 AGVs + 3 pickers)
+STEPS = 390  # the last kill (tick 300) leaves the restarted agent 5 s to start, restore and rejoin (loaded CI)
+
+
+def _events(record: Path) -> list[dict]:
+    return [json.loads(line) for line in (record / "events.jsonl").read_text().splitlines() if line.strip()]
+
+
+async def _port_open(port: int, proc: subprocess.Popen, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and proc.poll() is None:
+        try:
+            _, writer = await asyncio.wait_for(asyncio.open_connection("127.0.0.1", port), 0.5)
+            writer.close()
+            return True
+        except (OSError, asyncio.TimeoutError):
+            await asyncio.sleep(0.1)
+    return False
+
+
+async def test_up_kills_an_agent_every_100_ticks_and_it_rejoins_with_its_state(tmp_path):
+    schedule = tmp_path / "crash.toml"
+    schedule.write_text(f'[[at]]\ntick = 0\nspec = {{ id = "kill-{VICTIM}", crash = {{ agent = {VICTIM}, '
+                        'every = 100 } }\n'
+                        # and one cold restart for comparison: agent 1 at tick 150 starts from zero
+                        '[[at]]\ntick = 0\nspec = { id = "cold-1", crash = { agent = 1, at_tick = 150, '
+                        'cold_restart = true } }\n')
+    port = free_port()
+    run_id = "upkill"
+    argv = [sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", "tiny", "--run-id", run_id,
+            "--output-dir", str(tmp_path), "--policy", "morph", "--preset", "paper", "--seed", "5",
+            # paced: 100 ticks take 6 s, longer than a restarted agent needs to start, restore and rejoin
+            "--steps", str(STEPS), "--mode", "paced", "--period", "0.06", "--phase-timeout", "3",
+            "--state-every", "10",
+            "--listen", endpoint(port), "--fault-schedule", str(schedule)]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    seen: set[int] = set()
+    received: list[tuple[str, object]] = []  # ("state", AgentState) | ("restored", Event), in arrival order
+    bus = None
+    try:
+        if not await _port_open(port, proc, 60):
+            proc.kill()
+            raise AssertionError(f"the sim never opened its endpoint: {proc.communicate(timeout=10)[1][-3000:]}")
+        bus = await ZenohBus.open("test-observer", connect=endpoint(port))
+        keys = RunKeys(run_id)
+        await bus.subscribe(keys.agent_state(VICTIM), lambda s: received.append(("state", s.decode(AgentState))))
+
+        def on_event(sample) -> None:
+            event = sample.decode(Event)
+            if event.kind == "agent.restored":
+                received.append(("restored", event))
+
+        await bus.subscribe(keys.event(VICTIM), on_event)
+        deadline = time.monotonic() + UP_TIMEOUT
+        while proc.poll() is None and time.monotonic() < deadline:
+            seen |= descendants(proc.pid)
+            await asyncio.sleep(0.1)
+        out, err = proc.communicate(timeout=10)
+        assert proc.returncode == 0, err[-3000:]
+        assert "completed" in out and "4 restarts" in out, out
+    finally:
+        if bus is not None:
+            await bus.close()
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=10)
+        left = alive(seen | {proc.pid})
+        kill_all(left)
+    assert left == [], f"processes left behind: {left}"
+
+    record = tmp_path / run_id
+    rows = read_metrics(record)
+    assert [int(r["t"]) for r in rows] == list(range(STEPS))  # no tick lost from the record
+    events = _events(record)
+    crashes = [e for e in events if e["kind"] == "agent.crash"]
+    restarts = [e for e in events if e["kind"] == "agent.restart"]
+    assert [(e["details"]["tick"], e["details"]["agent"]) for e in crashes] == [
+        (100, VICTIM), (150, 1), (200, VICTIM), (300, VICTIM)]
+    assert all(e["details"]["pid"] for e in crashes)
+    assert [(e["details"]["agent"], e["details"]["planned"], e["details"]["cold"]) for e in restarts] == [
+        (VICTIM, True, False), (1, True, True), (VICTIM, True, False), (VICTIM, True, False)]
+    assert not [e for e in events if e["kind"] == "agent.restored" and e["source"] == 1]  # cold: nothing restored
+    assert any(e["kind"] == "agent.restored" and e["source"] == VICTIM for e in events)  # the record has them too
+
+    # Each restarted agent resumed with the W row its predecessor published last.
+    restored = [(i, e) for i, (kind, e) in enumerate(received) if kind == "restored"]
+    assert len(restored) == 3, [k for k, _ in received]
+    for i, event in restored:
+        last = [s for kind, s in received[:i] if kind == "state"][-1]
+        assert event.details["from_t"] == last.t
+        assert event.details["w_row"] == last.w_row
+    assert any(any(e.details["w_row"]) for _, e in restored)  # a learnt state came back, not zeros
+    froms = [e.details["from_t"] for _, e in restored]
+    assert all(t - 10 <= f <= t + 10 for f, t in zip(froms, (100, 200, 300))), froms
+    # after each restart the agent took part again: it published states beyond the one it restored
+    assert max(s.t for kind, s in received if kind == "state") >= STEPS - 10
+
+
+async def test_the_monitor_publishes_per_link_counters_every_k_ticks() -> None:
+    """F3: the monitor's link/* metrics (sent, delivered, dropped … per key class) come from the samples' headers;
+    a 30 % loss of acks on the monitor's own ingress shows up as dropped acks, every other class loses nothing."""
+    from morph_sim.schemas import FaultSpec, Loss, MetricSample, Scope
+    from morph_sim.services.agent.service import AgentService
+    from morph_sim.services.bus import LocalNetwork
+    from morph_sim.services.bus.faults import FaultLayer, install
+    from morph_sim.services.monitor.service import MonitorService
+    from morph_sim.services.runconfig import RunConfig
+    from morph_sim.services.sim.clock import SimClock
+
+    config = RunConfig(run_id="links", scale="tiny", policy="full", seed=3, steps=200, state_every=20)
+    net = LocalNetwork()
+    monitor_bus = net.session("monitor")
+    layer = install(monitor_bus, FaultLayer(config.run_id, base_seed=config.seed))
+    layer.set(FaultSpec(id="ack-loss", loss=Loss(percent=30), scope=Scope(key_expr="agent/*/ack")))
+    monitor = MonitorService(config, monitor_bus, record=False, max_rate=1000)
+    published: list[MetricSample] = []
+    observer = net.session("observer")
+    await observer.subscribe(f"morph/{config.run_id}/metrics/link/**",
+                             lambda s: published.append(s.decode(MetricSample)))
+    agents = [AgentService(config, net.session(f"agent-{i}"), i) for i in range(config.n_agents)]
+    tasks = [asyncio.create_task(a.run()) for a in agents] + [asyncio.create_task(monitor.run())]
+    try:
+        result = await asyncio.wait_for(SimClock(config, net.session("sim")).run(), 60)
+        await asyncio.wait_for(asyncio.gather(*tasks), 10)
+    finally:
+        for task in tasks:
+            task.cancel()
+    assert result.steps == 200
+    links = {(s.name, s.labels["key"]): s for s in monitor.latest_links}
+    assert {s.t for s in monitor.latest_links} == {180}  # the last multiple of k before the end
+    acks_sent, acks_dropped = links[("link/sent", "agent/*/ack")].value, links[("link/dropped", "agent/*/ack")].value
+    assert acks_sent >= 8 * 180
+    assert 0.25 < acks_dropped / acks_sent < 0.35
+    assert links[("link/dropped", "sim/tick")].value == 0 and links[("link/sent", "sim/tick")].value >= 180
+    # every k-tick snapshot reaches the bus, even when the decimated publish falls on another tick
+    assert sorted({s.t for s in published if s.name == "link/sent"}) == list(range(0, 200, 20))
+    assert ("link/latency/p50", "sim/tick") in links and all(s.labels["receiver"] == "monitor"
+                                                             for s in monitor.latest_links)

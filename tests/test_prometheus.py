@@ -1,0 +1,68 @@
+"""Prometheus /metrics of the monitor (issue 6, containers' C4): scraped on 127.0.0.1 during and after a run."""
+
+from __future__ import annotations
+
+import asyncio
+import re
+import urllib.request
+
+from morph_sim.services.bus.local import LocalNetwork
+from morph_sim.services.bus.zenoh_bus import free_port
+from morph_sim.services.envconfig import command_variables
+from morph_sim.services.monitor.prometheus import PrometheusExporter
+from morph_sim.services.monitor.service import MonitorService
+from morph_sim.services.runconfig import RunConfig
+
+
+def _scrape(port: int) -> str:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as resp:
+        assert resp.headers["Content-Type"].startswith("text/plain")
+        return resp.read().decode()
+
+
+def _value(text: str, name: str, labels: str = 'run="prom"') -> float:
+    m = re.search(rf"^{re.escape(name)}{{{re.escape(labels)}}} (\S+)$", text, re.M)
+    assert m, f"{name}{{{labels}}} not exposed"
+    return float(m.group(1))
+
+
+async def test_scrape_during_and_after_a_run(tmp_path):
+    from morph_sim.services.agent.service import AgentService
+    from morph_sim.services.sim.clock import SimClock
+
+    config = RunConfig(run_id="prom", scale="tiny", steps=120, policy="morph", output_dir=tmp_path)
+    net = LocalNetwork()
+    monitor = MonitorService(config, net.session("monitor"))
+    exporter = PrometheusExporter(monitor, free_port())
+    try:
+        agents = [AgentService(config, net.session(f"agent-{i}"), i) for i in range(config.n_agents)]
+        tasks = [asyncio.create_task(monitor.run())] + [asyncio.create_task(a.run()) for a in agents]
+        sim = asyncio.create_task(SimClock(config, net.session("sim")).run())
+        mid = None
+        while not sim.done():
+            await asyncio.sleep(0.05)
+            if mid is None and monitor.latest_metric.get("deliveries_total"):
+                mid = await asyncio.to_thread(_scrape, exporter.port)
+        await sim
+        await asyncio.wait_for(asyncio.gather(*tasks), 10)
+        text = await asyncio.to_thread(_scrape, exporter.port)
+    finally:
+        exporter.close()
+    assert mid is not None and "morph_tick" in mid
+    assert "# TYPE morph_deliveries_total counter" in text
+    assert "# TYPE morph_links gauge" in text
+    assert _value(text, "morph_deliveries_total") == monitor.result.deliveries_total > 0
+    assert _value(text, "morph_links") == monitor.result.rows[-1]["links"]
+    assert _value(text, "morph_tick") == config.steps - 1
+    assert "# TYPE morph_bus_latency_seconds histogram" in text
+    assert _value(text, "morph_bus_latency_seconds_bucket", 'le="0.005",run="prom"') >= 0
+    inf = _value(text, "morph_bus_latency_seconds_bucket", 'le="+Inf",run="prom"')
+    assert inf == _value(text, "morph_bus_latency_seconds_count") > 0
+    assert _value(text, "morph_dispatch_delay_seconds_count") > 0
+    assert _value(text, "morph_messages_total", 'kind="ack",run="prom"') >= config.n_agents * config.steps
+    assert _value(text, "morph_dropped_messages_total", 'reason="sequence_gap",run="prom"') == 0
+
+
+def test_the_monitor_command_has_the_flag_and_its_variable():
+    variables = {v.flag: v for v in command_variables("monitor")}
+    assert variables["--prometheus-port"].env == "MORPH_PROMETHEUS_PORT"

@@ -1,0 +1,108 @@
+"""``morph-sim report`` and the run record's robustness (issue 6)."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import psutil
+import pytest
+from PIL import Image
+
+from morph_sim.services.bus.zenoh_bus import free_port
+from morph_sim.services.monitor.recorder import Recorder, read_metrics
+from morph_sim.services.monitor.report import load, numbers, write_report
+from morph_sim.services.runconfig import RunConfig
+from morph_sim.services.supervisor.local import run_local
+
+
+def test_the_report_renders_every_figure_and_the_gif(tmp_path):
+    config = RunConfig(run_id="rep", scale="tiny", steps=120, policy="morph", output_dir=tmp_path, snapshot_every=40)
+    asyncio.run(run_local(config))
+    with open(config.record_dir / "events.jsonl", "a") as f:  # a fault window to shade
+        f.write('{"kind": "fault.set", "t": 30, "details": {"fault_id": "f1"}}\n')
+        f.write('{"kind": "fault.healed", "t": 60, "details": {"fault_id": "f1"}}\n')
+    md = write_report([config.record_dir], tmp_path / "report")
+    text = md.read_text()
+    for name in ("deliveries", "delivery_rate", "links", "w_heatmaps_0", "link_lifetimes"):
+        assert f"({name}.png)" in text
+        with Image.open(tmp_path / "report" / f"{name}.png") as im:
+            assert im.size[0] > 300 and len(np.unique(np.asarray(im.convert("L")))) > 20  # a drawn figure, not blank
+    assert "f1 [30, 60)" in text
+    with Image.open(tmp_path / "report" / "warehouse_0.gif") as gif:
+        assert gif.n_frames == 120
+    rec = load(config.record_dir)
+    assert numbers(rec)["deliveries"] == int(read_metrics(config.record_dir)[-1]["deliveries_total"])
+    assert len(rec.positions()) == config.steps + 1 and len(rec.links()) == config.steps
+    with pytest.raises(ValueError, match="run_dir"):
+        load(tmp_path)
+
+
+def test_a_restarted_recorder_trims_a_cut_line_and_resumes(tmp_path):
+    config = RunConfig(run_id="cut", output_dir=tmp_path)
+    rec = Recorder(config)
+    rec.row({"t": 0, "deliveries": 1, "deliveries_total": 1})
+    rec.row({"t": 1, "deliveries": 0, "deliveries_total": 1})
+    rec.close()
+    with open(config.record_dir / "metrics.csv", "a") as f:
+        f.write("2,2.0,1")  # the monitor was killed mid-line
+    again = Recorder(config)
+    assert again.resume_from == (1, 1)
+    again.close()
+    assert [r["t"] for r in read_metrics(config.record_dir)] == ["0", "1"]
+
+
+def _wait_port(port: int, proc: subprocess.Popen, timeout: float = 60) -> None:
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1).close()
+            return
+        except OSError:
+            assert proc.poll() is None and time.monotonic() < deadline, "up did not open its endpoint"
+            time.sleep(0.1)
+
+
+def test_a_monitor_killed_and_restarted_mid_run_leaves_a_record_equal_apart_from_the_gap(tmp_path):
+    flags = ["--scale", "tiny", "--steps", "1500", "--seed", "5", "--policy", "morph", "--run-id", "killed"]
+    port = free_port()
+    up = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "up", *flags, "--quiet", "--listen",
+                           f"tcp/127.0.0.1:{port}", "--output-dir", str(tmp_path / "live")],
+                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        _wait_port(port, up)
+        metrics = tmp_path / "live" / "killed" / "metrics.csv"
+        deadline = time.monotonic() + 90
+        while not metrics.exists() or metrics.read_text().count("\n") < 300:
+            assert up.poll() is None and time.monotonic() < deadline
+            time.sleep(0.1)
+        monitor = [p for p in psutil.Process(up.pid).children(recursive=True)
+                   if "monitor" in p.cmdline() and "morph_sim.cli" in p.cmdline()]
+        assert len(monitor) == 1
+        os.kill(monitor[0].pid, signal.SIGKILL)  # no chance to flush or close; the supervisor restarts it
+        assert up.wait(timeout=120) == 0
+    finally:
+        if up.poll() is None:
+            os.killpg(up.pid, signal.SIGKILL)
+            up.wait(timeout=5)
+    killed = load(tmp_path / "live" / "killed")
+    assert len(killed.gaps) == 1, killed.events
+    first, last = killed.gaps[0]
+    config = RunConfig(run_id="calm", scale="tiny", steps=1500, seed=5, policy="morph", output_dir=tmp_path)
+    asyncio.run(run_local(config))
+    calm = read_metrics(config.record_dir)
+    rows = read_metrics(killed.dir)
+    ts = [int(r["t"]) for r in rows]
+    assert ts == [t for t in range(1500) if not first <= t <= last]  # every row once, only the gap missing
+    cols = ("t", "sim_time", "deliveries", "requests", "commits", "acks", "links", "lambda2", "eta")
+    assert [[r[c] for c in cols] for r in rows] == [[calm[t][c] for c in cols] for t in ts]
+    lost = sum(int(calm[t]["deliveries"]) for t in range(first, last + 1))
+    assert numbers(killed)["deliveries"] == int(calm[-1]["deliveries_total"]) - lost
+    assert int(rows[-1]["deliveries_total"]) == int(calm[-1]["deliveries_total"]) - lost
+    print(f"gap rows {first}..{last} ({last - first + 1} ticks, {lost} deliveries)")
