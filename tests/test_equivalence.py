@@ -12,12 +12,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import psutil
 import pytest
 
 from morph_sim.services.monitor.recorder import read_metrics, read_snapshots
 from morph_sim.services.runconfig import RunConfig
 from morph_sim.services.supervisor.local import run_local
+
+from _procs import kill_tree
 
 POLICIES = [("full", "reference"), ("tsg", "reference"), ("proximity", "reference"), ("morph", "reference"),
             ("morph", "paper")]
@@ -32,11 +33,7 @@ def run_up(out: Path, run_id: str, scale: str, policy: str, preset: str, steps: 
     try:
         _, err = proc.communicate(timeout=timeout)
     finally:
-        if proc.poll() is None:
-            for child in psutil.Process(proc.pid).children(recursive=True):
-                child.kill()
-            proc.kill()
-            proc.communicate()
+        kill_tree(proc)
     assert proc.returncode == 0, err
 
 

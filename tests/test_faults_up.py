@@ -19,7 +19,7 @@ from morph_sim.schemas.keys import RunKeys
 from morph_sim.services.bus.zenoh_bus import ZenohBus, endpoint, free_port
 from morph_sim.services.monitor.recorder import read_metrics
 
-from test_up import alive, descendants, kill_all
+from _procs import alive, descendants, kill_all
 
 UP_TIMEOUT = 150
 VICTIM = 6  # a picker at tiny (5 AGVs + 3 pickers)

@@ -12,7 +12,6 @@ import sys
 
 import msgpack
 import numpy as np
-import psutil
 
 from morph_sim.schemas import Ack, HelpRequest, Stop, encode
 from morph_sim.schemas.keys import RunKeys
@@ -20,6 +19,8 @@ from morph_sim.services.bus.local import LocalNetwork
 from morph_sim.services.monitor.recorder import read_metrics, read_snapshots
 from morph_sim.services.runconfig import RunConfig
 from morph_sim.services.supervisor.local import run_local
+
+from _procs import kill_tree
 
 
 def fuzz_keys(keys: RunKeys, n_agvs: int, n: int) -> list[str]:
@@ -140,11 +141,7 @@ def test_fuzzed_distributed_run_equals_the_clean_run(tmp_path):
         sent = asyncio.run(asyncio.wait_for(flood(), 180))
         _, err = proc.communicate(timeout=30)
     finally:
-        if proc.poll() is None:
-            for child in psutil.Process(proc.pid).children(recursive=True):
-                child.kill()
-            proc.kill()
-            proc.communicate()
+        kill_tree(proc)
     assert proc.returncode == 0, err
     assert sent > 100
     asyncio.run(run_local(config.model_copy(update={"output_dir": tmp_path / "local"})))

@@ -18,6 +18,8 @@ from morph_sim.services.monitor.replay import BusRecorder, read_record, replay
 from morph_sim.services.runconfig import RunConfig
 from morph_sim.services.supervisor.local import run_local
 
+from _procs import wait_for_port
+
 
 @pytest.mark.parametrize("policy", ["morph", "proximity"])
 async def test_replayed_metrics_equal_the_live_runs(tmp_path, policy):
@@ -59,17 +61,9 @@ def test_record_and_replay_commands_against_a_live_up_run(tmp_path):
                            f"tcp/127.0.0.1:{port}", "--output-dir", str(tmp_path / "live")],
                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
     try:
-        import socket
         import time
 
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=1).close()
-                break
-            except OSError:
-                assert up.poll() is None and time.monotonic() < deadline
-                time.sleep(0.1)
+        wait_for_port(port, up, time.monotonic() + 60, 0.1)
         rec = subprocess.run([sys.executable, "-m", "morph_sim.cli", "record", *flags, "--endpoint",
                               f"tcp/127.0.0.1:{port}", "--out", str(tmp_path / "up.mbr"), "--timeout", "90"],
                              capture_output=True, text=True, timeout=120)

@@ -20,6 +20,8 @@ import pytest
 from morph_sim.services.monitor.recorder import read_metrics
 from morph_sim.services.runconfig import RunConfig
 
+from _procs import alive, descendants, kill_all
+
 UP_TIMEOUT = 120
 
 
@@ -28,34 +30,18 @@ def up_argv(tmp_path: Path, run_id: str, *extra: str) -> list[str]:
             "--output-dir", str(tmp_path), *extra]
 
 
-def descendants(pid: int) -> set[int]:
-    try:
-        return {p.pid for p in psutil.Process(pid).children(recursive=True)}
-    except psutil.NoSuchProcess:
-        return set()
-
-
-def alive(pids) -> list[int]:
-    out = []
-    for pid in pids:
-        try:
-            if psutil.Process(pid).status() != psutil.STATUS_ZOMBIE:
-                out.append(pid)
-        except psutil.NoSuchProcess:
-            pass
-    return out
-
-
-def kill_all(pids) -> None:
-    for pid in pids:
-        try:
-            os.kill(pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
-
-
 def start_up(argv) -> subprocess.Popen:
     return subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def end_up(proc: subprocess.Popen, seen: set[int]) -> list[int]:
+    """Kill the up if it still runs, reap it, then SIGKILL whatever it started that is still alive; return those."""
+    if proc.poll() is None:
+        proc.kill()
+    proc.communicate(timeout=10)
+    left = alive(seen | {proc.pid})
+    kill_all(left)
+    return left
 
 
 def watch(proc: subprocess.Popen, until, timeout: float) -> set[int]:
@@ -106,11 +92,7 @@ def test_sigterm_ends_every_process_within_5s(tmp_path):
         while alive(seen) and time.monotonic() < deadline:
             time.sleep(0.05)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-        proc.communicate(timeout=10)
-        left = alive(seen | {proc.pid})
-        kill_all(left)
+        left = end_up(proc, seen)
     assert len(seen) >= 10
     assert left == [], f"processes left behind: {left}"
     # the record of the interrupted run is complete up to where it stopped
@@ -155,11 +137,7 @@ def test_up_restarts_an_agent_that_dies(tmp_path):
         events = (tmp_path / "crash" / "events.jsonl").read_text()
         assert '"agent.restart"' in events and '"agent": 2' in events  # the restart is in the run record
     finally:
-        if proc.poll() is None:
-            proc.kill()
-        proc.communicate(timeout=10)
-        left = alive(seen | {proc.pid})
-        kill_all(left)
+        left = end_up(proc, seen)
     assert left == [], f"processes left behind: {left}"
 
 

@@ -13,6 +13,8 @@ from morph_sim.services.bus.local import LocalNetwork
 from morph_sim.services.runconfig import RunConfig
 from morph_sim.services.supervisor.local import run_local
 
+from _procs import wait_for_port
+
 
 def _text(renderable) -> str:
     console = Console(file=io.StringIO(), width=120, color_system=None)
@@ -68,7 +70,6 @@ async def test_watch_joins_a_live_run_late_and_follows_it_to_the_end(tmp_path):
 def test_the_watch_command_follows_a_live_up_run(tmp_path):
     import os
     import signal
-    import socket
     import subprocess
     import sys
     import time
@@ -82,13 +83,7 @@ def test_the_watch_command_follows_a_live_up_run(tmp_path):
                           start_new_session=True)
     try:
         deadline = time.monotonic() + 60
-        while True:
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=1).close()
-                break
-            except OSError:
-                assert up.poll() is None and time.monotonic() < deadline
-                time.sleep(0.2)
+        wait_for_port(port, up, deadline, 0.2)
         metrics = tmp_path / "watchup" / "metrics.csv"
         while not metrics.exists() or metrics.read_text().count("\n") < 20:  # join late, mid-run
             assert up.poll() is None and time.monotonic() < deadline

@@ -37,10 +37,12 @@ class Heading(IntEnum):
 
 
 class MissionType(IntEnum):
+    """A robot's current mission kind (TA-RWARE heuristic vocabulary, 0 = none)."""
+
     NONE = 0
-    PICKING = 1
-    DELIVERING = 2
-    RETURNING = 3
+    PICKING = 1  # AGV: fetch the requested shelf at a rack cell; picker: help at that rack cell
+    DELIVERING = 2  # AGV: carry the shelf to a goal cell
+    RETURNING = 3  # AGV: put the shelf back on an empty rack cell
 
 
 class Role(str, Enum):

@@ -24,18 +24,11 @@ Agent index convention: ``0 .. n_agvs-1`` are AGVs, ``n_agvs .. n-1`` are picker
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import IntEnum
 
 import numpy as np
 
-
-class MissionType(IntEnum):
-    """A robot's current mission kind (TA-RWARE heuristic vocabulary, 0 = none)."""
-
-    NONE = 0
-    PICKING = 1  # AGV: fetch the requested shelf at a rack cell; picker: help at that rack cell
-    DELIVERING = 2  # AGV: carry the shelf to a goal cell
-    RETURNING = 3  # AGV: put the shelf back on an empty rack cell
+# One mission vocabulary for the wire and the core; re-exported here for the controller and the brains.
+from morph_sim.schemas.messages import MissionType as MissionType
 
 
 #: Missions whose rack-cell target needs a picker standing on it (load or unload).

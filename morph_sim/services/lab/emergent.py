@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from morph_sim.services.lab.runner import EpisodeSpec, run_episode
+from morph_sim.services.lab.runner import EpisodeSpec, check_nonempty, run_episode
 from morph_sim.services.lab.suite import _git_revision, _jsonable, _versions
 from morph_sim.services.monitor import metrics
 
@@ -44,9 +44,7 @@ class EmergentConfig(BaseModel):
     @field_validator("seeds", "presets")
     @classmethod
     def _nonempty(cls, v):
-        if not v:
-            raise ValueError("at least one value")
-        return v
+        return check_nonempty(v, "value")
 
     @field_validator("presets")
     @classmethod

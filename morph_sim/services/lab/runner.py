@@ -62,6 +62,21 @@ CONDITIONS: dict[str, tuple[str, str, str | None]] = {
 SCALE_STUDY = ("none", "proximity", "tsg", "v1", "no_threshold", "no_reward", "no_neuromod", "morph", "full")
 
 
+def check_choices(values, known, what: str):
+    """A settings validator's check that every value is one of ``known``; the error names the bad value."""
+    for v in values:
+        if v not in known:
+            raise ValueError(f"unknown {what} {v!r}; choose from {', '.join(known)}")
+    return values
+
+
+def check_nonempty(values, what: str):
+    """A settings validator's check that a list of ``what`` is not empty."""
+    if not values:
+        raise ValueError(f"at least one {what}")
+    return values
+
+
 def make_condition_policy(condition: str, preset: str = "reference", radius: int | None = None,
                           reset_every: int | None = None) -> CoordinationPolicy:
     if condition not in CONDITIONS:

@@ -21,7 +21,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from morph_sim.services.lab.runner import REFERENCE_SEEDS, EpisodeResult, EpisodeSpec
+from morph_sim.services.lab.runner import REFERENCE_SEEDS, EpisodeResult, EpisodeSpec, check_choices, check_nonempty
 from morph_sim.services.lab.suite import _git_revision, _jsonable, _num, _Scheduler, _versions
 from morph_sim.services.monitor import metrics
 
@@ -63,19 +63,13 @@ class ShiftConfig(BaseModel):
     @field_validator("conditions")
     @classmethod
     def _conditions(cls, v):
-        for c in v:
-            if c not in SHIFT_CONDITIONS:
-                raise ValueError(f"unknown shift condition {c!r}; choose from {', '.join(SHIFT_CONDITIONS)}")
-        if not v:
-            raise ValueError("at least one condition")
-        return v
+        check_choices(v, SHIFT_CONDITIONS, "shift condition")
+        return check_nonempty(v, "condition")
 
     @field_validator("seeds")
     @classmethod
     def _seeds(cls, v):
-        if not v:
-            raise ValueError("at least one seed")
-        return v
+        return check_nonempty(v, "seed")
 
     @field_validator("phases")
     @classmethod

@@ -34,6 +34,8 @@ from morph_sim.services.lab.runner import (
     SCALES,
     EpisodeResult,
     EpisodeSpec,
+    check_choices,
+    check_nonempty,
     run_episode,
 )
 from morph_sim.services.monitor import metrics
@@ -62,30 +64,19 @@ class SuiteConfig(BaseModel):
     def _scales(cls, v):
         from morph_sim.services.sim.layout import named_sizes
 
-        known = named_sizes()
-        for s in v:
-            if s not in known:
-                raise ValueError(f"unknown scale {s!r}; choose from {', '.join(known)}")
-        if not v:
-            raise ValueError("at least one scale")
-        return v
+        check_choices(v, named_sizes(), "scale")
+        return check_nonempty(v, "scale")
 
     @field_validator("conditions")
     @classmethod
     def _conditions(cls, v):
-        for c in v:
-            if c not in CONDITIONS:
-                raise ValueError(f"unknown condition {c!r}; choose from {', '.join(CONDITIONS)}")
-        if not v:
-            raise ValueError("at least one condition")
-        return v
+        check_choices(v, CONDITIONS, "condition")
+        return check_nonempty(v, "condition")
 
     @field_validator("seeds")
     @classmethod
     def _seeds(cls, v):
-        if not v:
-            raise ValueError("at least one seed")
-        return v
+        return check_nonempty(v, "seed")
 
     def spec(self, scale: str, condition: str, seed: int, radius: int | None = None, steps: int | None = None):
         return EpisodeSpec(
