@@ -378,17 +378,24 @@ class SimClock:
 
             self.faults.advance(boundaries(t, self.config.dt)[1 if phase == Phase.TICK else 2])
 
-    def _on_ack(self, sample: Sample) -> None:
+    def _decode_own(self, sample: Sample, model: type, author: str, what: str):
+        """Decode an answer and check that its author sent it under its own key; a bad one is counted and None."""
         try:
-            msg = sample.decode(Ack)
+            msg = sample.decode(model)
             sender = self.keys.sender_of(sample.key)
         except ValueError as exc:
             self._reject(sample.key, exc)
+            return None
+        if sender != getattr(msg, author):
+            self._reject(sample.key, f"{what} {getattr(msg, author)} on the key of {sender}")
+            return None
+        return msg
+
+    def _on_ack(self, sample: Sample) -> None:
+        msg = self._decode_own(sample, Ack, "agent", "ack of agent")
+        if msg is None:
             return
         ph = self._phase
-        if sender != msg.agent:
-            self._reject(sample.key, f"ack of agent {msg.agent} on the key of {sender}")
-            return
         if ph is None or msg.t != ph.t or msg.phase != ph.phase:
             return  # stale: the protocol ignores it
         with ph.lock:
@@ -402,16 +409,10 @@ class SimClock:
             ph.answered(msg.agent)
 
     def _on_commit(self, sample: Sample) -> None:
-        try:
-            msg = sample.decode(Commit)
-            sender = self.keys.sender_of(sample.key)
-        except ValueError as exc:
-            self._reject(sample.key, exc)
+        msg = self._decode_own(sample, Commit, "picker", "commit of picker")
+        if msg is None:
             return
         ph = self._phase
-        if sender != msg.picker:
-            self._reject(sample.key, f"commit of picker {msg.picker} on the key of {sender}")
-            return
         if ph is None or ph.phase != Phase.RESOLVE or msg.t != ph.t:
             return
         if msg.agv not in self._expected.get(msg.picker, ()):
