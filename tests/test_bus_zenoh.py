@@ -215,3 +215,47 @@ def test_barrier_bench_smoke() -> None:
     assert inline.mode == "inline" and inline.ticks_per_s > 0
     with pytest.raises(ValueError, match="phases"):
         run_barrier(n_agents=2, mode="bus", phases=2)
+
+
+@pytest.mark.parametrize("droppable", [False, True])
+async def test_a_default_settings_client_receives_every_sample_through_the_endpoint(droppable: bool) -> None:
+    """Issue 6: a user's Zenoh client with default settings (no lowlatency) joins a run through its endpoint and
+    subscribes to streams one of our sessions publishes, one of which the endpoint's own session consumes too (as the
+    sim consumes acks). With express publishers on our lowlatency sessions that client got 0-3 of 120 samples
+    (zenoh 1.10.2); every sample must arrive."""
+    import threading
+
+    import zenoh
+
+    ep = endpoint(free_port())
+    hub = await ZenohBus.open("sim", listen=ep)
+    publisher = await ZenohBus.open("monitor", connect=ep, connect_timeout=5)
+    at_hub = await hub.subscribe(K.ack(1))
+    await publisher.wait_for_subscribers(K.ack(1), timeout=5)
+    client = zenoh.open(zenoh.Config.from_json5('{mode: "client", connect: {endpoints: ["%s"]}}' % ep))
+    got: list[str] = []
+    lock = threading.Lock()
+
+    def on_sample(s) -> None:
+        with lock:
+            got.append(str(s.key_expr))
+
+    sub = client.declare_subscriber("morph/**", on_sample)
+    try:
+        await publisher.wait_for_subscribers(K.metric("links"), timeout=5)  # the client's subscription is known
+        n = 40
+        for t in range(n):
+            await publisher.publish(K.metric("links"), Ack(t=t, agent=1, seq=t), droppable=droppable)
+            await publisher.publish(K.metric("deliveries"), Ack(t=t, agent=1, seq=t), droppable=droppable)
+            await publisher.publish(K.ack(1), Ack(t=t, agent=1, seq=t))
+            await asyncio.sleep(0.01)
+        deadline = time.monotonic() + 5
+        while len(got) < 3 * n and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)
+        assert len(got) == 3 * n, f"{len(got)} of {3 * n} samples"
+    finally:
+        sub.undeclare()
+        client.close()
+        await at_hub.close()
+        await publisher.close()
+        await hub.close()

@@ -7,7 +7,11 @@
   (``ZENOH_RUNTIME``, set below before zenoh is imported unless the environment already chose one): the fastest
   configuration for a lock-step loop of small messages.
 * Declared publishers, cached per key, with ``CongestionControl.BLOCK`` (control traffic; a dropped ack stalls a
-  tick) or ``DROP`` for ``droppable`` telemetry.
+  tick) or ``DROP`` for ``droppable`` telemetry. ``express`` only on sessions without ``lowlatency``: the
+  lowlatency transport does not batch anyway, and an express message from a lowlatency session, routed through the
+  endpoint to a subscriber whose session uses default transport settings (any user's client, e.g. the README's
+  five-line subscriber), stops that subscriber's stream after a couple of samples (measured with zenoh 1.10.2;
+  issue 6, docs/decisions.md).
 * There is no asyncio API in zenoh-python: every Zenoh callback (it runs on a Zenoh-owned Python thread) converts
   the sample to plain bytes there and appends it to one inbox; the loop is woken with ``call_soon_threadsafe`` only
   when the inbox goes from empty to non-empty, so a burst of replies costs one wake-up, not one per message.
@@ -192,10 +196,11 @@ class _ZenohQuery(Query):
 class ZenohBus(Bus):
     """A Bus over one Zenoh session. Open with :meth:`open` (listen or connect)."""
 
-    def __init__(self, identity: str, session: Any, loop: asyncio.AbstractEventLoop):
+    def __init__(self, identity: str, session: Any, loop: asyncio.AbstractEventLoop, *, express: bool = False):
         super().__init__(identity)
         self.session = session
         self._loop = loop
+        self._express = express
         self._inbox: deque[tuple[Callable[..., None], tuple]] = deque()
         self._drain_pending = False
         self._publishers: dict[tuple[str, bool], Any] = {}
@@ -224,7 +229,8 @@ class ZenohBus(Bus):
             raise ConnectionError(f"zenoh session did not open within {connect_timeout + 5.0:.0f} s ({where})")
         if error is not None:
             raise ConnectionError(f"cannot open zenoh session ({where}): {error}") from None
-        return cls(identity, session, loop)
+        lowlatency_on = json.loads(cfg.get_json("transport/unicast/lowlatency")) is True
+        return cls(identity, session, loop, express=not lowlatency_on)
 
     # -- bridge: Zenoh threads -> the asyncio loop -------------------------------------------------------------------
     def _post(self, fn: Callable[..., None], *args: Any) -> None:
@@ -255,7 +261,7 @@ class ZenohBus(Bus):
                 pub = self._publishers.get((key, droppable))
                 if pub is None:
                     pub = self.session.declare_publisher(
-                        key, express=True, reliability=zenoh.Reliability.RELIABLE,
+                        key, express=self._express, reliability=zenoh.Reliability.RELIABLE,
                         congestion_control=(zenoh.CongestionControl.DROP if droppable
                                             else zenoh.CongestionControl.BLOCK))
                     self._publishers[(key, droppable)] = pub
