@@ -170,6 +170,14 @@ def dispatch_tick(
 
     requesters = obs.requesters()
 
+    def gate_passes(agv: int, cand: int, live: bool) -> bool:
+        # the live mode draws from the AGV's stream and counts; the other replays the same draws for comparison
+        u = (draw(agv) if live else draws.get(agv)) if brains.draws else None
+        ok, p = _gate(brains, agv, cand, obs, u)
+        if live:
+            _count(stats, ok, p, brains)
+        return ok
+
     def sequential(live: bool) -> list[tuple[int, int]]:
         free = obs.free_picker.copy()
         cells: set[tuple[int, int]] = set()
@@ -179,13 +187,7 @@ def dispatch_tick(
             if cell in cells or not free.any():
                 continue
             cand = brains.candidate(agv, obs, free)
-            if cand < 0:
-                continue
-            u = (draw(agv) if live else draws.get(agv)) if brains.draws else None
-            ok, p = _gate(brains, agv, cand, obs, u)
-            if live:
-                _count(stats, ok, p, brains)
-            if ok:
+            if cand >= 0 and gate_passes(agv, cand, live):
                 commits.append((cand, agv))
                 free[cand] = False
                 cells.add(cell)
@@ -195,13 +197,7 @@ def dispatch_tick(
         requests = []
         for agv in requesters.tolist():
             cand = brains.candidate(agv, obs)
-            if cand < 0:
-                continue
-            u = (draw(agv) if live else draws.get(agv)) if brains.draws else None
-            ok, p = _gate(brains, agv, cand, obs, u)
-            if live:
-                _count(stats, ok, p, brains)
-            if ok:
+            if cand >= 0 and gate_passes(agv, cand, live):
                 requests.append((agv, cand))
         # one picker per cell: a later request to an already served cell is dropped by the controller
         return resolve_requests(requests)
