@@ -195,7 +195,10 @@ async def test_cli_over_zenoh_sets_lists_and_resets(capsys) -> None:
         code = await asyncio.to_thread(faults_cmd.run, cli_args(
             "set", "--run", RUN, "--endpoint", ep, "--delay", "0.5", "--id", "slow"))
         lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
-        assert code == 0 and sorted(x["source"] for x in lines) == ["4", "sim"]
+        assert code == 0 and [x["sources"] for x in lines] == [["4", "sim"]]  # processes that agree: one line
+        code = await asyncio.to_thread(faults_cmd.run, cli_args("list", "--run", RUN, "--endpoint", ep, "--each"))
+        lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+        assert code == 0 and [x["source"] for x in lines] == ["4", "sim"]  # --each: one line per process
         assert all([s.id for s in layer.active()] == ["slow"] for layer in layers.values())
         code = await asyncio.to_thread(faults_cmd.run, cli_args("list", "--run", RUN, "--endpoint", ep))
         assert code == 0 and all(json.loads(x)["active"][0]["id"] == "slow"

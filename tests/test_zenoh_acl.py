@@ -154,6 +154,26 @@ def test_only_the_operator_changes_faults(router, observer):
     assert [p for k, p in seen if k == KEYS.faults] == [b"fault-by-operator"]
 
 
+def test_an_agent_answers_fault_queries_but_cannot_serve_the_registry(router):
+    """Every agent runs a fault controller on ctl/faults (issue 5): the operator's `faults list` must reach it."""
+    agent = _open(router, "agent-0")
+    operator = _open(router, "operator")
+    try:
+        agent.declare_queryable(KEYS.faults, lambda q: q.reply(KEYS.faults, b"agent-0 controller"))
+        agent.declare_queryable(KEYS.registry, lambda q: q.reply(KEYS.registry, b"fake registry"))
+        deadline = time.monotonic() + 10.0
+        answers: list[bytes] = []
+        while not answers:  # declarations propagate asynchronously
+            assert time.monotonic() < deadline, "the agent's fault controller never answered"
+            answers = [r.ok.payload.to_bytes() for r in operator.get(KEYS.faults, timeout=1.0) if r.ok is not None]
+        registry = [r.ok.payload.to_bytes() for r in operator.get(KEYS.registry, timeout=1.0) if r.ok is not None]
+    finally:
+        agent.close()
+        operator.close()
+    assert answers == [b"agent-0 controller"]
+    assert registry == []
+
+
 def test_an_agent_cannot_hold_another_robots_liveliness_token(router):
     agent = _open(router, "agent-0")
     watcher = _open(router, "monitor")

@@ -8,7 +8,9 @@ Measured in one invocation, back to back on the same machine:
 2. the raw lock-step barrier (``morph_sim.services.bus.barrier_bench``, plain zenoh-python callbacks, recommended
    settings) with the same number of agent processes.
 
-The ratio says how much of the transport's ceiling the protocol, the warehouse and the agents' plasticity leave.
+The ratio says how much of the transport's ceiling the protocol, the warehouse and the agents' plasticity leave. The
+run's CPU milliseconds per tick of each process role (:class:`CpuMeter`) and the load average are printed too: on a
+shared machine the rates move with the load, CPU per tick much less (docs/services.md, Performance).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -37,12 +40,95 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON object")
 
 
+CPU_SAMPLE_S = 0.05  # seconds between CPU samples of the run's processes
+CPU_WARMUP_TICKS = 20  # the CPU window opens at this tick (start-up and the first ticks excluded)
+
+
+class CpuMeter:
+    """CPU seconds per tick of every process of a distributed run, by role (sim, monitor, agv, picker, supervisor).
+
+    Samples each process's CPU time (user + system, from ``psutil``) while the run ticks; the window runs from the
+    first sample at tick ≥ ``CPU_WARMUP_TICKS`` to the last sample before the run's end, and the tick count of the
+    window comes from the supervisor's progress (every Tick it receives). CPU time is what a tick costs the machine,
+    and unlike the tick rate it barely depends on what else runs on the cores.
+    """
+
+    def __init__(self, supervisor, n_agvs: int):
+        self.sup = supervisor
+        self.n_agvs = n_agvs
+        self.first: tuple[int, dict[str, float]] | None = None
+        self.last: tuple[int, dict[str, float]] | None = None
+
+    def _role(self, name: str) -> str:
+        if name.startswith("agent-"):
+            return "agv" if int(name.split("-", 1)[1]) < self.n_agvs else "picker"
+        return name
+
+    def _sample(self) -> dict[str, float]:
+        import psutil
+
+        cpu: dict[str, float] = {}
+        pids = [(self._role(name), child.pid) for name, child in self.sup.children.items() if child.alive()]
+        for role, pid in [*pids, ("supervisor", os.getpid())]:
+            try:
+                times = psutil.Process(pid).cpu_times()
+            except psutil.Error:
+                continue
+            cpu[f"{role}:{pid}"] = times.user + times.system
+        return cpu
+
+    async def watch(self) -> None:
+        steps = self.sup.config.steps
+        while True:
+            t = self.sup.progress.t
+            if CPU_WARMUP_TICKS <= t < steps - 1:
+                sample = (t, self._sample())
+                if self.first is None:
+                    self.first = sample
+                else:
+                    self.last = sample
+            await asyncio.sleep(CPU_SAMPLE_S)
+
+    def per_tick_ms(self) -> dict[str, float]:
+        """Milliseconds of CPU per tick: per process role (agents: the mean over that role's processes) and total."""
+        if self.first is None or self.last is None or self.last[0] <= self.first[0]:
+            return {}
+        ticks = self.last[0] - self.first[0]
+        sums: dict[str, list[float]] = {}
+        for key, end in self.last[1].items():
+            start = self.first[1].get(key)
+            if start is not None:  # a process restarted inside the window is left out
+                sums.setdefault(key.split(":", 1)[0], []).append(1e3 * (end - start) / ticks)
+        out = {role: sum(v) / len(v) for role, v in sorted(sums.items())}
+        out["total"] = sum(sum(v) for v in sums.values())
+        return out
+
+
+def load_average() -> str:
+    """The 1/5/15-minute load averages: the tick rate on a shared machine means little without them."""
+    try:
+        return " ".join(f"{x:.2f}" for x in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
 def distributed_rate(config) -> dict:
-    """Run ``config`` with the supervisor; the sim's tick-loop rate from the record's run.finished event."""
+    """Run ``config`` with the supervisor; the sim's tick-loop rate from the record's run.finished event, and the
+    CPU per tick of every process (:class:`CpuMeter`)."""
     from morph_sim.services.supervisor.launcher import Supervisor
 
     started = time.monotonic()
-    code = asyncio.run(Supervisor(config).run())
+    supervisor = Supervisor(config)
+    meter = CpuMeter(supervisor, config.n_agvs)
+
+    async def supervise() -> int:
+        watcher = asyncio.get_running_loop().create_task(meter.watch())
+        try:
+            return await supervisor.run()
+        finally:
+            watcher.cancel()
+
+    code = asyncio.run(supervise())
     if code != 0:
         raise RuntimeError(f"the distributed run ended with status {code}")
     finished = None
@@ -54,7 +140,7 @@ def distributed_rate(config) -> dict:
         raise RuntimeError(f"no run.finished event in {config.record_dir}")
     return {"ticks": finished["steps"], "seconds": finished["wall_seconds"],
             "ticks_per_s": finished["steps"] / finished["wall_seconds"], "deliveries": finished["deliveries"],
-            "total_wall_s": time.monotonic() - started}
+            "total_wall_s": time.monotonic() - started, "cpu_ms_per_tick": meter.per_tick_ms()}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -74,14 +160,20 @@ def run(args: argparse.Namespace) -> int:
     result = {"scale": args.scale, "policy": args.policy, "preset": args.preset, "agents": n,
               "distributed_ticks_per_s": round(dist["ticks_per_s"], 1), "distributed_ticks": dist["ticks"],
               "barrier_ticks_per_s": round(barrier.ticks_per_s, 1), "barrier_ticks": barrier.ticks,
-              "ratio": round(ratio, 3)}
+              "ratio": round(ratio, 3),
+              "cpu_ms_per_tick": {k: round(v, 3) for k, v in dist["cpu_ms_per_tick"].items()},
+              "loadavg": load_average()}
     if args.json:
         print(json.dumps(result))
     else:
         label = args.policy + (f"/{args.preset}" if args.policy == "morph" else "")
         print(f"distributed {args.scale} ({n} agent processes, {label}): {dist['ticks_per_s']:.0f} ticks/s "
               f"over {dist['ticks']} ticks")
+        cpu = dist["cpu_ms_per_tick"]
+        if cpu:
+            print("  CPU ms per tick: " + ", ".join(
+                f"{role} {v:.2f}" + (" each" if role in ("agv", "picker") else "") for role, v in cpu.items()))
         print(f"raw Zenoh barrier, {n} agent processes: {barrier.ticks_per_s:.0f} ticks/s "
               f"(p50 {barrier.p50_ms:.2f} ms, p99 {barrier.p99_ms:.2f} ms)")
-        print(f"ratio distributed / barrier: {ratio:.0%}")
+        print(f"ratio distributed / barrier: {ratio:.0%}  (load average {result['loadavg']})")
     return 0

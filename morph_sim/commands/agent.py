@@ -60,7 +60,11 @@ class ClaimingAgent:
                                  f"configuration {self.config.n_agvs}+{self.config.n_pickers}")
             self.agent_id, self.role = reply.agent_id, reply.role
         # issue 5: a (re)started agent restores its brain from the monitor's latest states unless --cold-restart
-        self.service = AgentService(self.config, self.bus, self.agent_id, restore=not self.config.cold_restart)
+        from morph_sim.services.faults.runtime import FaultRuntime
+
+        # its own fault runtime: ingress faults, ctl/faults, the clock of the run's fault time (docs/faults.md)
+        self.service = AgentService(self.config, self.bus, self.agent_id, restore=not self.config.cold_restart,
+                                    faults=FaultRuntime.for_service(self.config, "agent"))
         if self._stopped:
             return AgentCounters()
         return await self.service.run()

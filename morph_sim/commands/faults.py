@@ -1,8 +1,10 @@
 """``morph-sim faults set|list|reset``: runtime fault control of a running run over ``morph/<run>/ctl/faults``.
 
-The command is sent as a query, so every process of the run (each holds its own fault layer) applies it and answers;
-one JSON line is printed per answer. A spec is validated here first, so a bad one is rejected with the field that is
-wrong before anything is sent (exit 2); a process that rejects it answers ``ok: false`` with the reason (exit 1).
+The command is sent as a query, so every process of the run (each holds its own fault layer: the sim, every agent;
+the supervisor for crash faults) applies it and answers. Processes that answer alike are merged into one JSON line
+with their ``sources`` (a run of 100 agents that all agree prints one line); ``--each`` prints one line per process.
+A spec is validated here first, so a bad one is rejected with the field that is wrong before anything is sent
+(exit 2); a process that rejects it answers ``ok: false`` with the reason (exit 1).
 
     morph-sim faults set --run r1 --endpoint tcp/127.0.0.1:7447 --loss 20 --burst 4 --key 'agent/*/ack'
     morph-sim faults set --run r1 --endpoint … --spec '{"latency": {"delay": 0.5, "jitter": 0.2}}'
@@ -30,6 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="Zenoh endpoint of the run")
         p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for answers")
         p.add_argument("--id", dest="fault_id", help="fault id (set: name it; reset: heal only this one)")
+        p.add_argument("--each", action="store_true", help="one line per answering process (default: alike merged)")
         if op != "set":
             continue
         p.add_argument("--spec", help="the whole FaultSpec as JSON (other flags are then not allowed)")
@@ -126,12 +129,27 @@ async def send(endpoint: str, run: str, command, timeout: float = 2.0, bus=None)
             await bus.close()
 
 
+def merge(replies: list) -> list[dict]:
+    """One answer per distinct (ok, error, active), with the ``sources`` that gave it, in source order."""
+    groups: dict[str, dict] = {}
+    for reply in replies:
+        body = reply.model_dump(mode="json", exclude_none=True)
+        source = body.pop("source", None)
+        key = json.dumps(body, sort_keys=True)
+        groups.setdefault(key, {**body, "sources": []})["sources"].append(source)
+    return list(groups.values())
+
+
 def run(args: argparse.Namespace) -> int:
     command = build_command(args)
     replies = asyncio.run(send(args.endpoint, args.run, command, args.timeout))
     if not replies:
         print(json.dumps({"ok": False, "error": f"no process of run {args.run!r} answered on {args.endpoint}"}))
         return 1
-    for reply in replies:
-        print(reply.model_dump_json(exclude_none=True))
+    if getattr(args, "each", False):
+        for reply in replies:
+            print(reply.model_dump_json(exclude_none=True))
+    else:
+        for group in merge(replies):
+            print(json.dumps(group))
     return 0 if all(r.ok for r in replies) else 1

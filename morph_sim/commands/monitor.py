@@ -43,6 +43,11 @@ def run(args: argparse.Namespace) -> int:
 
     def make(bus):
         svc = MonitorService(config, bus, max_rate=float(args.max_rate), keep_rows=False)
+        if config.fault_time == "virtual":
+            # The monitor is the run's measuring instrument: no fault layer (it records what was sent and what the
+            # sim decided, docs/decisions.md), but it stamps sim time like every process of a virtual-time run:
+            # the start of the last tick it saw.
+            bus.set_clock(lambda: max(getattr(svc, "_last_tick", 0), 0) * config.dt)
         if port is not None:
             from morph_sim.services.monitor.prometheus import PrometheusExporter
 

@@ -49,14 +49,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _faults(config):
-    """The sim's fault runtime (issue 5): ``morph-sim faults set|list|reset`` reaches it on ctl/faults. Wall time:
-    deterministic virtual time across processes also needs the agents' clocks (docs/faults.md)."""
+    """The sim's fault runtime (issue 5): ``morph-sim faults set|list|reset`` reaches it on ctl/faults; in the run's
+    fault time (``--fault-time``, virtual by default: every agent process runs its own clock, docs/faults.md)."""
     from morph_sim.services.faults.crash import CrashPlanner
     from morph_sim.services.faults.runtime import FaultRuntime
-    from morph_sim.services.faults.schedule import load_schedule
 
-    schedule = load_schedule(config.fault_schedule) if config.fault_schedule else None
     # Crash faults are carried out by the supervisor; the sim only validates them (agent id in the fleet) so that
     # `faults set` gets one verdict from both and the run record gets the fault.crash event with its sim time.
-    return FaultRuntime(config.run_id, seed=config.seed, dt=config.dt, virtual=False, events=True,
-                        schedule=schedule, on_crash=CrashPlanner(config.n_agents, config.seed).add)
+    return FaultRuntime.for_service(config, "sim", on_crash=CrashPlanner(config.n_agents, config.seed).add)

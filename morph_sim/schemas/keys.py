@@ -5,6 +5,7 @@ Everything of a run lives under ``morph/<run>/``::
     sim/tick                      Tick            sim -> all
     sim/resolve                   Resolve         sim -> all
     agent/<id>/ack                Ack             agent -> sim
+    agent/<id>/skip               Ack             agent -> sim (virtual time: its Tick/Resolve was lost; never faulted)
     agent/<agv>/request/<picker>  HelpRequest     AGV -> picker
     agent/<picker>/reply/<agv>    HelpReply       picker -> AGV
     agent/<picker>/commit         Commit          picker -> sim
@@ -204,6 +205,14 @@ class RunKeys:
     @property
     def acks(self) -> str:
         return self._k("agent", "*", "ack")
+
+    def skip(self, agent: int | str) -> str:
+        """An agent's "I will not answer this phase" (its Tick or Resolve was lost or held in virtual time)."""
+        return self._k("agent", _agent_chunk(agent), "skip")
+
+    @property
+    def skips(self) -> str:
+        return self._k("agent", "*", "skip")
 
     def request(self, agv: int, picker: int) -> str:
         return self._k("agent", _agent_chunk(agv), "request", _agent_chunk(picker))

@@ -385,8 +385,10 @@ class RegistrationReply(Message):
 
     @model_validator(mode="after")
     def _ok(self) -> RegistrationReply:
-        if self.ok and (self.agent_id is None or self.role is None):
-            raise PydanticCustomError("registration", "{field} is required when ok", {"field": "agent_id"})
+        if self.ok:
+            missing = [name for name in ("agent_id", "role") if getattr(self, name) is None]
+            if missing:  # name the field that is actually missing (a corrupted role must not blame agent_id)
+                raise PydanticCustomError("registration", "{field} is required when ok", {"field": missing[0]})
         return self
 
 

@@ -65,6 +65,9 @@ class RunConfig(BaseModel):
         default=False, description="a restarted agent starts from zero instead of the monitor's latest state")
     fault_schedule: Path | None = Field(
         default=None, description="TOML schedule of timed faults (docs/faults.md); crash faults go to the supervisor")
+    fault_time: Literal["virtual", "wall"] = Field(
+        default="virtual", description="fault latency and heals in sim seconds at phase boundaries (virtual: "
+        "reproducible) or in real seconds (wall: real sleeps, for paced demos)")
     endpoint: str | None = Field(
         default=None, description="Zenoh endpoint to connect to (e.g. tcp/127.0.0.1:7447); None = LocalBus/listen")
     listen: str | None = Field(default=None, description="Zenoh endpoint the sim listens on (supervisor sets it)")

@@ -105,9 +105,13 @@ class TickObservation:
         This is the reference's "Jaccard" of singleton target sets (spec §4.1).
         """
         tgt = self.prev_target if previous else self.target
-        valid = tgt[:, 0] != NO_CELL
-        same = (tgt[:, None, 0] == tgt[None, :, 0]) & (tgt[:, None, 1] == tgt[None, :, 1])
-        j = same & valid[:, None] & valid[None, :]
+        # one integer per target cell (y < 65536 on the wire); a robot without a target gets a code of its own,
+        # equal to nobody else's: then one comparison gives J
+        code = tgt[:, 0] * 65536 + tgt[:, 1]
+        none = tgt[:, 0] == NO_CELL
+        if none.any():
+            code = np.where(none, -(2**40) - np.arange(len(code)), code)  # below every cell code x·65536 + y ≥ −1
+        j = code[:, None] == code[None, :]
         np.fill_diagonal(j, False)
         return j.astype(float)
 

@@ -36,7 +36,8 @@ def theta_form(params: MorphParams, t: int) -> float:
 def neuromodulation(params: MorphParams, dhat: float, delivery: float, d_exp: float, t: int):
     """One step of the arousal signal: returns (new d̂, η, effective α, adjusted θ_form)."""
     dhat = params.neuromod_ema * delivery + (1.0 - params.neuromod_ema) * dhat
-    eta = float(np.clip((dhat - d_exp) / (d_exp + _EPS), -1.0, 1.0))
+    # np.clip's value in plain floats (NaN passes through, as with np.clip): this runs every tick in every agent
+    eta = float(min(max((dhat - d_exp) / (d_exp + _EPS), -1.0), 1.0))
     alpha_eff = params.alpha * (1.0 + params.neuromod_gain * max(eta, 0.0))
     theta_adj = theta_form(params, t) - params.neuromod_explore * max(-eta, 0.0)
     theta_adj = max(theta_adj, 0.8 * params.theta_form_end)
@@ -55,6 +56,19 @@ def position_mi(positions: np.ndarray) -> np.ndarray:
     mi = np.abs(on @ on.T) / positions.shape[1]
     np.fill_diagonal(mi, 0.0)
     return mi
+
+
+def _clip(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """``np.clip(x, lo, hi, out=x)`` as two ufunc calls (same values, NaN included; np.clip's Python wrappers cost more
+    than the clipping on the small arrays of one agent)."""
+    return np.minimum(np.maximum(x, lo, out=x), hi, out=x)
+
+
+def _zero_diagonal(x: np.ndarray) -> None:
+    """``x[..., i, i] = 0`` for every i of a (..., n, n) array."""
+    n = x.shape[-1]
+    idx = np.arange(n)
+    x[..., idx, idx] = 0.0
 
 
 # --------------------------------------------------------------------------------------------------
@@ -119,60 +133,79 @@ class ReferenceState:
         self.t += 1
         self.dhat, eta, alpha_eff, theta_adj = neuromodulation(p, self.dhat, delivery, self.d_exp, self.t)
         self.eta = eta
-        eye = self._eye
+        W, theta, A = self.W, self.theta_bcm, self.A
+        # Element for element the reference's arithmetic, in the same order; fewer calls and no temporaries, because
+        # each agent process runs this on a small (n, n) array every tick, where the per-call overhead is the cost.
 
         # BCM threshold tracks W before this step's decay
-        self.theta_bcm *= p.bcm_tau
-        self.theta_bcm += (1.0 - p.bcm_tau) * self.W
-        self.theta_bcm[:, eye] = 0.0
+        theta *= p.bcm_tau
+        scratch = np.multiply(W, 1.0 - p.bcm_tau)
+        theta += scratch
+        _zero_diagonal(theta)
 
         # decay, with extra decay on mature links that rise above their threshold
         if p.bcm_gain > 0.0:
-            mature = self.age > p.grace
-            ratio = self.W / (self.theta_bcm + _EPS)
-            extra = p.bcm_gain * np.clip(ratio - 1.0, 0.0, 3.0) * (1.0 - p.gamma) * mature
-            self.W *= np.clip(p.gamma - extra, 0.5, 1.0)
+            # extra = bcm_gain · clip(W / (θ + ε) − 1, 0, 3) · (1 − γ) · mature;  W *= clip(γ − extra, 0.5, 1)
+            np.add(theta, _EPS, out=scratch)
+            np.divide(W, scratch, out=scratch)
+            scratch -= 1.0
+            _clip(scratch, 0.0, 3.0)
+            np.multiply(p.bcm_gain, scratch, out=scratch)
+            scratch *= 1.0 - p.gamma
+            scratch *= self.age > p.grace
+            np.subtract(p.gamma, scratch, out=scratch)
+            W *= _clip(scratch, 0.5, 1.0)
         else:
-            self.W *= np.clip(p.gamma, 0.5, 1.0)
+            W *= min(max(p.gamma, 0.5), 1.0)
 
         # Hebbian term with the constant r^t = cov
-        self.W += alpha_eff * jaccard * p.cov * self.A
+        np.multiply(alpha_eff, jaccard, out=scratch)
+        scratch *= p.cov
+        scratch *= A
+        W += scratch
         # delivery burst credits the pairs co-assigned on the previous step
         if delivery > 0 and p.reward_alpha > 0.0:
             credit = np.where(self.j_prev > p.credit_threshold, self.j_prev, 0.0)
             self.W += p.reward_alpha * delivery * credit * self.A
         self.j_prev[...] = jaccard
-        np.clip(self.W, 0.0, 1.0, out=self.W)
-        self.W[:, eye] = 0.0
+        _clip(W, 0.0, 1.0)
+        _zero_diagonal(W)
 
         # homeostasis every step, from the degrees before the structural update
-        deg = self.A.sum(axis=2)
+        deg = A.sum(axis=2)
         self.h += p.beta * (p.rho_target * (self.n - 1) - deg) / (self.n - 1)
-        np.clip(self.h, 0.0, 1.0, out=self.h)
+        _clip(self.h, 0.0, 1.0)
 
         self.formed[:] = 0
         self.pruned[:] = 0
         if self.t % p.k == 0:
             self._structural(positions, pred, theta_adj)
 
-        self.age = np.where(self.A > 0, self.age + 1.0, 0.0)
+        # age + 1 on links, 0 elsewhere (the reference's np.where, in place: age ≥ 0, so no −0.0 appears)
+        age = self.age
+        age += 1.0
+        age *= A > 0
 
     def _structural(self, positions: np.ndarray, pred: np.ndarray | None, theta_adj: float) -> None:
         p = self.params
         n = self.n
         mi = position_mi(positions)
         if pred is not None and p.pred_boost > 0.0:
-            mi = np.clip(mi + p.pred_boost * pred, 0.0, 1.0)
+            mi = _clip(mi + p.pred_boost * pred, 0.0, 1.0)
             np.fill_diagonal(mi, 0.0)
 
         prune = (self.A > 0) & (self.W < p.theta_prune) & (self.age > p.grace)
-        self.pruned[:] = prune.sum(axis=(1, 2)) // 2
-        for arr in (self.A, self.W, self.theta_bcm, self.age):
-            arr[prune] = 0.0
+        if prune.any():  # rare: most structural steps prune nothing (self.pruned is 0 already)
+            self.pruned[:] = prune.sum(axis=(1, 2)) // 2
+            for arr in (self.A, self.W, self.theta_bcm, self.age):
+                arr[prune] = 0.0
 
         gain = self.h[:, :, None] + self.h[:, None, :]
         score = mi[None, :, :] * (1.0 + gain)
         score[(self.A != 0) | self._eye] = -1.0
+        if self.replicas == 1:
+            self._form_one(score[0], p.max_new(n), theta_adj)
+            return
         flat = score.reshape(self.replicas, n * n)
         rows = np.arange(self.replicas)
         active = np.ones(self.replicas, dtype=bool)
@@ -192,6 +225,25 @@ class ReferenceState:
                 score[b, x, :] = -1.0
                 score[b, :, x] = -1.0
             self.formed[b] += 1
+
+    def _form_one(self, score: np.ndarray, max_new: int, theta_adj: float) -> None:
+        """The greedy formation above for a single replica (an agent process): the same picks with scalar indices."""
+        n = self.n
+        flat = score.reshape(n * n)
+        A, age = self.A[0], self.age[0]
+        formed = 0
+        for _ in range(max_new):
+            idx = int(flat.argmax())
+            if not flat[idx] >= theta_adj:
+                break
+            i, j = divmod(idx, n)
+            A[i, j] = A[j, i] = 1.0
+            age[i, j] = age[j, i] = 0.0
+            for x in (i, j):  # each agent gains at most one new link per structural step
+                score[x, :] = -1.0
+                score[:, x] = -1.0
+            formed += 1
+        self.formed[0] = formed
 
 
 # --------------------------------------------------------------------------------------------------
@@ -334,8 +386,8 @@ class PaperState:
         self.theta_bcm += (1.0 - p.bcm_tau) * self.W
         mature = self.age > p.grace
         ratio = self.W / (self.theta_bcm + _EPS)
-        extra = p.bcm_gain * np.clip(ratio - 1.0, 0.0, 3.0) * (1.0 - p.gamma) * mature
-        retention = np.clip(p.gamma - extra, 0.5, 1.0)
+        extra = p.bcm_gain * _clip(ratio - 1.0, 0.0, 3.0) * (1.0 - p.gamma) * mature
+        retention = _clip(p.gamma - extra, 0.5, 1.0)
 
         # Algorithm 1 runs R4b after R1, so R1 uses the α modulated by the previous step's η
         alpha_eff = p.alpha * (1.0 + p.neuromod_gain * max(self.eta, 0.0))
@@ -356,7 +408,7 @@ class PaperState:
             helped = (x.loader[None, :] == own[:, None]) & x.delivered[None, :]
             if helped.any():
                 self.W += p.reward_alpha * helped * self.A
-        np.clip(self.W, 0.0, 1.0, out=self.W)
+        _clip(self.W, 0.0, 1.0)
         self.W[self._self] = 0.0
 
         # R4b: η compares the delivery rate with a running baseline (fixed d_exp if baseline_ema = 0)
@@ -370,7 +422,7 @@ class PaperState:
             # R2 every k steps, from h = 0
             deg = self.A.sum(axis=1)
             self.h += p.beta * (p.rho_target - deg / (self.n - 1))
-            np.clip(self.h, p.h_min, p.h_max, out=self.h)
+            _clip(self.h, p.h_min, p.h_max)
 
         self.age = np.where(self.A > 0, self.age + 1.0, 0.0)
 

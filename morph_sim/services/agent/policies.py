@@ -90,6 +90,10 @@ class Brains(ABC):
     def link_rows(self) -> np.ndarray:
         """(B, n) 0/1 out-links of the owned agents (row k is agent owners[k])."""
 
+    def out_links(self, agent: int) -> list[int]:
+        """The robot ids owned agent ``agent`` links to (what its ack reports every tick)."""
+        return np.flatnonzero(self.link_rows()[self.slot(agent)]).tolist()
+
     def weight_rows(self) -> np.ndarray:
         """(B, n) preference weights of the owned agents (the gate's W)."""
         return self.link_rows().astype(float)
@@ -205,60 +209,68 @@ class _ProximityBrains(_TopologyBrains):
         return rows
 
 
+class _SimplePolicy(CoordinationPolicy):
+    """A policy whose brains are ``BRAINS(fleet, owners, seed, *parameters)``; ``PARAMS`` names the parameter
+    fields, each checked on creation (:meth:`_problem`) and shown by :meth:`describe`."""
+
+    BRAINS: ClassVar[type[Brains]]
+    PARAMS: ClassVar[tuple[str, ...]] = ()
+
+    def __post_init__(self):
+        for param in self.PARAMS:
+            problem = self._problem(getattr(self, param))
+            if problem:
+                raise ValueError(f"{param}: {problem}")
+
+    def _problem(self, value) -> str | None:
+        """Why ``value`` is not a valid parameter, or None."""
+        return None
+
+    def brains(self, fleet, owners, seed):
+        return self.BRAINS(fleet, owners, seed, *(getattr(self, param) for param in self.PARAMS))
+
+    def describe(self):
+        return {"name": self.name, **{param: getattr(self, param) for param in self.PARAMS}}
+
+
 @dataclass(frozen=True)
-class FullPolicy(CoordinationPolicy):
+class FullPolicy(_SimplePolicy):
     name: str = "full"
-
-    def brains(self, fleet, owners, seed):
-        return _FullBrains(fleet, owners, seed)
+    BRAINS: ClassVar[type[Brains]] = _FullBrains
 
 
 @dataclass(frozen=True)
-class NonePolicy(CoordinationPolicy):
+class NonePolicy(_SimplePolicy):
     name: str = "none"
-
-    def brains(self, fleet, owners, seed):
-        return _NoneBrains(fleet, owners, seed)
+    BRAINS: ClassVar[type[Brains]] = _NoneBrains
 
 
 @dataclass(frozen=True)
-class ConstantPolicy(CoordinationPolicy):
+class ConstantPolicy(_SimplePolicy):
     p: float = 0.25
     name: str = "constant"
+    BRAINS: ClassVar[type[Brains]] = _ConstantBrains
+    PARAMS: ClassVar[tuple[str, ...]] = ("p",)
 
-    def __post_init__(self):
-        if not 0.0 <= self.p <= 1.0:
-            raise ValueError(f"p: gate probability must lie in [0, 1], got {self.p}")
-
-    def brains(self, fleet, owners, seed):
-        return _ConstantBrains(fleet, owners, seed, self.p)
-
-    def describe(self):
-        return {"name": self.name, "p": self.p}
+    def _problem(self, value):
+        return None if 0.0 <= value <= 1.0 else f"gate probability must lie in [0, 1], got {value}"
 
 
 @dataclass(frozen=True)
-class TSGPolicy(CoordinationPolicy):
+class TSGPolicy(_SimplePolicy):
     name: str = "tsg"
-
-    def brains(self, fleet, owners, seed):
-        return _TSGBrains(fleet, owners, seed)
+    BRAINS: ClassVar[type[Brains]] = _TSGBrains
 
 
 @dataclass(frozen=True)
-class ProximityPolicy(CoordinationPolicy):
+class ProximityPolicy(_SimplePolicy):
     radius: int = 4
     name: str = "proximity"
+    BRAINS: ClassVar[type[Brains]] = _ProximityBrains
+    PARAMS: ClassVar[tuple[str, ...]] = ("radius",)
 
-    def __post_init__(self):
-        if self.radius < 0:
-            raise ValueError(f"radius: must be >= 0, got {self.radius}")
-
-    def brains(self, fleet, owners, seed):
-        return _ProximityBrains(fleet, owners, seed, self.radius)
-
-    def describe(self):
-        return {"name": self.name, "radius": self.radius}
+    def _problem(self, value):
+        return None if value >= 0 else f"must be >= 0, got {value}"
 
 
 #: the radii the reference's calibration tries (spec §6)
@@ -283,6 +295,9 @@ def calibrate_radius(target_links: float, mean_links_for_radius, radii=PROXIMITY
 # MORPH
 
 
+_PICKING, _RETURNING = (int(m) for m in NEEDS_PICKER)  # plain ints: numpy compares them without enum lookups
+
+
 def reference_hint(obs: TickObservation) -> np.ndarray:
     """The reference's predictive hint δ_pred (spec §4.8) for the step before ``obs``.
 
@@ -292,12 +307,11 @@ def reference_hint(obs: TickObservation) -> np.ndarray:
     n, na = obs.n, obs.n_agvs
     pred = np.zeros((n, n))
     pm = obs.prev_mission[:na]
-    agvs = np.flatnonzero((pm == NEEDS_PICKER[0]) | (pm == NEEDS_PICKER[1]))
+    agvs = np.flatnonzero((pm == _PICKING) | (pm == _RETURNING))
     if agvs.size == 0 or obs.n_pickers == 0:
         return pred
-    tgt = obs.prev_target[agvs]
-    pc = obs.cells[na:]
-    d = np.abs(pc[None, :, 0] - tgt[:, None, 0]) + np.abs(pc[None, :, 1] - tgt[:, None, 1])
+    # Manhattan distances (AGV target, picker cell): |dx| + |dy| summed over the last axis (integers, exact)
+    d = np.abs(obs.cells[None, na:] - obs.prev_target[agvs, None]).sum(axis=2)
     nearest = na + d.argmin(axis=1)
     pred[agvs, nearest] = 1.0
     pred[nearest, agvs] = 1.0
@@ -310,12 +324,8 @@ def open_request_hint(obs: TickObservation) -> np.ndarray:
     Both will be co-assigned as soon as one of them is dispatched to the other, so the pair is an
     anticipated co-assignment; no position enters.
     """
-    n = obs.n
-    hint = np.zeros((n, n))
-    waiting = obs.needs_picker.copy()
-    free = obs.free_picker
-    hint[np.ix_(waiting, free)] = 1.0
-    hint[np.ix_(free, waiting)] = 1.0
+    pairs = np.outer(obs.needs_picker, obs.free_picker)  # (waiting AGV, free picker), both ways below
+    hint = (pairs | pairs.T).astype(float)
     np.fill_diagonal(hint, 0.0)
     return hint
 
@@ -410,6 +420,11 @@ class MorphBrains(Brains):
 
     def link_rows(self):
         return self._rows(self.state.A)
+
+    def out_links(self, agent):
+        k = self.slot(agent)
+        row = self.state.A[self._rep[k], agent] if self.preset == "reference" else self.state.A[k]
+        return np.flatnonzero(row).tolist()
 
     def weight_rows(self):
         return self._rows(self.state.W)

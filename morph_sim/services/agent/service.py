@@ -24,12 +24,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from morph_sim.schemas import Ack, AgentState, Commit, Event, HelpReply, HelpRequest, Phase, Resolve, Stop, Tick
+from morph_sim.schemas.codec import encode_fields
+from morph_sim.schemas.hot import decode_tick
 from morph_sim.schemas.keys import RunKeys
 from morph_sim.services.agent.policies import Fleet, MorphBrains
 from morph_sim.services.bus.base import Bus, Sample
 from morph_sim.services.rejects import Rejects
 from morph_sim.services.runconfig import RunConfig
-from morph_sim.services.sim.clock import observation_from_tick
+from morph_sim.services.sim.clock import observation_from_arrays
 
 log = logging.getLogger("morph_sim.agent")
 
@@ -50,7 +52,12 @@ class AgentCounters:
 class AgentService:
     """Agent ``agent_id`` of the run of ``config`` over ``bus``. ``await run()`` until stop."""
 
-    def __init__(self, config: RunConfig, bus: Bus, agent_id: int, *, restore: bool = True):
+    def __init__(self, config: RunConfig, bus: Bus, agent_id: int, *, restore: bool = True, faults=None):
+        # issue 5: this process's FaultRuntime (ingress faults on what this agent receives, its ctl/faults
+        # controller, sim-time stamps); in virtual time it advances on every Tick/Resolve that arrives (_on_arrival)
+        self.faults = faults
+        # picker, with faults: t -> AGVs whose request arrived but was dropped (or held past the boundary)
+        self._arrived: dict[int, set[int]] = {}
         # restore (issue 5): a (re)started agent loads its plasticity state from the monitor's latest states
         # (state/agent/*) before it joins; a first start finds none. restore=False is the cold restart.
         self.restore = restore
@@ -74,12 +81,14 @@ class AgentService:
         # picker side: requests received per tick, and the resolve being decided
         self._inbox: dict[int, dict[int, HelpRequest]] = {}
         self._pending: tuple[int, list[int]] | None = None
+        self._resolved_t = -1  # the last tick this picker decided: a duplicated Resolve never decides twice
         self._pending_timer: asyncio.TimerHandle | None = None
         self._stop_timer: asyncio.TimerHandle | None = None
         # The hot path (tick, request, resolve) runs inline on the transport's receive thread; the resolve deadline
         # fires on the loop. This lock keeps the picker's inbox and pending resolve consistent between the two.
         self._lock = threading.RLock()
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._virtual = faults is not None and faults.vtime is not None
 
     def _reject(self, what: str, why: object) -> None:
         self._rejects.count(what, why)
@@ -89,6 +98,11 @@ class AgentService:
     async def run(self) -> AgentCounters:
         k, bus = self.keys, self.bus
         self._loop = asyncio.get_running_loop()
+        if self.faults is not None:
+            layer = self.faults.attach(bus, meter=False, receiver=self.id)  # stamps sim time if virtual
+            layer.on_fate = self._on_arrival
+            self._layer = layer
+            await self.faults.start()  # ctl/faults, and the schedule from time 0
         restored = await self._restore() if self.restore else None
         # inline: the lock-step hot path skips the hop to the loop (3-4x the tick rate over Zenoh, zenoh.md §4c)
         await bus.subscribe(k.tick, self._on_tick, inline=True)
@@ -161,15 +175,65 @@ class AgentService:
         self._seq += 1
         return self._seq
 
+    # -- virtual time (issue 5) ------------------------------------------------------------------------------------
+    def _on_arrival(self, sample: Sample, fate: list[float]) -> None:
+        """Fault layer hook: a sample physically arrived (any thread, under the runtime's lock, before it is
+        delivered, dropped or held). A Tick or Resolve carries the sim's boundary: reach it first (releasing what is
+        due by then, applying the schedule). One that will not be delivered now cannot be answered in its phase:
+        skip it at once, so the sim never waits on a wall timeout. A request that will not be delivered now has
+        arrived all the same: the picker does not wait for it. (Wall time: only a dropped sample is "not delivered";
+        a delayed one comes after a real sleep and is answered then.)"""
+        k = self.keys
+        key = sample.key
+        if self._virtual:
+            missed = not self._layer.delivers_now(sample, fate)
+        else:
+            missed = not fate
+        if key == k.tick or key == k.resolve:
+            if sample.sender != "sim":
+                return  # only the sim's own samples carry its boundary (not a stray publisher's, nor a fuzzer's)
+            if self._virtual:
+                self.faults.advance(self._layer.sent_at(sample))
+            if not missed or self._stop.is_set():
+                return
+            try:
+                if key == k.tick:
+                    t, phase = sample.decode(Tick).t, Phase.TICK
+                    if t <= self.last_t:
+                        return
+                else:
+                    msg = sample.decode(Resolve)
+                    if not msg.expected(self.id):
+                        return
+                    t, phase = msg.t, Phase.RESOLVE
+            except ValueError:
+                return  # the handler rejects it if it is ever delivered
+            self.faults.skip(self.bus, self.id, t, phase)
+        elif missed and not self.is_agv and "/request/" in key:
+            try:
+                msg = sample.decode(HelpRequest)
+            except ValueError:
+                return
+            if msg.picker != self.id:
+                return
+            with self._lock:
+                self._arrived.setdefault(msg.t, set()).add(msg.agv)
+                self._try_decide()
+
+    def _came_late(self, sample: Sample) -> bool:
+        """Virtual time: a Tick/Resolve released at a later boundary than it was sent at (it was held): this agent
+        has skipped that phase already, so the protocol drops it as stale."""
+        return self._virtual and sample.sent_at < self.faults.now() - 1e-9
+
     # -- tick ------------------------------------------------------------------------------------------------------------
     def _on_tick(self, sample: Sample) -> None:
-        if self._stop.is_set():
+        if self._stop.is_set() or self._came_late(sample):
             return  # a stopped agent is gone, even while its session closes
         try:
-            tick = sample.decode(Tick)
+            tick = decode_tick(sample.payload)  # validated, straight into arrays (schemas/hot.py)
             if tick.n != self.config.n_agents:
                 raise ValueError(f"tick has {tick.n} robots, this fleet {self.config.n_agents}")
-            obs = observation_from_tick(tick, self.config.steps)
+            obs = observation_from_arrays(tick, self.config.steps)
         except (ValueError, IndexError) as exc:
             self._reject(sample.key, exc)
             return
@@ -189,19 +253,21 @@ class AgentService:
                 ask = self.brains.draw(self.id) < p if self.brains.draws else p >= 1.0
                 if ask:
                     tx, ty = (int(v) for v in obs.target[self.id])
-                    self.bus.put(self.keys.request(self.id, picker), HelpRequest(
-                        t=tick.t, agv=self.id, picker=picker, target_x=tx, target_y=ty,
+                    self.bus.put(self.keys.request(self.id, picker), encode_fields(
+                        HelpRequest, t=tick.t, agv=self.id, picker=picker, target_x=tx, target_y=ty,
                         mission=int(obs.mission[self.id]), seq=self._next_seq()))
                     self.counters.requests += 1
                     asked.append(picker)
         extras = {}
         if "links" in self._ack_extras:
-            extras["links"] = np.flatnonzero(self.brains.link_rows()[0]).tolist()
-        if "eta" in self._ack_extras and isinstance(self.brains, MorphBrains):
-            extras["eta"] = float(self.brains.state.eta)
+            extras["links"] = self.brains.out_links(self.id)
+        if "eta" in self._ack_extras:
+            extras["eta"] = float(self.brains.state.eta) if isinstance(self.brains, MorphBrains) else None
         # Without per-tick links in the ack (older wire schema) the state row carries them every tick.
         publish_state = tick.t % self.config.state_every == 0 or final or "links" not in self._ack_extras
-        ack = Ack(t=tick.t, agent=self.id, phase=Phase.TICK, requests_sent=asked, seq=self._next_seq(), **extras)
+        # encoded from plain values (no model round trip: the hot path, codec.encode_fields)
+        ack = encode_fields(Ack, t=tick.t, agent=self.id, phase=int(Phase.TICK), requests_sent=asked,
+                            seq=self._next_seq(), **extras)
         if publish_state and (final or "links" not in self._ack_extras):
             # Before the ack, on the same link: the last state must reach the monitor before the run ends, and a
             # state that carries the per-tick links of step t−1 before tick t+1 (the monitor closes row t−1 then).
@@ -263,7 +329,7 @@ class AgentService:
             self._try_decide()
 
     def _on_resolve(self, sample: Sample) -> None:
-        if self._stop.is_set():
+        if self._stop.is_set() or self._came_late(sample):
             return  # a stopped agent is gone, even while its session closes
         try:
             msg = sample.decode(Resolve)
@@ -271,7 +337,7 @@ class AgentService:
             self._reject(sample.key, exc)
             return
         expected = msg.expected(self.id)
-        if not expected or msg.t < self.last_t:
+        if not expected or msg.t < self.last_t or msg.t <= self._resolved_t:
             return
         with self._lock:
             self._pending = (msg.t, expected)
@@ -295,7 +361,10 @@ class AgentService:
             return
         t, expected = self._pending
         got = self._inbox.get(t, {})
-        if all(a in got for a in expected):
+        # with faults: decide once every expected request has *arrived* — delivered by the resolve boundary (in got),
+        # or dropped / held past it (in _arrived, virtual time: the same set whatever the wall order of arrivals)
+        lost = self._arrived.get(t, ())
+        if all(a in got or a in lost for a in expected):
             self._decide()
 
     def _decide_now(self, t: int) -> None:  # on the loop, at the resolve's deadline
@@ -308,12 +377,15 @@ class AgentService:
         assert self._pending is not None
         t, expected = self._pending
         self._pending = None
+        self._resolved_t = t
         timer, self._pending_timer = self._pending_timer, None
         if timer is not None:
             self._loop.call_soon_threadsafe(timer.cancel)  # TimerHandle.cancel is not thread-safe
         got = self._inbox.pop(t, {})
         for old in [s for s in self._inbox if s <= t]:
             del self._inbox[old]
+        for old in [s for s in self._arrived if s <= t]:
+            del self._arrived[old]
         chosen = next((a for a in expected if a in got), None)  # first in the sim's mission order
         self._answer(t, expected, got, chosen)
 

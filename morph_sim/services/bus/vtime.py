@@ -11,8 +11,9 @@ Phase boundaries of tick ``t`` with Δ seconds per step (:func:`boundaries`)::
     t·Δ + Δ/2      TICK phase deadline; Resolve published (RESOLVE phase opens)
     (t+1)·Δ        RESOLVE phase deadline; the world steps; next Tick
 
-The seam: whoever owns the phase loop (the sim clock; in another process, the agent on seeing a Tick or Resolve)
-calls :meth:`VirtualTime.advance` with the boundary it has reached, which releases every held message due by then,
+The seam: whoever owns the phase loop (the sim clock; in another process, the agent when a Tick or Resolve of the
+sim *arrives* — its stamp is the boundary — before it is handled, dropped or held) calls :meth:`VirtualTime.advance`
+with the boundary it has reached, which releases every held message due by then,
 in (due time, sender, key, sequence) order — an order that does not depend on arrival order, so the run does not
 depend on process timing. A bus stamps its samples with :meth:`VirtualTime.now` (``bus.set_clock(vt.now)``), so the
 send time ``s`` is the sender's current boundary.

@@ -16,6 +16,7 @@ shade fault windows.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -46,8 +47,14 @@ class FaultController:
 
     def __init__(self, bus: Bus, run: str, layers: list[FaultLayer], *, clock: Callable[[], float],
                  dt: float = 1.0, events: bool = False, on_crash: CrashHook | None = None,
-                 schedule: FaultSchedule | None = None):
+                 schedule: FaultSchedule | None = None, lock=None, hold_events: bool = False):
         self.bus = bus
+        # the process's fault lock (FaultRuntime): commands arrive on the loop while transport threads decide fates
+        self.lock = lock if lock is not None else contextlib.nullcontext()
+        # hold_events: events of changes before the run starts are kept and published by publish_held() at tick 0,
+        # once the monitor is known to listen (a fault scheduled at tick 0 is applied when the process starts)
+        self._held_events: list[Event] | None = [] if events and hold_events else None
+        self.crashes: list[FaultSpec] = []  # crash specs accepted (the supervisor lists them: it has no layers)
         self.keys = RunKeys(run)
         self.layers = list(layers)
         self.clock = clock  # sim seconds
@@ -73,22 +80,28 @@ class FaultController:
         await self.bus.subscribe(self.keys.faults, self._on_put)
 
     # -- commands ------------------------------------------------------------------------------------------------------
-    def handle(self, command: FaultCommand) -> FaultReply:
-        """Apply one command to every layer of this process; never raises."""
+    def handle(self, command: FaultCommand, at: float | None = None) -> FaultReply:
+        """Apply one command to every layer of this process; never raises. ``at``: the sim time it takes effect
+        (a scheduled command's own time, so every process starts the fault at the same instant); default now."""
+        with self.lock:
+            return self._handle(command, at)
+
+    def _handle(self, command: FaultCommand, at: float | None) -> FaultReply:
         source = self.bus.identity
         try:
             if command.op == "reset":
                 if command.fault_id is None:
-                    healed = [fid for layer in self.layers for fid in layer.reset()]
+                    healed = [fid for layer in self.layers for fid in layer.reset(at=at)]
                     for fid in dict.fromkeys(healed):
-                        self._event("fault.reset", fid, None)
+                        self._event("fault.reset", fid, None, at)
+                    self.crashes.clear()
                     return FaultReply(ok=True, active=[], source=source)
                 if not any(command.fault_id in {s.id for s in layer.active()} for layer in self.layers):
                     return FaultReply(ok=False, error=f"no active fault {command.fault_id!r}",
                                       active=self._active(), source=source)
                 for layer in self.layers:
-                    layer.reset(command.fault_id)
-                self._event("fault.reset", command.fault_id, None)
+                    layer.reset(command.fault_id, at=at)
+                self._event("fault.reset", command.fault_id, None, at)
             elif command.op == "set":
                 spec = command.spec
                 assert spec is not None  # FaultCommand guarantees it
@@ -99,34 +112,45 @@ class FaultController:
                     error = self.on_crash(spec)
                     if error:
                         return FaultReply(ok=False, error=f"crash: {error}", active=self._active(), source=source)
+                    self.crashes.append(spec)
                     if not _network_part(spec):
-                        self._event("fault.crash", spec.id or "crash", spec)
+                        self._event("fault.crash", spec.id or "crash", spec, at)
                         return FaultReply(ok=True, active=self._active(), source=source)
                     spec = spec.model_copy(update={"crash": None})
                 if spec.id is None:  # one id for the fault in every layer (and in the event log)
-                    spec = spec.model_copy(update={"id": f"fault-{len(self.log) + 1}-{round(self.clock() * 1000)}"})
+                    when = self.clock() if at is None else at
+                    spec = spec.model_copy(update={"id": f"fault-{len(self.log) + 1}-{round(when * 1000)}"})
                 for layer in self.layers:
-                    layer.set(spec)
-                self._event("fault.set", spec.id or "", spec)
+                    layer.set(spec, at=at)
+                self._event("fault.set", spec.id or "", spec, at)
         except (ValueError, ValidationError) as exc:
             return FaultReply(ok=False, error=str(exc), active=self._active(), source=source)
         return FaultReply(ok=True, active=self._active(), source=source)
 
     def _active(self) -> list[FaultSpec]:
-        return self.layers[0].active() if self.layers else []
+        # a process without fault layers (the supervisor) lists the crash faults it carries out
+        return self.layers[0].active() if self.layers else list(self.crashes)
 
     def advance(self, now: float) -> list[FaultReply]:
         """Apply the scheduled commands due by sim time ``now`` (call at each tick start, or register on a
-        VirtualTime's ``on_advance``)."""
+        VirtualTime's ``on_advance``), each at its own time."""
         out = []
-        while self._next < len(self._timeline) and self._timeline[self._next][0] <= now + 1e-9:
-            at, command = self._timeline[self._next]
-            self._next += 1
-            reply = self.handle(command)
-            if not reply.ok:
-                log.warning("fault schedule at %.3f s: %s", at, reply.error)
-            out.append(reply)
+        with self.lock:
+            while self._next < len(self._timeline) and self._timeline[self._next][0] <= now + 1e-9:
+                out.append(self._scheduled(self._next))
+                self._next += 1
         return out
+
+    def _scheduled(self, index: int) -> FaultReply:
+        at, command = self._timeline[index]
+        if command.op == "set" and command.spec is not None and command.spec.id is None:
+            # an id from the schedule itself (not from this process's log or clock): the same fault, hence the same
+            # seeded streams, in every process
+            command = command.model_copy(update={"spec": command.spec.model_copy(update={"id": f"at{index}"})})
+        reply = self._handle(command, at)
+        if not reply.ok:
+            log.warning("fault schedule at %.3f s: %s", at, reply.error)
+        return reply
 
     # -- transport -----------------------------------------------------------------------------------------------------
     def _decode(self, payload: bytes | None) -> FaultCommand | str:
@@ -152,16 +176,29 @@ class FaultController:
         if not reply.ok:
             log.warning("ctl/faults %s from %r rejected: %s", command.op, sample.sender, reply.error)
 
-    def _event(self, kind: str, fault_id: str, spec: FaultSpec | None) -> None:
-        now = self.clock()
+    def _event(self, kind: str, fault_id: str, spec: FaultSpec | None, at: float | None = None) -> None:
+        now = self.clock() if at is None else at
         details: dict = {"fault_id": fault_id}
         if spec is not None:
             details["spec"] = spec.model_dump(mode="json", exclude_none=True)
         event = Event(kind=kind, source=self.bus.identity, t=max(0, math.floor(now / self.dt + 1e-9)),
                       sim_time=now, wall_time=time.time(), details=details)
         self.log.append(event)
-        if self.events and not self.bus.closed:
-            try:
-                self.bus.put(self.keys.event(self.bus.identity), event)
-            except Exception:  # the record loses one event; the run goes on
-                log.exception("could not publish %s", kind)
+        if self._held_events is not None:
+            self._held_events.append(event)
+        elif self.events:
+            self._publish(event)
+
+    def publish_held(self) -> None:
+        """The run has started (the monitor listens): publish the events kept so far, and the next ones at once."""
+        held, self._held_events = self._held_events, None
+        for event in held or ():
+            self._publish(event)
+
+    def _publish(self, event: Event) -> None:
+        if self.bus.closed:
+            return
+        try:
+            self.bus.put(self.keys.event(self.bus.identity), event)
+        except Exception:  # the record loses one event; the run goes on
+            log.exception("could not publish %s", event.kind)

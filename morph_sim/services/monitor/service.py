@@ -22,12 +22,14 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import threading
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from morph_sim.schemas import Ack, AgentState, Commit, Event, MetricSample, Phase, Stop, Tick
+from morph_sim.schemas import Ack, AgentState, Commit, Event, MetricSample, Phase, Stop
+from morph_sim.schemas.hot import TickArrays, decode_tick
 from morph_sim.schemas.keys import RunKeys, intersects
 from morph_sim.services.bus.base import Bus, Query, Sample
 from morph_sim.services.monitor import metrics as M
@@ -96,7 +98,13 @@ class MonitorService:
         self._pending_publish: list[MetricSample] = []
         self._last_values: dict = {}
         self._links_sum = 0
+        self._graph: tuple[dict[int, list[int]] | None, int, float] = (None, 0, 0.0)  # (links, count, λ₂) of a row
+        self._fresh: dict[str, tuple[int, float, float]] = {}  # stream -> newest (t, sim time, value) unpublished
+        self._unbuilt = False  # rows queued since the metric samples were last built
         self._done = False
+        self._lock = threading.RLock()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._loop_thread: int | None = None
         self._stop_timer: asyncio.TimerHandle | None = None
         self._link_shift = 1 if config.policy == "morph" else 0
         self.stats = MessageStats(self.n, config.dt)  # message streams (counts, drops, latency, dispatch)
@@ -116,11 +124,16 @@ class MonitorService:
     # -- lifecycle -----------------------------------------------------------------------------------------------------
     async def run(self) -> MonitorResult:
         k = self.keys
-        await self.bus.subscribe(k.everything, self._on_sample)
+        self._loop = asyncio.get_running_loop()
+        self._loop_thread = threading.get_ident()
+        # inline: the run's ~20 messages a tick are handled on the transport's receive thread, without a wake-up of
+        # the loop for each (the asyncio bridge costs more than the handling, zenoh.md §1); see _on_sample
+        await self.bus.subscribe(k.everything, self._on_sample, inline=True)
         await self.bus.declare_queryable(k.latest_all, self._on_query)
         token = await self.bus.declare_token(k.alive("monitor"))
         await self._stop.wait()
-        self._finish()
+        with self._lock:
+            self._finish()
         await self._publish_pending(force=True)
         await token.close()
         return self.result
@@ -134,6 +147,27 @@ class MonitorService:
 
     # -- dispatch --------------------------------------------------------------------------------------------------------
     def _on_sample(self, sample: Sample) -> None:
+        """Any thread. Events and stops act on the loop (publishes, timers, the stop event): those samples are
+        handled there, in arrival order after everything before them; all others right here. One lock keeps the
+        monitor's state consistent between the two threads (and the loop's _finish and queries)."""
+        key = sample.key
+        if self._off_loop() and ("/events/" in key or key.endswith("/ctl/stop")):
+            try:
+                self._loop.call_soon_threadsafe(self._handle, sample)
+            except RuntimeError:  # the loop is closed: the run is over
+                pass
+            return
+        self._handle(sample)
+
+    def _off_loop(self) -> bool:
+        """On another thread than the loop's (a sample fed directly, as by replay, counts as on the loop)."""
+        return self._loop is not None and threading.get_ident() != self._loop_thread
+
+    def _handle(self, sample: Sample) -> None:
+        with self._lock:
+            self._handle_locked(sample)
+
+    def _handle_locked(self, sample: Sample) -> None:
         if self._done:
             return
         try:
@@ -144,14 +178,16 @@ class MonitorService:
         head = rel[0]
         kind = head if head != "agent" or len(rel) < 3 else rel[2]
         self.result.messages[kind] = self.result.messages.get(kind, 0) + 1
-        self.stats.observe(kind, sample.key, sample.sender, sample.seq, sample.sent_at)
+        # a sim-time stamp (virtual time, unfaulted here) means no wall latency: never time.time() - sim seconds
+        self.stats.observe(kind, sample.key, sample.sender, sample.seq, sample.sent_at,
+                           None if sample.sent_at > 1e8 else sample.sent_at)
         if sample.sender:
             # wall stamps (paced / up): latency as seen here; sim-time stamps (virtual time) carry no wall latency
             sent = sample.sent_at
             self.link_meter.record(sample.key, sample.sender, sample.seq, sent, time.time() if sent > 1e8 else sent)
         try:
             if head == "sim" and rel[1:] == ["tick"]:
-                self._on_tick(sample.decode(Tick))
+                self._on_tick(decode_tick(sample.payload))  # validated, as arrays (schemas/hot.py)
             elif head == "agent" and len(rel) == 3:
                 if rel[2] == "ack":
                     self._on_ack(sample.decode(Ack), rel[1])
@@ -179,7 +215,7 @@ class MonitorService:
             row = self._rows[t] = Row(t)
         return row
 
-    def _on_tick(self, tick: Tick) -> None:
+    def _on_tick(self, tick: TickArrays) -> None:
         if tick.n != self.n:
             raise ValueError(f"tick has {tick.n} robots, this fleet {self.n}")
         if tick.t <= self._last_tick:
@@ -196,7 +232,7 @@ class MonitorService:
             if row is not None:
                 row.sim_time = tick.sim_time
         if self.recorder is not None:
-            self.recorder.positions(tick.t, tick.x, tick.y, tick.heading, tick.carrying)
+            self.recorder.positions(tick.t, *(tick.row(name).tolist() for name in ("x", "y", "heading", "carrying")))
         # Row t-2 is due once tick t arrives, but its acks (and the link reports of t-1) travel on other paths than
         # the sim's ticks and may reach the monitor after tick t: a row that still misses an agent's report waits
         # up to ROW_GRACE_TICKS more ticks (an absent agent's row is then written without it).
@@ -318,13 +354,17 @@ class MonitorService:
         A = np.zeros((self.n, self.n), dtype=bool)
         for agent, links in row.links.items():
             A[agent, links] = True
+        if row.links != self._graph[0]:
+            # the link graph changes only at structural steps: its count and λ₂ (an eigen-solve) are kept until then
+            self._graph = (row.links, M.undirected_link_count(A), M.algebraic_connectivity(A))
+        _, link_count, lambda2 = self._graph
         delivered = row.deliveries or 0
         self._total += delivered
         block = self._block.pop(row.t, None)
         values = {
             "t": row.t, "sim_time": row.sim_time, "deliveries": row.deliveries, "deliveries_total": self._total,
-            "requests": row.requests, "commits": row.commits, "links": M.undirected_link_count(A),
-            "lambda2": M.algebraic_connectivity(A), "eta": float(np.mean(row.etas)) if row.etas else None,
+            "requests": row.requests, "commits": row.commits, "links": link_count,
+            "lambda2": lambda2, "eta": float(np.mean(row.etas)) if row.etas else None,
             "acks": len(row.ackers),
             "w_agv_agv": block.agv_agv if block else None, "w_agv_picker": block.agv_picker if block else None,
             "w_picker_picker": block.picker_picker if block else None,
@@ -340,36 +380,64 @@ class MonitorService:
         self._queue_metrics(values)
 
     def _queue_metrics(self, values: dict) -> None:
+        """Note the row's stream values; build and publish MetricSamples only when a publication is due.
+
+        Streams are decimated to ``max_rate`` updates per second, so building ~15 samples (and the latency quantiles)
+        for every row would be work nobody reads: per stream the newest value since the last publication is kept
+        (a sparse stream, e.g. the W block means every k ticks, is not lost) and turned into a sample when due.
+        ``latest_metric`` (late joiners, Prometheus) is refreshed then, and at the end of the run.
+        """
         t = values["t"]
         sim_time = values["sim_time"] or t * self.config.dt
-        samples = []
         for name in STREAMS:
             v = values.get(name)
-            if v is None or (isinstance(v, float) and not math.isfinite(v)):
-                continue
-            samples.append(MetricSample(name=name, t=t, sim_time=sim_time, value=float(v)))
-        samples += self.stats.samples(values)
-        for s in samples:
-            self.latest_metric[s.name] = s
+            if v is not None and not (isinstance(v, float) and not math.isfinite(v)):
+                self._fresh[name] = (t, sim_time, float(v))
+        self.stats.row(values)
+        self._unbuilt = True
         if t % self.config.state_every == 0:
             # one sample per (counter, key class): kept apart from latest_metric (one value per name), and carried
             # to the next decimated publish so a k-tick snapshot is never skipped
             self.latest_links = self.link_meter.metrics(t, sim_time, self.bus.identity)
             self._links_due = True
-        if self._links_due and (self.max_rate <= 0 or time.monotonic() - self._last_publish >= 1.0 / self.max_rate):
-            samples = samples + self.latest_links
+        now = time.monotonic()
+        due = self.max_rate > 0 and now - self._last_publish >= 1.0 / self.max_rate
+        if due or self.max_rate <= 0:
+            self._build_samples(values)
+        if due:
+            self._last_publish = now
+            self._on_loop(self.bus._spawn, self._publish_pending(), "metrics")
+
+    def _on_loop(self, fn, *args) -> None:
+        """Run ``fn(*args)`` on the loop: now if this is the loop's thread, else as soon as the loop gets to it."""
+        if not self._off_loop():
+            fn(*args)
+            return
+        try:
+            self._loop.call_soon_threadsafe(fn, *args)
+        except RuntimeError:  # the loop is closed: the run is over
+            pass
+
+    def _build_samples(self, values: dict) -> None:
+        """The pending MetricSamples of the rows noted since the last build; ``values`` is the newest row."""
+        self._unbuilt = False
+        samples = [MetricSample(name=name, t=t, sim_time=sim_time, value=v)
+                   for name, (t, sim_time, v) in self._fresh.items()]
+        self._fresh = {}
+        samples += self.stats.samples(values)
+        for s in samples:
+            self.latest_metric[s.name] = s
+        if self._links_due:
+            samples += self.latest_links
             self._links_due = False
         # per stream the newest sample since the last publication: a sparse stream (dispatch_delay) is not lost
         pending = {s.name: s for s in self._pending_publish}
         pending.update((s.name, s) for s in samples)
         self._pending_publish = list(pending.values())
-        now = time.monotonic()
-        if self.max_rate > 0 and now - self._last_publish >= 1.0 / self.max_rate:
-            self._last_publish = now
-            self.bus._spawn(self._publish_pending(), "metrics")
 
     async def _publish_pending(self, force: bool = False) -> None:
-        samples, self._pending_publish = self._pending_publish, []
+        with self._lock:  # the receive thread adds to the pending list
+            samples, self._pending_publish = self._pending_publish, []
         for s in samples:
             await self.bus.publish(self.keys.metric(s.name), s, droppable=True)
 
@@ -382,6 +450,8 @@ class MonitorService:
         self._finalize(upto=last)
         for t in sorted(self._states):
             self._complete_states(t)
+        if self._unbuilt:  # the last rows' samples: latest_metric ends on the run's final values
+            self._build_samples(self._last_values)
         summary = {
             "run_id": self.config.run_id, "steps": self._next_row, "deliveries_total": self._total,
             "rejected": self.result.rejected, "mean_links": self._links_sum / max(1, self._next_row),
@@ -396,11 +466,13 @@ class MonitorService:
 
     # -- late joiners ----------------------------------------------------------------------------------------------------
     def _on_query(self, query: Query) -> None:
-        for name, sample in list(self.latest_metric.items()):
+        with self._lock:  # a consistent view: the receive thread updates both maps
+            metrics, states = list(self.latest_metric.items()), sorted(self.latest_state.items())
+        for name, sample in metrics:
             key = self.keys.latest("metrics", name)
             if intersects(key, query.key_expr):
                 query.reply(key, sample)
-        for agent, state in sorted(self.latest_state.items()):
+        for agent, state in states:
             key = self.keys.latest("agent", str(agent))
             if intersects(key, query.key_expr):
                 query.reply(key, state)

@@ -12,6 +12,7 @@ statistics that come from the messages themselves (counts, drops by sequence gap
 from __future__ import annotations
 
 import asyncio
+import bisect
 import math
 import time
 from collections import deque
@@ -81,7 +82,7 @@ class Histogram:
         self.count = 0
 
     def observe(self, value: float) -> None:
-        i = int(np.searchsorted(self.bounds, value, side="left"))
+        i = bisect.bisect_left(self.bounds, value)  # np.searchsorted(side="left") without numpy: once per message
         self.counts[i] += 1
         self.sum += value
         self.count += 1
@@ -111,6 +112,7 @@ class MessageStats:
         self._waiting: dict[int, int] = {}  # AGV -> tick of its first unanswered request
         self._dispatch_by_tick: dict[int, list[float]] = {}
         self._deliveries: deque[int] = deque(maxlen=RATE_WINDOW)
+        self._dispatch_row: tuple[int, float, float] | None = None  # (t, sim time, mean delay), not yet published
 
     def observe(self, kind: str, key: str, sender: str, seq: int, sent_at: float, now: float | None = None) -> None:
         self.total += 1
@@ -142,14 +144,21 @@ class MessageStats:
     def latency_quantiles(self) -> list[float]:
         if not self._latency:
             return [math.nan] * 3
-        lat = np.fromiter((x for _, x in self._latency), dtype=float)
+        lat = np.array([x for _, x in self._latency], dtype=float)
         return [float(q) for q in np.quantile(lat, (0.5, 0.9, 0.99))]
 
+    def row(self, values: dict) -> None:
+        """Account the row ``values`` just finalised (t, sim_time, deliveries …): every row, in order."""
+        t = values["t"]
+        self._deliveries.append(int(values.get("deliveries") or 0))
+        delays = [d for k in [k for k in self._dispatch_by_tick if k <= t] for d in self._dispatch_by_tick.pop(k)]
+        if delays:  # the newest row with dispatches is what the (decimated) stream shows
+            self._dispatch_row = (t, values.get("sim_time") or t * self.dt, float(np.mean(delays)))
+
     def samples(self, values: dict) -> list[MetricSample]:
-        """The message streams for the row ``values`` just finalised (t, sim_time, deliveries, acks …)."""
+        """The message streams as of the newest row ``values`` (:meth:`row` has seen it): built when published."""
         t = values["t"]
         sim_time = values.get("sim_time") or t * self.dt
-        self._deliveries.append(int(values.get("deliveries") or 0))
         out = [
             MetricSample(name="delivery_rate", t=t, sim_time=sim_time, unit="deliveries/s",
                          value=sum(self._deliveries) / (len(self._deliveries) * self.dt)),
@@ -161,10 +170,10 @@ class MessageStats:
             MetricSample(name="agents_alive", t=t, sim_time=sim_time, unit="agents",
                          value=float(values.get("acks") or 0)),
         ]
-        delays = [d for k in [k for k in self._dispatch_by_tick if k <= t] for d in self._dispatch_by_tick.pop(k)]
-        if delays:
-            out.append(MetricSample(name="dispatch_delay", t=t, sim_time=sim_time, unit="s",
-                                    value=float(np.mean(delays))))
+        if self._dispatch_row is not None:
+            at, at_time, delay = self._dispatch_row
+            self._dispatch_row = None
+            out.append(MetricSample(name="dispatch_delay", t=at, sim_time=at_time, unit="s", value=delay))
         q = self.latency_quantiles()
         if all(math.isfinite(x) for x in q):
             out.append(MetricSample(name="latency_seconds", t=t, sim_time=sim_time, unit="s", values=q,

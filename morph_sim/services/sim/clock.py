@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from morph_sim.schemas import Ack, Commit, Event, Phase, Resolve, Stop, Tick
+from morph_sim.schemas.hot import TickArrays, arrays_from_tick, encode_tick_body
 from morph_sim.schemas.keys import RunKeys
 from morph_sim.services.agent.observation import TickObservation
 from morph_sim.services.bus.base import Bus, LivelinessEvent, Sample
@@ -51,13 +52,18 @@ MONITOR = "monitor"
 
 def tick_from_observation(obs: TickObservation, sim_time: float, extra: dict | None = None) -> Tick:
     """The wire form of an observation (every field an agent's policy reads)."""
-    is_agv = [True] * obs.n_agvs + [False] * obs.n_pickers
+    return Tick(**tick_fields(obs, sim_time, extra))
+
+
+def tick_fields(obs: TickObservation, sim_time: float, extra: dict | None = None) -> dict:
+    """The Tick's field map as plain Python values. The sim encodes it directly (:func:`encode_tick_body`): the
+    model's validation of the sim's own arrays is the tests' job, not every tick's."""
     cells = obs.cells
-    return Tick(
-        t=obs.t, sim_time=sim_time,
+    return dict(
+        t=int(obs.t), sim_time=float(sim_time),
         grid_rows=int(obs.grid_shape[0]), grid_cols=int(obs.grid_shape[1]),
         x=cells[:, 0].tolist(), y=cells[:, 1].tolist(),
-        is_agv=is_agv,
+        is_agv=[True] * obs.n_agvs + [False] * obs.n_pickers,
         mission=obs.mission.tolist(), target_x=obs.target[:, 0].tolist(), target_y=obs.target[:, 1].tolist(),
         task=obs.task.tolist(), needs_picker=obs.needs_picker.tolist(),
         mission_order=obs.request_order.tolist(),
@@ -66,28 +72,24 @@ def tick_from_observation(obs: TickObservation, sim_time: float, extra: dict | N
         prev_mission=obs.prev_mission.tolist(), prev_target_x=obs.prev_target[:, 0].tolist(),
         prev_target_y=obs.prev_target[:, 1].tolist(), prev_task=obs.prev_task.tolist(),
         delivered_by=np.flatnonzero(obs.delivered).tolist(),
-        reward=[float(r) for r in obs.reward], loader=obs.loader.tolist(),
-        **_wire_extras(obs),
+        reward=np.asarray(obs.reward, dtype=float).tolist(), loader=obs.loader.tolist(),
+        handled=np.asarray(obs.handled, dtype=bool).tolist(), final=bool(obs.final),
         **(extra or {}),
     )
 
 
-def _wire_extras(obs: TickObservation) -> dict:
-    out = {}
-    if "handled" in Tick.model_fields:
-        out["handled"] = np.asarray(obs.handled, dtype=bool).tolist()
-    if "final" in Tick.model_fields:
-        out["final"] = bool(getattr(obs, "final", False))
-    return out
-
-
 def observation_from_tick(tick: Tick, steps: int | None = None) -> TickObservation:
     """The policy's observation rebuilt from a Tick message alone (inverse of :func:`tick_from_observation`)."""
-    n = tick.n
-    # One conversion for every per-robot integer field (each agent does this every tick): rows of one block.
-    ints = np.array([tick.x, tick.y, tick.target_x, tick.target_y, tick.prev_target_x, tick.prev_target_y,
-                     tick.mission, tick.prev_mission, tick.task, tick.prev_task, tick.loader], dtype=np.int64)
-    flags = np.array([tick.is_agv, tick.needs_picker], dtype=bool).reshape(2, n)
+    return observation_from_arrays(arrays_from_tick(tick), steps)
+
+
+def observation_from_arrays(tick: TickArrays, steps: int | None = None) -> TickObservation:
+    """The observation of a decoded tick (:func:`morph_sim.schemas.hot.decode_tick`): views of its two blocks.
+
+    Each agent does this every tick, so it is a handful of slices; the blocks are the agent's own (fresh per tick).
+    """
+    ints, flags = tick.ints, tick.flags
+    n = ints.shape[1]
     n_agvs = int(np.count_nonzero(flags[0]))
     free = np.zeros(n, dtype=bool)
     free[tick.free_pickers] = True
@@ -95,38 +97,12 @@ def observation_from_tick(tick: Tick, steps: int | None = None) -> TickObservati
     delivered[tick.delivered_by] = True
     return TickObservation(
         t=tick.t, n_agvs=n_agvs, n_pickers=n - n_agvs, grid_shape=(tick.grid_rows, tick.grid_cols),
-        cells=ints[0:2].T.copy(),
-        mission=ints[6].astype(np.int8),
-        target=ints[2:4].T.copy(),
-        task=ints[8].copy(),
-        needs_picker=flags[1].copy(),
-        free_picker=free,
-        request_order=np.array(tick.mission_order, dtype=np.int64),
-        has_previous=bool(tick.has_previous),
-        prev_mission=ints[7].astype(np.int8),
-        prev_target=ints[4:6].T.copy(),
-        prev_task=ints[9].copy(),
-        delivered=delivered,
-        reward=np.array(tick.reward, dtype=float),
-        loader=ints[10].copy(),
-        **_handled_and_final(tick, n, steps),
+        cells=ints[0:2].T, mission=ints[6].astype(np.int8), target=ints[2:4].T, task=ints[8],
+        needs_picker=flags[1], free_picker=free, request_order=np.array(tick.mission_order, dtype=np.int64),
+        has_previous=tick.has_previous, prev_mission=ints[7].astype(np.int8), prev_target=ints[4:6].T,
+        prev_task=ints[9], delivered=delivered, reward=tick.reward, loader=ints[10], handled=flags[5],
+        final=tick.final or (steps is not None and tick.t >= steps),
     )
-
-
-def _handled_and_final(tick: Tick, n: int, steps: int | None) -> dict:
-    fields = TickObservation.__dataclass_fields__
-    out: dict = {}
-    if "handled" in fields:
-        if hasattr(tick, "handled"):
-            out["handled"] = np.asarray(tick.handled, dtype=bool)
-        else:
-            handled = np.zeros(n, dtype=bool)
-            for pair in (*tick.loads, *tick.unloads):
-                handled[list(pair)] = True
-            out["handled"] = handled
-    if "final" in fields:
-        out["final"] = bool(getattr(tick, "final", False)) or (steps is not None and tick.t >= steps)
-    return out
 
 
 def world_fields(ctl: CTAController, obs: TickObservation) -> dict:
@@ -138,8 +114,8 @@ def world_fields(ctl: CTAController, obs: TickObservation) -> dict:
     for agv, m in ctl.agv_missions.items():
         p = by_cell.get(m.cell)
         if p is not None:
-            partner[agv] = p
-            partner[p] = agv
+            partner[agv] = int(p)  # plain ints: the sim packs this map without the model (encode_tick_body)
+            partner[p] = int(agv)
     loads, unloads = handling_pairs(obs, wh.carrying)
     return dict(
         heading=[int(d) for d in wh.dir], busy=[bool(b) for b in wh.busy],
@@ -571,7 +547,7 @@ class SimClock:
             self._commits = {}
             self._expected = {}
             ph = _Phase(t, Phase.TICK, self.present())
-            tick = tick_from_observation(obs, t * cfg.dt, world_fields(self.ctl, obs))
+            tick = encode_tick_body(tick_fields(obs, t * cfg.dt, world_fields(self.ctl, obs)))
             t1 = time.monotonic()
             spent["controller"] += t1 - started
             self._phase = ph  # before the tick goes out: inline acks may arrive before _collect starts
@@ -609,9 +585,11 @@ class SimClock:
             self.result.wall_seconds = time.monotonic() - t0
         # the final tick: agents apply the update of the last step, nobody dispatches
         obs = self.ctl.final_observation()
+        if self.faults is not None:
+            self.faults.advance(obs.t * cfg.dt)  # its boundary, as every tick: stamps and releases like the others
         ph = _Phase(obs.t, Phase.TICK, self.present())
         self._phase = ph
-        await self.bus.publish(k.tick, tick_from_observation(obs, obs.t * cfg.dt, world_fields(self.ctl, obs)))
+        await self.bus.publish(k.tick, encode_tick_body(tick_fields(obs, obs.t * cfg.dt, world_fields(self.ctl, obs))))
         wait = 0.5 if self._stop is not None else cfg.phase_timeout if cfg.mode == "lockstep" else cfg.period
         await self._collect(ph, time.monotonic() + wait)
         self.result.wall_seconds = time.monotonic() - t0

@@ -181,7 +181,7 @@ class Supervisor:
                     child.planned[pid] = action.cold_restart or self.config.cold_restart
                 self._event("crash", f"{action.signal} agent {action.agent} (pid {pid}) at tick {t}")
                 await self._publish_event(bus, keys, "agent.crash", agent=action.agent, signal=action.signal,
-                                          pid=pid, fault_id=action.fault_id, tick=t)
+                                          pid=pid, fault_id=action.fault_id, tick=t, at_tick=t)
 
     def _event(self, kind: str, what: str) -> None:
         self.events.append((time.time(), kind, what))
@@ -365,13 +365,16 @@ class Supervisor:
                 self._show()
             await asyncio.sleep(0.05)
 
-    async def _publish_event(self, bus, keys, kind: str, **details) -> None:
-        """Supervisor events (restarts) go into the run record through the monitor."""
+    async def _publish_event(self, bus, keys, kind: str, *, at_tick: int | None = None, **details) -> None:
+        """Supervisor events (crashes, restarts) go into the run record through the monitor, with their tick and sim
+        time: a crash at the tick it was due (the live tick may be a little further on), a restart at the live tick."""
         from morph_sim.schemas import Event
 
+        t = max(self.progress.t, 0) if at_tick is None else at_tick
         try:
             await bus.publish(keys.event("supervisor"), Event(
-                kind=kind, source="supervisor", t=max(self.progress.t, 0), wall_time=time.time(), details=details))
+                kind=kind, source="supervisor", t=t, sim_time=t * self.config.dt, wall_time=time.time(),
+                details=details))
         except Exception:
             log.warning("could not publish %s event", kind, exc_info=True)
 

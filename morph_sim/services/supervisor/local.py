@@ -29,8 +29,13 @@ async def run_local(config: RunConfig, *, record: bool = True, network: LocalNet
                     on_bus: Callable[[str, Bus], None] | None = None, faults=None) -> LocalRun:
     """Run ``config`` in this loop. ``on_bus(name, bus)`` sees every session (tests install fault layers there).
 
-    ``faults``: a FaultRuntime (issue 5) for the sim's session; every session then stamps its samples with the
-    runtime's sim clock, so latency is applied in sim seconds (virtual time)."""
+    ``faults``: a FaultRuntime (issue 5) for the sim's session (default: one when ``config.fault_schedule`` is set);
+    every agent session then gets its own runtime like it (``FaultRuntime.like``: same seed, Δ, fault time and
+    schedule), as each agent process of ``morph-sim up`` has, and the monitor stamps the sim's clock."""
+    if faults is None and config.fault_schedule:
+        from morph_sim.services.faults.runtime import FaultRuntime
+
+        faults = FaultRuntime.for_service(config, "sim")
     net = network or LocalNetwork()
     buses: list[Bus] = []
 
@@ -44,7 +49,8 @@ async def run_local(config: RunConfig, *, record: bool = True, network: LocalNet
         return bus
 
     monitor = MonitorService(config, session("monitor"), record=record)
-    agents = [AgentService(config, session(f"agent-{i}"), i) for i in range(config.n_agents)]
+    agents = [AgentService(config, session(f"agent-{i}"), i, faults=None if faults is None else faults.like())
+              for i in range(config.n_agents)]
     sim = SimClock(config, session("sim"), faults=faults)
     tasks = [asyncio.create_task(monitor.run(), name="monitor")]
     tasks += [asyncio.create_task(a.run(), name=f"agent-{a.id}") for a in agents]

@@ -1,0 +1,168 @@
+"""The hot path's cheap codec (schemas/hot.py, codec.encode_fields) agrees with the pydantic models exactly.
+
+Every tick of a short run, and a list of malformed variants of one tick, are decoded both ways: either both accept with
+the same arrays, or both raise a DecodeError naming the same field.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import msgpack
+import numpy as np
+import pytest
+
+from morph_sim.schemas import Ack, Commit, DecodeError, HelpReply, HelpRequest, Phase, Tick, decode
+from morph_sim.schemas.codec import encode_fields
+from morph_sim.schemas.hot import FLAG_ROWS, INT_ROWS, TickArrays, arrays_from_tick, decode_tick, encode_tick_body
+from morph_sim.services.sim.clock import (make_controller, observation_from_arrays, observation_from_tick, tick_fields,
+                                          tick_from_observation, world_fields)
+from morph_sim.services.runconfig import RunConfig
+
+
+def _ticks(steps: int = 40) -> list[tuple[object, dict]]:
+    """(observation, tick field map) of the first ticks of a small run with random dispatches."""
+    config = RunConfig(run_id="hot", scale="small", policy="full", steps=steps, seed=5)
+    ctl = make_controller(config)
+    rng = np.random.default_rng(1)
+    out = []
+    for t in range(steps):
+        obs = ctl.begin_tick()
+        out.append((obs, tick_fields(obs, t * 1.0, world_fields(ctl, obs))))
+        free = np.flatnonzero(obs.free_picker).tolist()
+        commits = []
+        for agv in obs.requesters():
+            if free and rng.random() < 0.7:
+                commits.append((free.pop(0), int(agv)))
+        ctl.commit(commits)
+        ctl.finish_tick()
+    final = ctl.final_observation()
+    out.append((final, tick_fields(final, steps * 1.0, world_fields(ctl, final))))
+    return out
+
+
+TICKS = _ticks()
+
+
+def _same(a: TickArrays, b: TickArrays) -> None:
+    for name in TickArrays.__dataclass_fields__:
+        x, y = getattr(a, name), getattr(b, name)
+        if isinstance(x, np.ndarray):
+            assert x.dtype == y.dtype and np.array_equal(x, y), name
+        else:
+            assert x == y and type(x) is type(y), name
+
+
+def _both(payload: bytes) -> None:
+    try:
+        slow = arrays_from_tick(decode(payload, Tick))
+    except DecodeError as exc:
+        with pytest.raises(DecodeError) as fast:
+            decode_tick(payload)
+        assert fast.value.field == exc.field
+        return
+    _same(decode_tick(payload), slow)
+
+
+def test_the_sims_tick_bytes_decode_to_the_model_and_back_to_the_observation():
+    assert any(f["loads"] or f["unloads"] for _, f in TICKS) and any(f["delivered_by"] for _, f in TICKS)
+    for obs, fields in TICKS:
+        payload = encode_tick_body(fields)
+        tick = decode(payload, Tick)
+        assert tick == tick_from_observation(obs, fields["sim_time"], world_fields_of(fields))
+        _same(decode_tick(payload), arrays_from_tick(tick))
+        back = observation_from_arrays(decode_tick(payload), 1000)
+        ref = observation_from_tick(tick, 1000)
+        for name in ref.__dataclass_fields__:
+            x, y = getattr(back, name), getattr(ref, name)
+            assert np.array_equal(x, y) if isinstance(x, np.ndarray) else x == y, name
+
+
+def world_fields_of(fields: dict) -> dict:
+    return {k: fields[k] for k in ("heading", "busy", "carrying", "carrying_requested", "partner", "request_queue",
+                                   "loads", "unloads")}
+
+
+def _variants(body: dict) -> list[dict]:
+    """Malformed (and a few oddly typed but valid) variants of a tick's field map."""
+    n = len(body["x"])
+    out = []
+
+    def change(**kw):
+        b = copy.deepcopy(body)
+        b.update(kw)
+        out.append(b)
+
+    def set_item(name, i, value):
+        b = copy.deepcopy(body)
+        b[name][i] = value
+        out.append(b)
+
+    for name in INT_ROWS:
+        for value in (1.5, 2.0, "3", None, True, -2, 70000, 2**63, 2**64 - 1, [1]):
+            set_item(name, 0, value)
+        change(**{name: body[name][:-1]})  # ragged
+        change(**{name: "x" * n})
+    for name in FLAG_ROWS:
+        for value in (0, 1, 2, 1.0, "true", None):
+            set_item(name, n - 1, value)
+    set_item("x", 1, body["grid_cols"])
+    set_item("y", 1, body["grid_rows"])
+    set_item("target_x", 2, -1)
+    set_item("loader", 0, n)
+    set_item("partner", 0, n)
+    for value in (math.nan, math.inf, 1, True, "0.5"):
+        set_item("reward", 0, value)
+    for name in ("mission_order", "free_pickers", "delivered_by", "request_queue"):
+        for value in ([n], [-1], [1.0], [True], ["1"], None, [[1]], 5):
+            change(**{name: value})
+    for name in ("loads", "unloads"):
+        for value in ([[0, n]], [[0, 1, 2]], [[0]], [(0, 1.0)], [[0, 1]], None, [5]):
+            change(**{name: value})
+    for name, values in (("t", (-1, True, 1.0, None)), ("sim_time", (0, -1.0, math.inf, "1")),
+                         ("grid_rows", (0, 65536, 3.0)), ("grid_cols", (0, True)), ("has_previous", (1, 0, None)),
+                         ("final", (1, "yes")), ("v", (2, 0, True))):
+        for value in values:
+            change(**{name: value})
+    b = copy.deepcopy(body)
+    del b["reward"]
+    out.append(b)
+    b = copy.deepcopy(body)
+    del b["final"]
+    out.append(b)
+    change(extra_field=1)
+    for name in INT_ROWS + FLAG_ROWS + ("reward",):  # an empty fleet
+        change(**{name: []})
+    return out
+
+
+def test_malformed_ticks_are_rejected_naming_the_same_field_as_the_model():
+    _, fields = next((o, f) for o, f in TICKS if (f["loads"] or f["unloads"]) and f["mission_order"])
+    body = {**fields, "v": 1}
+    variants = _variants(body)
+    assert len(variants) > 150
+    accepted = 0
+    for b in variants:
+        payload = msgpack.packb({**b, "k": "tick"}, use_bin_type=True)
+        _both(payload)
+        try:
+            decode(payload, Tick)
+            accepted += 1
+        except DecodeError:
+            pass
+    assert accepted > 5  # some variants are valid after the model's coercions (bool ints, 0/1 flags, int floats)
+    for payload in (b"", b"\x81", msgpack.packb([1, 2]), msgpack.packb({"k": "ack", "v": 1, "t": 1, "agent": 0}),
+                    msgpack.packb({**body, "k": "tick", "v": 0})):
+        _both(payload)
+
+
+@pytest.mark.parametrize(("cls", "fields"), [
+    (Ack, dict(t=3, agent=2, phase=int(Phase.TICK), requests_sent=[7], seq=9, links=[0, 5], eta=-0.25)),
+    (Ack, dict(t=3, agent=2, phase=int(Phase.TICK), requests_sent=[], seq=1, links=[], eta=None)),
+    (HelpRequest, dict(t=4, agv=1, picker=6, target_x=3, target_y=8, mission=1, seq=2)),
+    (Commit, dict(t=4, picker=6, agv=1, seq=3)),
+    (HelpReply, dict(t=4, picker=6, agv=1, accepted=False, seq=4)),
+])
+def test_encode_fields_decodes_to_the_model(cls, fields):
+    assert decode(encode_fields(cls, **fields), cls) == cls(**fields)
