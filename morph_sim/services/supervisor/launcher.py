@@ -279,7 +279,8 @@ class Supervisor:
         return await ZenohBus.open("supervisor", connect=self.endpoint)
 
     async def _watch(self, bus) -> int:
-        from morph_sim.schemas import MetricSample, Stop, Tick
+        from morph_sim.schemas import MetricSample, Stop
+        from morph_sim.schemas.hot import decode_tick
         from morph_sim.schemas.keys import RunKeys
 
         keys = RunKeys(self.config.run_id)
@@ -296,7 +297,7 @@ class Supervisor:
 
         def on_tick(sample) -> None:  # every tick (the metric stream is decimated): crash faults hit their tick
             try:
-                t = sample.decode(Tick).t
+                t = decode_tick(sample.payload).t  # validated, without building the model (0.6-0.9 ms a tick)
             except ValueError:
                 return
             if self.progress.t < t < self.config.steps:  # (a final Tick t = steps closes the run)
