@@ -33,6 +33,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for answers")
         p.add_argument("--id", dest="fault_id", help="fault id (set: name it; reset: heal only this one)")
         p.add_argument("--each", action="store_true", help="one line per answering process (default: alike merged)")
+        if op in ("set", "reset"):
+            p.add_argument("--at-tick", type=int, default=None,
+                           help="apply at the start of this (future) tick in every process, not on arrival: the run "
+                                "stays reproducible in virtual time (default: at once)")
         if op != "set":
             continue
         p.add_argument("--spec", help="the whole FaultSpec as JSON (other flags are then not allowed)")
@@ -62,8 +66,13 @@ def build_command(args: argparse.Namespace):
     validate_run_id(args.run)
     if args.timeout <= 0:
         raise ValueError(f"timeout: must be > 0, got {args.timeout}")
+    at_tick = getattr(args, "at_tick", None)
+    if at_tick is not None and at_tick < 0:
+        raise ValueError(f"at_tick: must be >= 0, got {at_tick}")
     if args.faults_op != "set":
-        return FaultCommand(op=args.faults_op, fault_id=args.fault_id if args.faults_op == "reset" else None)
+        if args.faults_op == "reset":
+            return FaultCommand(op="reset", fault_id=args.fault_id, at_tick=at_tick)
+        return FaultCommand(op=args.faults_op)
     flags = {f: getattr(args, f) for f in _FLAG_FIELDS if getattr(args, f) is not None}
     if args.spec is not None:
         if flags:
@@ -103,7 +112,7 @@ def build_command(args: argparse.Namespace):
     # one id for the fault in every process's layer, so `reset --id` and the event log agree
     spec.setdefault("id", time.strftime("op-%H%M%S", time.gmtime()))
     try:
-        return FaultCommand(op="set", spec=spec)
+        return FaultCommand(op="set", spec=spec, at_tick=at_tick)
     except ValidationError as exc:
         raise _explain(exc, "spec") from None
 

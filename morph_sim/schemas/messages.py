@@ -342,6 +342,9 @@ class FaultCommand(Message):
     spec: FaultSpec | None = None
     fault_id: str | None = None
     sender: str = "operator"
+    # Apply at the start of this tick rather than on arrival: every process then changes its faults at the same sim
+    # time, so a run with runtime commands is as reproducible as one with a schedule file (virtual time).
+    at_tick: int | None = Field(default=None, ge=0)
 
     @model_validator(mode="after")
     def _op(self) -> FaultCommand:
@@ -349,6 +352,9 @@ class FaultCommand(Message):
             raise PydanticCustomError("missing_spec", "{field} is required for op 'set'", {"field": "spec"})
         if self.op != "set" and self.spec is not None:
             raise PydanticCustomError("extra_spec", "{field} is only allowed for op 'set'", {"field": "spec"})
+        if self.op == "list" and self.at_tick is not None:
+            raise PydanticCustomError("extra_at_tick", "{field} is only allowed for set and reset",
+                                      {"field": "at_tick"})
         return self
 
 

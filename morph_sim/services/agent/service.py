@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from morph_sim.schemas import Ack, AgentState, Commit, Event, HelpReply, HelpRequest, Phase, Resolve, Stop, Tick
-from morph_sim.schemas.codec import encode_fields
+from morph_sim.schemas.codec import encode_fields, unpack_envelope
 from morph_sim.schemas.hot import decode_tick
 from morph_sim.schemas.keys import RunKeys
 from morph_sim.services.agent.policies import Fleet, MorphBrains
@@ -194,6 +194,8 @@ class AgentService:
                 return  # only the sim's own samples carry its boundary (not a stray publisher's, nor a fuzzer's)
             if self._virtual:
                 self.faults.advance(self._layer.sent_at(sample))
+            elif key == k.tick:
+                self._advance_wall(sample)
             if not missed or self._stop.is_set():
                 return
             try:
@@ -219,6 +221,16 @@ class AgentService:
             with self._lock:
                 self._arrived.setdefault(msg.t, set()).add(msg.agv)
                 self._try_decide()
+
+    def _advance_wall(self, sample: Sample) -> None:
+        """Wall time: a Tick still marks its tick's start, where scheduled and ``at_tick`` commands apply (sim
+        stamps are wall clock here, so the tick number is read off the message itself)."""
+        try:
+            t = unpack_envelope(sample.payload)[1].get("t")
+        except ValueError:
+            return
+        if type(t) is int and t >= 0:
+            self.faults.advance(t * self.config.dt)
 
     def _came_late(self, sample: Sample) -> bool:
         """Virtual time: a Tick/Resolve released at a later boundary than it was sent at (it was held): this agent

@@ -62,8 +62,9 @@ class FaultController:
         self.events = events
         self.on_crash = on_crash
         self.log: list[Event] = []  # every change this controller reported, in order
-        self._timeline = schedule.timeline(dt) if schedule is not None else []
+        self._timeline = [self._named(i, c) for i, c in enumerate(schedule.timeline(dt))] if schedule else []
         self._next = 0
+        self._reached = -math.inf  # the latest sim time whose scheduled commands were applied (advance)
         if self.layers and events:
             first = self.layers[0]  # heals happen in every layer at the same sim time: report one of them
             chained = first.on_change
@@ -82,9 +83,32 @@ class FaultController:
     # -- commands ------------------------------------------------------------------------------------------------------
     def handle(self, command: FaultCommand, at: float | None = None) -> FaultReply:
         """Apply one command to every layer of this process; never raises. ``at``: the sim time it takes effect
-        (a scheduled command's own time, so every process starts the fault at the same instant); default now."""
+        (a scheduled command's own time, so every process starts the fault at the same instant); default now.
+        A command with ``at_tick`` joins this process's timeline and is applied at that tick's start."""
         with self.lock:
+            if command.at_tick is not None and at is None:
+                return self._schedule(command)
             return self._handle(command, at)
+
+    def _schedule(self, command: FaultCommand) -> FaultReply:
+        """Put a runtime command with ``at_tick`` into the timeline, as if it had been in the schedule file. Only a
+        tick this process has not reached yet is accepted: one it has reached could no longer start at that tick's
+        boundary here while it would elsewhere."""
+        source = self.bus.identity
+        at = command.at_tick * self.dt
+        if at <= self._reached + 1e-9:
+            reached = math.floor(self._reached / self.dt + 1e-9)
+            return FaultReply(ok=False, error=f"at_tick: tick {command.at_tick} is not in this process's future (it "
+                              f"has reached tick {reached}); give a later tick", active=self._active(), source=source)
+        timed = command.model_copy(update={"at_tick": None})
+        if timed.op == "set" and timed.spec is not None and timed.spec.id is None:
+            # the same id in every process (hence the same seeded streams), whatever else each one has seen
+            timed = timed.model_copy(update={"spec": timed.spec.model_copy(update={"id": f"tick{command.at_tick}"})})
+        index = len(self._timeline)
+        while index > self._next and self._timeline[index - 1][0] > at + 1e-9:
+            index -= 1  # after every command due at the same time: arrival order, like a schedule file's order
+        self._timeline.insert(index, (at, timed))
+        return FaultReply(ok=True, active=self._active(), source=source)
 
     def _handle(self, command: FaultCommand, at: float | None) -> FaultReply:
         source = self.bus.identity
@@ -136,17 +160,23 @@ class FaultController:
         VirtualTime's ``on_advance``), each at its own time."""
         out = []
         with self.lock:
+            self._reached = max(self._reached, now)
             while self._next < len(self._timeline) and self._timeline[self._next][0] <= now + 1e-9:
                 out.append(self._scheduled(self._next))
                 self._next += 1
         return out
 
-    def _scheduled(self, index: int) -> FaultReply:
-        at, command = self._timeline[index]
+    @staticmethod
+    def _named(index: int, timed: tuple[float, FaultCommand]) -> tuple[float, FaultCommand]:
+        at, command = timed
         if command.op == "set" and command.spec is not None and command.spec.id is None:
             # an id from the schedule itself (not from this process's log or clock): the same fault, hence the same
             # seeded streams, in every process
             command = command.model_copy(update={"spec": command.spec.model_copy(update={"id": f"at{index}"})})
+        return at, command
+
+    def _scheduled(self, index: int) -> FaultReply:
+        at, command = self._timeline[index]
         reply = self._handle(command, at)
         if not reply.ok:
             log.warning("fault schedule at %.3f s: %s", at, reply.error)
