@@ -192,3 +192,32 @@ def test_up_joins_an_existing_router_with_endpoint(tmp_path):
         left = alive(seen | {proc.pid})
         kill_all(left)
     assert left == [], f"processes left behind: {left}"
+
+
+async def test_a_stalled_run_fails_clearly_instead_of_hanging(tmp_path):
+    """If ticks stop inside Zenoh (seen once: the sim's router blocked on a full socket, where no phase deadline can
+    fire), the supervisor fails after its stall timeout with the tick it stalled at, and nothing is left. Here the
+    sim is frozen with SIGSTOP."""
+    import os
+    import signal
+
+    from morph_sim.services.supervisor.launcher import RunStalled, Supervisor
+
+    config = RunConfig(run_id="stall", scale="tiny", steps=100000, output_dir=tmp_path, ready_timeout=60)
+    sup = Supervisor(config, stall_timeout=3.0)
+
+    async def freeze_the_sim() -> None:
+        while sup.progress.t < 20:
+            await asyncio.sleep(0.05)
+        os.kill(sup.children["sim"].pid, signal.SIGSTOP)
+
+    freezer = asyncio.create_task(freeze_the_sim())
+    try:
+        with pytest.raises(RunStalled, match=r"the run stalled: no tick after tick \d+ for 3 s"):
+            await asyncio.wait_for(sup.run(), UP_TIMEOUT)
+    finally:
+        freezer.cancel()
+        left = alive(sup.all_pids)
+        kill_all(left)
+    assert sup.all_pids and left == []
+    assert len(read_metrics(tmp_path / "stall")) >= 15  # the record up to the stall is kept (tick 20 was seen)

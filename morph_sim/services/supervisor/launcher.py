@@ -51,6 +51,15 @@ class StartError(RuntimeError):
     """A process of the run could not start (message names it and shows its log tail)."""
 
 
+class RunStalled(StartError):
+    """The run stopped advancing: no new tick for ``stall_timeout`` seconds although every phase has a deadline.
+
+    Seen once this project's life, with 64 agent processes publishing their state every tick on a loaded machine:
+    the sim's Zenoh router blocked on a full socket while forwarding (zenoh 1.10.2, lowlatency transport; cf.
+    eclipse-zenoh/zenoh#1876), inside Zenoh, where no phase deadline of ours can fire. A user gets a clear failure and
+    a record up to the stall instead of a silent hang."""
+
+
 @dataclass
 class Child:
     spec: ProcessSpec
@@ -133,7 +142,8 @@ class Supervisor:
     """Runs one distributed run of ``config`` to completion or interruption."""
 
     def __init__(self, config: RunConfig, *, endpoint: str | None = None,
-                 on_progress: Callable[[Progress, str], None] | None = None, ready_timeout: float | None = None):
+                 on_progress: Callable[[Progress, str], None] | None = None, ready_timeout: float | None = None,
+                 stall_timeout: float | None = None):
         from morph_sim.services.bus.zenoh_bus import endpoint as make_endpoint, free_port
 
         self.config = config
@@ -145,6 +155,9 @@ class Supervisor:
         self.progress = Progress()
         self.on_progress = on_progress
         self.ready_timeout = config.ready_timeout if ready_timeout is None else ready_timeout
+        # a tick may legitimately take a phase deadline per phase (or a paced period): give three times that
+        self.stall_timeout = (max(30.0, 3 * 2 * config.phase_timeout, 3 * config.period) if stall_timeout is None
+                              else stall_timeout)
         self.stop_requested: str | None = None
         self.events: list[tuple[float, str, str]] = []
         # Crash faults (issue 5): specs from the schedule file or `morph-sim faults set` land in the planner (the
@@ -312,6 +325,7 @@ class Supervisor:
         await controller.start()
         ready_deadline = time.monotonic() + self.ready_timeout
         last_shown = 0.0
+        last_tick, last_tick_at = self.progress.t, time.monotonic()
         while True:
             if self.stop_requested:
                 self._event("stop", self.stop_requested)
@@ -357,6 +371,13 @@ class Supervisor:
                 elif child.spec.role == "monitor" and code != 0:
                     raise StartError(f"monitor exited with status {code}:\n{child.log_tail()}")
                 # otherwise it finished for good (after the run's stop): nothing to do
+            if self.progress.t != last_tick:
+                last_tick, last_tick_at = self.progress.t, time.monotonic()
+            elif running and time.monotonic() - last_tick_at > self.stall_timeout:
+                self._event("stalled", f"no tick after tick {last_tick} for {self.stall_timeout:.0f} s")
+                raise RunStalled(f"the run stalled: no tick after tick {last_tick} for {self.stall_timeout:.0f} s "
+                                 f"(phase deadlines included); the record holds the ticks up to the stall; sim log:\n"
+                                 f"{sim.log_tail()}")
             if not running and time.monotonic() > ready_deadline:
                 raise StartError(f"the run did not start within {self.ready_timeout:.0f} s; sim log:\n"
                                  f"{sim.log_tail()}")
