@@ -126,9 +126,11 @@ class MonitorService:
         k = self.keys
         self._loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
-        # inline: the run's ~20 messages a tick are handled on the transport's receive thread, without a wake-up of
-        # the loop for each (the asyncio bridge costs more than the handling, zenoh.md §1); see _on_sample
-        await self.bus.subscribe(k.everything, self._on_sample, inline=True)
+        # Not inline: the monitor takes in the whole run's traffic, and it must never hold up the transport's receive
+        # thread. Handled inline, a slow moment (a W snapshot at tick 50 of a 64-agent run) let the sim's router block
+        # writing to us while our own publish from that thread blocked writing to the router: the run deadlocked
+        # (seen 3 times in 10 loaded 64-agent runs). On the loop, samples arrive in batches (one wake-up per burst).
+        await self.bus.subscribe(k.everything, self._on_sample)
         await self.bus.declare_queryable(k.latest_all, self._on_query)
         token = await self.bus.declare_token(k.alive("monitor"))
         await self._stop.wait()

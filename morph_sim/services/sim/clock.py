@@ -46,6 +46,10 @@ from morph_sim.services.sim.warehouse import Warehouse, WarehouseConfig
 log = logging.getLogger("morph_sim.sim")
 
 LEAVE_TIMEOUT = 2.0  # seconds the sim waits, after its stop, for the other participants to leave
+# ... and for the monitor, which may still be working through a backlog (64 agents publishing their state every tick
+# on a loaded machine: several seconds). The sim hosts the endpoint: closing it earlier loses what is still on the way
+# to the monitor, and the record would end before the run did (seen: 51 of 60 rows).
+MONITOR_LEAVE_TIMEOUT = 20.0
 PROBE_INTERVAL = 0.25  # seconds between readiness probes (zenoh.md §8.6)
 MONITOR = "monitor"
 
@@ -438,8 +442,13 @@ class SimClock:
         await bus.publish(k.stop, Stop(reason="finished" if r.stopped_early is None else r.stopped_early))
         # The sim hosts the endpoint: let the others leave first (their tokens go), so nobody loses the stop and
         # closing the router session does not have to tear down live connections.
-        deadline = time.monotonic() + LEAVE_TIMEOUT
-        while self.alive - {"sim"} and time.monotonic() < deadline:
+        started = time.monotonic()
+        while True:
+            waited = time.monotonic() - started
+            if waited >= MONITOR_LEAVE_TIMEOUT or not (self.alive - {"sim"}):
+                break
+            if waited >= LEAVE_TIMEOUT and MONITOR not in self.alive:
+                break  # agents that linger do not hold up the end; only the monitor's record does
             self._ready_changed.clear()
             try:
                 await asyncio.wait_for(self._ready_changed.wait(), 0.1)

@@ -373,7 +373,8 @@ class Supervisor:
                 # otherwise it finished for good (after the run's stop): nothing to do
             if self.progress.t != last_tick:
                 last_tick, last_tick_at = self.progress.t, time.monotonic()
-            elif running and time.monotonic() - last_tick_at > self.stall_timeout:
+            elif (running and self.progress.t < self.config.steps - 1
+                  and time.monotonic() - last_tick_at > self.stall_timeout):  # (after the last tick: the sim ends)
                 self._event("stalled", f"no tick after tick {last_tick} for {self.stall_timeout:.0f} s")
                 raise RunStalled(f"the run stalled: no tick after tick {last_tick} for {self.stall_timeout:.0f} s "
                                  f"(phase deadlines included); the record holds the ticks up to the stall; sim log:\n"
