@@ -22,7 +22,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-import threading
 import time
 from dataclasses import dataclass, field
 
@@ -102,9 +101,6 @@ class MonitorService:
         self._fresh: dict[str, tuple[int, float, float]] = {}  # stream -> newest (t, sim time, value) unpublished
         self._unbuilt = False  # rows queued since the metric samples were last built
         self._done = False
-        self._lock = threading.RLock()
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._loop_thread: int | None = None
         self._stop_timer: asyncio.TimerHandle | None = None
         self._link_shift = 1 if config.policy == "morph" else 0
         self.stats = MessageStats(self.n, config.dt)  # message streams (counts, drops, latency, dispatch)
@@ -124,8 +120,6 @@ class MonitorService:
     # -- lifecycle -----------------------------------------------------------------------------------------------------
     async def run(self) -> MonitorResult:
         k = self.keys
-        self._loop = asyncio.get_running_loop()
-        self._loop_thread = threading.get_ident()
         # Not inline: the monitor takes in the whole run's traffic, and it must never hold up the transport's receive
         # thread. Handled inline, a slow moment (a W snapshot at tick 50 of a 64-agent run) let the sim's router block
         # writing to us while our own publish from that thread blocked writing to the router: the run deadlocked
@@ -134,8 +128,7 @@ class MonitorService:
         await self.bus.declare_queryable(k.latest_all, self._on_query)
         token = await self.bus.declare_token(k.alive("monitor"))
         await self._stop.wait()
-        with self._lock:
-            self._finish()
+        self._finish()
         await self._publish_pending(force=True)
         await token.close()
         return self.result
@@ -149,27 +142,7 @@ class MonitorService:
 
     # -- dispatch --------------------------------------------------------------------------------------------------------
     def _on_sample(self, sample: Sample) -> None:
-        """Any thread. Events and stops act on the loop (publishes, timers, the stop event): those samples are
-        handled there, in arrival order after everything before them; all others right here. One lock keeps the
-        monitor's state consistent between the two threads (and the loop's _finish and queries)."""
-        key = sample.key
-        if self._off_loop() and ("/events/" in key or key.endswith("/ctl/stop")):
-            try:
-                self._loop.call_soon_threadsafe(self._handle, sample)
-            except RuntimeError:  # the loop is closed: the run is over
-                pass
-            return
-        self._handle(sample)
-
-    def _off_loop(self) -> bool:
-        """On another thread than the loop's (a sample fed directly, as by replay, counts as on the loop)."""
-        return self._loop is not None and threading.get_ident() != self._loop_thread
-
-    def _handle(self, sample: Sample) -> None:
-        with self._lock:
-            self._handle_locked(sample)
-
-    def _handle_locked(self, sample: Sample) -> None:
+        """On the loop (the subscription is not inline; replay feeds samples here too)."""
         if self._done:
             return
         try:
@@ -408,17 +381,7 @@ class MonitorService:
             self._build_samples(values)
         if due:
             self._last_publish = now
-            self._on_loop(self.bus._spawn, self._publish_pending(), "metrics")
-
-    def _on_loop(self, fn, *args) -> None:
-        """Run ``fn(*args)`` on the loop: now if this is the loop's thread, else as soon as the loop gets to it."""
-        if not self._off_loop():
-            fn(*args)
-            return
-        try:
-            self._loop.call_soon_threadsafe(fn, *args)
-        except RuntimeError:  # the loop is closed: the run is over
-            pass
+            self.bus._spawn(self._publish_pending(), "metrics")
 
     def _build_samples(self, values: dict) -> None:
         """The pending MetricSamples of the rows noted since the last build; ``values`` is the newest row."""
@@ -438,8 +401,7 @@ class MonitorService:
         self._pending_publish = list(pending.values())
 
     async def _publish_pending(self, force: bool = False) -> None:
-        with self._lock:  # the receive thread adds to the pending list
-            samples, self._pending_publish = self._pending_publish, []
+        samples, self._pending_publish = self._pending_publish, []
         for s in samples:
             await self.bus.publish(self.keys.metric(s.name), s, droppable=True)
 
@@ -468,8 +430,7 @@ class MonitorService:
 
     # -- late joiners ----------------------------------------------------------------------------------------------------
     def _on_query(self, query: Query) -> None:
-        with self._lock:  # a consistent view: the receive thread updates both maps
-            metrics, states = list(self.latest_metric.items()), sorted(self.latest_state.items())
+        metrics, states = list(self.latest_metric.items()), sorted(self.latest_state.items())
         for name, sample in metrics:
             key = self.keys.latest("metrics", name)
             if intersects(key, query.key_expr):
