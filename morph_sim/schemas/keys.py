@@ -318,6 +318,13 @@ class RunKeys:
             return parse_agent_id(rel[1])
         return None
 
+    def check_author(self, key: str, author: int | str, what: str) -> None:
+        """ValueError unless ``key`` lies under ``author``'s own prefix: a message that names its author (an ack's
+        agent, a commit's picker) must come from that author (issue 7's access control, enforced in the services)."""
+        sender = self.sender_of(key)
+        if sender != author:
+            raise ValueError(f"{what} {author} on the key of {sender}")
+
     def recipient_of(self, key: str) -> int | str | None:
         """The addressee of a point-to-point key (request/reply), ``sim`` for ack/commit, else None (broadcast)."""
         rel = self.relative(key)

@@ -151,9 +151,7 @@ class FaultRuntime:
     def _on_skip(self, sample: Sample) -> None:
         try:
             msg = sample.decode(Ack)
-            sender = self.keys.sender_of(sample.key)
-            if msg.agent != sender:
-                raise ValueError(f"skip of agent {msg.agent} on the key of {sender}")
+            self.keys.check_author(sample.key, msg.agent, "skip of agent")
         except ValueError as exc:
             log.warning("skip: rejected %s: %s", sample.key, exc)
             return

@@ -362,12 +362,9 @@ class SimClock:
         """Decode an answer and check that its author sent it under its own key; a bad one is counted and None."""
         try:
             msg = sample.decode(model)
-            sender = self.keys.sender_of(sample.key)
+            self.keys.check_author(sample.key, getattr(msg, author), what)
         except ValueError as exc:
             self._reject(sample.key, exc)
-            return None
-        if sender != getattr(msg, author):
-            self._reject(sample.key, f"{what} {getattr(msg, author)} on the key of {sender}")
             return None
         return msg
 
@@ -457,6 +454,10 @@ class SimClock:
         await self.registry.close()
         await token.close()
         return r
+
+    def _wire_tick(self, obs: TickObservation) -> bytes:
+        """The encoded Tick of ``obs``: observation and world, stamped with its sim time."""
+        return encode_tick_body(tick_fields(obs, obs.t * self.config.dt, world_fields(self.ctl, obs)))
 
     async def _event(self, kind: str, **details) -> None:
         t = self.ctl.t
@@ -556,7 +557,7 @@ class SimClock:
             self._commits = {}
             self._expected = {}
             ph = _Phase(t, Phase.TICK, self.present())
-            tick = encode_tick_body(tick_fields(obs, t * cfg.dt, world_fields(self.ctl, obs)))
+            tick = self._wire_tick(obs)
             t1 = time.monotonic()
             spent["controller"] += t1 - started
             self._phase = ph  # before the tick goes out: inline acks may arrive before _collect starts
@@ -598,7 +599,7 @@ class SimClock:
             self.faults.advance(obs.t * cfg.dt)  # its boundary, as every tick: stamps and releases like the others
         ph = _Phase(obs.t, Phase.TICK, self.present())
         self._phase = ph
-        await self.bus.publish(k.tick, encode_tick_body(tick_fields(obs, obs.t * cfg.dt, world_fields(self.ctl, obs))))
+        await self.bus.publish(k.tick, self._wire_tick(obs))
         wait = 0.5 if self._stop is not None else cfg.phase_timeout if cfg.mode == "lockstep" else cfg.period
         await self._collect(ph, time.monotonic() + wait)
         self.result.wall_seconds = time.monotonic() - t0

@@ -54,10 +54,10 @@ class StartError(RuntimeError):
 class RunStalled(StartError):
     """The run stopped advancing: no new tick for ``stall_timeout`` seconds although every phase has a deadline.
 
-    Seen once this project's life, with 64 agent processes publishing their state every tick on a loaded machine:
-    the sim's Zenoh router blocked on a full socket while forwarding (zenoh 1.10.2, lowlatency transport; cf.
-    eclipse-zenoh/zenoh#1876), inside Zenoh, where no phase deadline of ours can fire. A user gets a clear failure and
-    a record up to the stall instead of a silent hang."""
+    A stall inside Zenoh — a router blocked on a full socket while forwarding (zenoh 1.10.2, lowlatency transport;
+    cf. eclipse-zenoh/zenoh#1876; we met it when the monitor handled samples on its receive thread, docs/services.md)
+    — is out of reach of every phase deadline of ours. A user gets a clear failure and a record up to the stall
+    instead of a silent hang."""
 
 
 @dataclass
