@@ -58,5 +58,5 @@ def wait_for_port(port: int, proc: subprocess.Popen, deadline: float, poll: floa
             socket.create_connection(("127.0.0.1", port), timeout=1).close()
             break
         except OSError:
-            assert proc.poll() is None and time.monotonic() < deadline
+            assert proc.poll() is None and time.monotonic() < deadline, f"nothing opened 127.0.0.1:{port}"
             time.sleep(poll)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -15,6 +14,8 @@ from pathlib import Path
 
 from morph_sim.services.bus.zenoh_bus import free_port
 from morph_sim.services.monitor.streams import README_EXAMPLE, STREAM_NAMES
+
+from _procs import wait_for_port
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
@@ -43,13 +44,7 @@ def test_the_example_prints_metrics_of_a_live_up_run(tmp_path):
         stdout=up_log.open("wb"), stderr=subprocess.STDOUT, start_new_session=True)
     try:
         deadline = time.monotonic() + 60
-        while True:  # the README runs the example after `up` has started: wait for the sim's endpoint
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=1).close()
-                break
-            except OSError:
-                assert up.poll() is None and time.monotonic() < deadline, "up did not open its endpoint"
-                time.sleep(0.2)
+        wait_for_port(port, up, deadline, 0.2)  # the README runs the example after `up` has started
         metrics = tmp_path / "readme" / "metrics.csv"
         while not metrics.exists() or metrics.read_text().count("\n") < 5:  # the run is under way
             assert up.poll() is None and time.monotonic() < deadline + 60, "up did not start its run"

@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -20,6 +19,8 @@ from morph_sim.services.monitor.recorder import Recorder, read_metrics
 from morph_sim.services.monitor.report import load, numbers, write_report
 from morph_sim.services.runconfig import RunConfig
 from morph_sim.services.supervisor.local import run_local
+
+from _procs import wait_for_port
 
 
 def test_the_report_renders_every_figure_and_the_gif(tmp_path):
@@ -58,17 +59,6 @@ def test_a_restarted_recorder_trims_a_cut_line_and_resumes(tmp_path):
     assert [r["t"] for r in read_metrics(config.record_dir)] == ["0", "1"]
 
 
-def _wait_port(port: int, proc: subprocess.Popen, timeout: float = 60) -> None:
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            socket.create_connection(("127.0.0.1", port), timeout=1).close()
-            return
-        except OSError:
-            assert proc.poll() is None and time.monotonic() < deadline, "up did not open its endpoint"
-            time.sleep(0.1)
-
-
 def test_a_monitor_killed_and_restarted_mid_run_leaves_a_record_equal_apart_from_the_gap(tmp_path):
     flags = ["--scale", "tiny", "--steps", "1500", "--seed", "5", "--policy", "morph", "--run-id", "killed"]
     port = free_port()
@@ -76,7 +66,7 @@ def test_a_monitor_killed_and_restarted_mid_run_leaves_a_record_equal_apart_from
                            f"tcp/127.0.0.1:{port}", "--output-dir", str(tmp_path / "live")],
                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
     try:
-        _wait_port(port, up)
+        wait_for_port(port, up, time.monotonic() + 60, 0.1)
         metrics = tmp_path / "live" / "killed" / "metrics.csv"
         deadline = time.monotonic() + 90
         while not metrics.exists() or metrics.read_text().count("\n") < 300:
