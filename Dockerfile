@@ -15,6 +15,8 @@ FROM ${PYTHON_IMAGE} AS build
 ENV PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_CACHE_DIR=1
 WORKDIR /src
 COPY pyproject.toml README.md ./
+COPY schemas ./schemas
+COPY services ./services
 COPY morph_sim ./morph_sim
 RUN python -m pip wheel --no-deps --wheel-dir /wheels .
 

@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from morph_sim.services.supervisor.process import ZENOH_CONFIG_ENV, base_zenoh_config
+from services.supervisor.process import ZENOH_CONFIG_ENV, base_zenoh_config
 
 AGVS, PICKERS = 5, 3
 TIMEOUT = 120.0
@@ -25,7 +25,7 @@ def _kill_all(procs: list[subprocess.Popen]) -> None:
 
 
 def test_eight_agents_without_ids_claim_0_to_7_with_the_fleet_roles_and_the_run_completes(tmp_path):
-    from morph_sim.services.bus.zenoh_bus import free_port
+    from services.bus.zenoh_bus import free_port
 
     where = f"tcp/127.0.0.1:{free_port()}"
     env = {k: v for k, v in os.environ.items() if not k.startswith("MORPH_") and k != ZENOH_CONFIG_ENV}

@@ -7,10 +7,10 @@ import asyncio
 
 import pytest
 
-from morph_sim.schemas import Duplicate, FaultSpec, Latency, Loss, Partition, RunKeys, Scope
-from morph_sim.schemas.faults import Crash, Reorder
-from morph_sim.services.bus import LocalNetwork
-from morph_sim.services.bus.faults import FaultLayer, latency_quantile, pareto_params
+from schemas import Duplicate, FaultSpec, Latency, Loss, Partition, RunKeys, Scope
+from schemas.faults import Crash, Reorder
+from services.bus import LocalNetwork
+from services.bus.faults import FaultLayer, latency_quantile, pareto_params
 
 K = RunKeys("f1")
 
@@ -141,7 +141,7 @@ def test_duration_auto_heals_and_reset_always_works() -> None:
 
 
 def test_fault_commands() -> None:
-    from morph_sim.schemas import FaultCommand
+    from schemas import FaultCommand
 
     layer = FaultLayer("f1")
     reply = layer.apply(FaultCommand(op="set", spec=FaultSpec(id="slow", latency=Latency(delay=0.1))))

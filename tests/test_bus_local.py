@@ -11,8 +11,8 @@ from collections.abc import Callable
 
 import pytest
 
-from morph_sim.schemas import Ack, RegistrationReply, RegistrationRequest, RunKeys, Stop, decode, intersects
-from morph_sim.services.bus import Bus, LivelinessEvent, LocalNetwork, Sample, wait_for_alive
+from schemas import Ack, RegistrationReply, RegistrationRequest, RunKeys, Stop, decode, intersects
+from services.bus import Bus, LivelinessEvent, LocalNetwork, Sample, wait_for_alive
 
 K = RunKeys("t1")
 
@@ -40,13 +40,13 @@ class ZenohEnv:
     name = "zenoh"
 
     def __init__(self) -> None:
-        from morph_sim.services.bus.zenoh_bus import endpoint, free_port
+        from services.bus.zenoh_bus import endpoint, free_port
 
         self.endpoint = endpoint(free_port())
         self.buses: list[Bus] = []
 
     async def open(self, identity: str) -> Bus:
-        from morph_sim.services.bus.zenoh_bus import ZenohBus
+        from services.bus.zenoh_bus import ZenohBus
 
         if not self.buses:  # the first session hosts the endpoint, the others connect to it
             bus = await ZenohBus.open(identity, listen=self.endpoint)
@@ -389,8 +389,8 @@ async def test_inline_handlers_are_serialized_and_ordered(env) -> None:
 
 
 async def test_inline_subscription_with_delaying_fault_layer(env) -> None:
-    from morph_sim.schemas import FaultSpec, Latency
-    from morph_sim.services.bus.faults import FaultLayer
+    from schemas import FaultSpec, Latency
+    from services.bus.faults import FaultLayer
 
     a, b = await env.open("a"), await env.open("b")
     layer = FaultLayer("t1", loop=asyncio.get_running_loop())

@@ -17,9 +17,9 @@ import time
 
 import pytest
 
-from morph_sim.schemas import Ack, RunKeys
-from morph_sim.services.bus import LivelinessEvent, wait_for_alive
-from morph_sim.services.bus.zenoh_bus import (
+from schemas import Ack, RunKeys
+from services.bus import LivelinessEvent, wait_for_alive
+from services.bus.zenoh_bus import (
     RUNTIME_SINGLE_THREAD, ZenohBus, configure_runtime_env, endpoint, free_port, open_endpoint_bus,
 )
 
@@ -50,9 +50,9 @@ def reap(proc: subprocess.Popen, timeout: float) -> tuple[int, str, str]:
 
 PUBLISHER = """
     import asyncio, sys
-    from morph_sim.schemas import Ack, RunKeys
-    from morph_sim.services.bus import wait_for_alive
-    from morph_sim.services.bus.zenoh_bus import ZenohBus
+    from schemas import Ack, RunKeys
+    from services.bus import wait_for_alive
+    from services.bus.zenoh_bus import ZenohBus
 
     async def main():
         k = RunKeys("zt")
@@ -101,8 +101,8 @@ async def test_second_os_process_publishes() -> None:
 
 HOLDER = """
     import asyncio, sys
-    from morph_sim.schemas import RunKeys
-    from morph_sim.services.bus.zenoh_bus import ZenohBus
+    from schemas import RunKeys
+    from services.bus.zenoh_bus import ZenohBus
 
     async def main():
         bus = await ZenohBus.open("5", connect=sys.argv[1], connect_timeout=5)
@@ -137,8 +137,8 @@ async def test_killed_process_token_disappears() -> None:
 
 EXITER = """
     import asyncio, sys, time
-    from morph_sim.schemas import RunKeys
-    from morph_sim.services.bus.zenoh_bus import ZenohBus, endpoint, free_port
+    from schemas import RunKeys
+    from services.bus.zenoh_bus import ZenohBus, endpoint, free_port
 
     async def main():
         bus = await ZenohBus.open("x", listen=endpoint(free_port()))
@@ -204,7 +204,7 @@ def test_runtime_environment_setting() -> None:
 
 
 def test_barrier_bench_smoke() -> None:
-    from morph_sim.services.bus.barrier_bench import run_barrier
+    from services.bus.barrier_bench import run_barrier
 
     result = run_barrier(n_agents=2, ticks=100, warmup=10, mode="raw", timeout=30)
     assert result.ticks == 100 and result.ticks_per_s > 0 and result.n_agents == 2

@@ -18,9 +18,9 @@ import pytest
 
 from _yaml_subset import YamlSubsetError, defaults_of, interpolate, loads
 from morph_sim.cli import build_parser
-from morph_sim.services import envconfig
-from morph_sim.services.runconfig import RunConfig, config_from_args
-from morph_sim.services.supervisor.graph import CHILD_ENV, process_graph
+from services import envconfig
+from services.runconfig import RunConfig, config_from_args
+from services.supervisor.graph import CHILD_ENV, process_graph
 
 ROOT = Path(__file__).resolve().parent.parent
 COMPOSE = loads((ROOT / "docker-compose.yml").read_text())
@@ -153,7 +153,7 @@ def test_the_compose_graph_is_the_supervisors(host_env, role):
 
 
 def test_endpoints_are_explicit_and_scouting_is_off():
-    from morph_sim.services.bus.zenoh_bus import zenoh_config
+    from services.bus.zenoh_bus import zenoh_config
 
     for name, service in SERVICES.items():
         assert "network_mode" not in service, f"{name}: host networking is only needed for multicast scouting"
@@ -205,7 +205,7 @@ def test_environment_variables_are_the_cli_flags_with_the_same_defaults():
 def test_per_command_options_follow_their_variables():
     import argparse
 
-    from morph_sim.services.runconfig import add_config_arguments
+    from services.runconfig import add_config_arguments
 
     parser = argparse.ArgumentParser()
     parser.add_argument("--max-rate", type=float, default=10.0)
@@ -258,8 +258,8 @@ def _wait_port(port: int, timeout: float) -> None:
 
 async def _tokens(where: str, run: str, expected: set, timeout: float, procs: list[subprocess.Popen]) -> set:
     """The ids whose liveliness tokens are up, once ``expected`` are (or the timeout passes / a process exits)."""
-    from morph_sim.schemas.keys import RunKeys
-    from morph_sim.services.bus.zenoh_bus import ZenohBus
+    from schemas.keys import RunKeys
+    from services.bus.zenoh_bus import ZenohBus
 
     keys = RunKeys(run)
     bus = await ZenohBus.open("compose-test", connect=where, mode="client", connect_timeout=5.0)
@@ -291,7 +291,7 @@ def _stop(proc: subprocess.Popen, grace: float) -> float:
 
 def test_the_services_pass_the_healthcheck_and_stop_within_the_grace_period(tmp_path):
     """Live: a sim, an agent and a monitor process (the compose commands, on 127.0.0.1) under SIGTERM."""
-    from morph_sim.services.bus.zenoh_bus import free_port
+    from services.bus.zenoh_bus import free_port
 
     port = free_port()
     grace = min(_seconds(SERVICES[n]["stop_grace_period"]) for n in SERVICES)
@@ -328,8 +328,8 @@ def test_the_services_pass_the_healthcheck_and_stop_within_the_grace_period(tmp_
 
 
 def test_stop_grace_period_covers_the_services_own_shutdown_bound():
-    from morph_sim.services.bus.zenoh_bus import CLOSE_TIMEOUT
-    from morph_sim.services.supervisor.launcher import SHUTDOWN_BOUND
+    from services.bus.zenoh_bus import CLOSE_TIMEOUT
+    from services.supervisor.launcher import SHUTDOWN_BOUND
 
     for name, service in SERVICES.items():
         assert _seconds(service["stop_grace_period"]) >= max(SHUTDOWN_BOUND, CLOSE_TIMEOUT) + 2, name
@@ -358,7 +358,7 @@ def test_the_deploy_guide_lists_every_variable_and_sample():
 def test_a_compose_shaped_run_completes_with_agents_that_claim_their_ids(tmp_path):
     """Live, on 127.0.0.1: the compose commands (sim listening, monitor, 8 agents WITHOUT --id, each with its own
     instance name as Compose's hostnames would give) run a short lock-step run to the end."""
-    from morph_sim.services.bus.zenoh_bus import free_port
+    from services.bus.zenoh_bus import free_port
 
     port = free_port()
     where = f"tcp/127.0.0.1:{port}"

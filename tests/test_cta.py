@@ -7,9 +7,9 @@ with the rotation-aware A*): Full-Graph per-seed deliveries for seeds 42, 7, 123
 import numpy as np
 import pytest
 
-from morph_sim.services.agent.observation import NEEDS_PICKER, NO_CELL, MissionType
-from morph_sim.services.sim.cta import CTAController, resolve_requests
-from morph_sim.services.sim.warehouse import Warehouse, WarehouseConfig
+from services.agent.observation import NEEDS_PICKER, NO_CELL, MissionType
+from services.sim.cta import CTAController, resolve_requests
+from services.sim.warehouse import Warehouse, WarehouseConfig
 
 
 def _controller(scale="tiny", seed=42):

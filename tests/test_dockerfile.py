@@ -11,6 +11,7 @@ import shutil
 import subprocess
 import sys
 import sysconfig
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -194,10 +195,11 @@ def test_the_build_context_holds_what_the_dockerfile_copies_and_nothing_private(
             parts = rest.split()
             assert not parts[0].startswith("--from")
             sources += parts[:-1]
-    assert sources == ["pyproject.toml", "README.md", "morph_sim"]
+    assert sources == ["pyproject.toml", "README.md", "schemas", "services", "morph_sim"]
     for src in sources:
         assert not excluded(src), f".dockerignore excludes {src}, which the Dockerfile copies"
-    assert not excluded("morph_sim/presets/layouts.toml") and not excluded("morph_sim/schemas/json/tick.json")
+    for shipped in ("morph_sim/presets/layouts.toml", "schemas/json/tick.json", "services/sim/__init__.py"):
+        assert not excluded(shipped), f".dockerignore excludes {shipped}, which the image needs"
     for private in (".venv/bin/python", ".git/config", "runs/x/manifest.json", "tests/test_keys.py",
                     "deploy/zenoh/credentials.txt", "morph_sim/__pycache__/cli.cpython-311.pyc",
                     "morph_sim.egg-info/PKG-INFO", "docs/deploy.md"):
@@ -210,7 +212,16 @@ def test_the_build_stage_builds_a_wheel():
 
 
 # -- the steps, replayed -------------------------------------------------------------------------------------------
-@pytest.mark.slow
+def tree_packages() -> set[str]:
+    """Every importable package of the source tree: a folder with an ``__init__.py`` under a top-level package."""
+    found = set()
+    for top in ("schemas", "services", "morph_sim"):
+        for init in (ROOT / top).rglob("__init__.py"):
+            if "__pycache__" not in init.parts:
+                found.add(".".join(init.parent.relative_to(ROOT).parts))
+    return found
+
+
 def test_the_wheel_installs_into_a_fresh_venv_and_runs_up(tmp_path):
     """Build stage: the context and `pip wheel` as in the Dockerfile. Runtime stage: a fresh venv installs that wheel
     (and nothing of the source tree); its dependencies come from the project's venv on a path appended after the
@@ -229,6 +240,12 @@ def test_the_wheel_installs_into_a_fresh_venv_and_runs_up(tmp_path):
                            cwd=context, capture_output=True, text=True, timeout=300)
     assert built.returncode == 0, built.stdout[-3000:] + built.stderr[-3000:]
     (wheel,) = wheels.glob("morph_sim-*.whl")
+    with zipfile.ZipFile(wheel) as archive:
+        names = set(archive.namelist())
+    in_wheel = {n.rsplit("/", 1)[0].replace("/", ".") for n in names if n.endswith("/__init__.py")}
+    assert tree_packages() - in_wheel == set(), f"packages missing from the wheel: {tree_packages() - in_wheel}"
+    for data in ("schemas/json/tick.json", "morph_sim/presets/layouts.toml", "morph_sim/presets/morph_paper.toml"):
+        assert data in names, f"{data} is missing from the wheel"
 
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=120)
@@ -244,10 +261,10 @@ def test_the_wheel_installs_into_a_fresh_venv_and_runs_up(tmp_path):
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "MORPH_", "VIRTUAL_ENV"))}
     run_dir = tmp_path / "work"
     run_dir.mkdir()
-    where = subprocess.run([str(py), "-c", "import morph_sim, zenoh; print(morph_sim.__file__)"], cwd=run_dir,
+    where = subprocess.run([str(py), "-c", "import morph_sim, schemas, services.sim, zenoh; print(services.sim.__file__)"], cwd=run_dir,
                            env=env, capture_output=True, text=True, timeout=120)
     assert where.returncode == 0, where.stderr
-    assert where.stdout.strip().startswith(str(venv)), f"morph_sim imported from {where.stdout.strip()}"
+    assert where.stdout.strip().startswith(str(venv)), f"services imported from {where.stdout.strip()}"
     check = subprocess.run([str(py), "-m", "pip", "check"], cwd=run_dir, env=env, capture_output=True, text=True,
                            timeout=120)
     assert check.returncode == 0, f"the wheel's requirements are not met: {check.stdout}"  # e.g. eclipse-zenoh pin

@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from morph_sim.services.monitor.recorder import read_metrics, read_snapshots
-from morph_sim.services.runconfig import RunConfig
-from morph_sim.services.supervisor.local import run_local
+from services.monitor.recorder import read_metrics, read_snapshots
+from services.runconfig import RunConfig
+from services.supervisor.local import run_local
 
 from _procs import kill_tree
 

@@ -10,16 +10,16 @@ import asyncio
 import pytest
 
 from morph_sim.commands import faults as faults_cli
-from morph_sim.schemas import FaultSpec, Loss, RunKeys, Scope
-from morph_sim.schemas.base import DecodeError
-from morph_sim.schemas.codec import decode, encode_fields
-from morph_sim.schemas.messages import FaultCommand
-from morph_sim.services.bus import LocalNetwork
-from morph_sim.services.faults.controller import FaultController
-from morph_sim.services.faults.runtime import FaultRuntime
-from morph_sim.services.faults.schedule import parse_schedule
-from morph_sim.services.runconfig import RunConfig
-from morph_sim.services.supervisor.local import run_local
+from schemas import FaultSpec, Loss, RunKeys, Scope
+from schemas.base import DecodeError
+from schemas.codec import decode, encode_fields
+from schemas.messages import FaultCommand
+from services.bus import LocalNetwork
+from services.faults.controller import FaultController
+from services.faults.runtime import FaultRuntime
+from services.faults.schedule import parse_schedule
+from services.runconfig import RunConfig
+from services.supervisor.local import run_local
 
 AT = 40
 SPEC = FaultSpec(id="late-loss", loss=Loss(model="gilbert_elliott", percent=35, burst_length=3),
@@ -99,8 +99,8 @@ def test_faults_set_at_tick_on_a_live_up_run_equals_the_scheduled_localbus_run(t
     import sys
     import time
 
-    from morph_sim.services.bus.zenoh_bus import free_port
-    from morph_sim.services.monitor.recorder import read_metrics
+    from services.bus.zenoh_bus import free_port
+    from services.monitor.recorder import read_metrics
 
     steps, at = 4000, 3000  # the CLI's answers must all come before tick `at`, with margin on a loaded machine
     port = free_port()

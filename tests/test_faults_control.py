@@ -11,13 +11,13 @@ import textwrap
 import pytest
 
 from morph_sim.commands import faults as faults_cmd
-from morph_sim.schemas import Event, FaultCommand, FaultReply, FaultSpec, Latency, Loss, Partition, RunKeys
-from morph_sim.schemas.faults import Crash
-from morph_sim.services.bus import LocalNetwork
-from morph_sim.services.bus.faults import FaultLayer, install
-from morph_sim.services.bus.vtime import VirtualTime
-from morph_sim.services.faults.controller import FaultController
-from morph_sim.services.faults.schedule import load_schedule, parse_schedule
+from schemas import Event, FaultCommand, FaultReply, FaultSpec, Latency, Loss, Partition, RunKeys
+from schemas.faults import Crash
+from services.bus import LocalNetwork
+from services.bus.faults import FaultLayer, install
+from services.bus.vtime import VirtualTime
+from services.faults.controller import FaultController
+from services.faults.schedule import load_schedule, parse_schedule
 
 RUN = "fc"
 K = RunKeys(RUN)
@@ -177,7 +177,7 @@ def test_cli_builds_commands_and_rejects_bad_specs_naming_the_field() -> None:
 
 
 async def test_cli_over_zenoh_sets_lists_and_resets(capsys) -> None:
-    from morph_sim.services.bus.zenoh_bus import ZenohBus, endpoint, free_port
+    from services.bus.zenoh_bus import ZenohBus, endpoint, free_port
 
     ep = endpoint(free_port())
     vt = VirtualTime(dt=1.0)

@@ -10,11 +10,11 @@ import subprocess
 import sys
 
 
-from morph_sim.schemas import FaultCommand, FaultSpec
-from morph_sim.schemas.faults import Crash
-from morph_sim.services.bus import LocalNetwork
-from morph_sim.services.faults.controller import FaultController
-from morph_sim.services.faults.crash import CrashPlanner, ProcessFaulter
+from schemas import FaultCommand, FaultSpec
+from schemas.faults import Crash
+from services.bus import LocalNetwork
+from services.faults.controller import FaultController
+from services.faults.crash import CrashPlanner, ProcessFaulter
 
 
 def test_planner_at_tick_every_k_and_seeded_random_agent() -> None:

@@ -17,14 +17,14 @@ import sys
 import time
 from pathlib import Path
 
-from morph_sim.schemas import FaultSpec, Latency, Loss, RunKeys, Scope
-from morph_sim.services.bus.faults import FaultLayer
-from morph_sim.services.bus.vtime import VirtualTime
-from morph_sim.services.faults.runtime import FaultRuntime
-from morph_sim.services.monitor.recorder import read_metrics
-from morph_sim.services.runconfig import RunConfig
-from morph_sim.services.supervisor.graph import process_graph
-from morph_sim.services.supervisor.local import run_local
+from schemas import FaultSpec, Latency, Loss, RunKeys, Scope
+from services.bus.faults import FaultLayer
+from services.bus.vtime import VirtualTime
+from services.faults.runtime import FaultRuntime
+from services.monitor.recorder import read_metrics
+from services.runconfig import RunConfig
+from services.supervisor.graph import process_graph
+from services.supervisor.local import run_local
 
 from _procs import kill_tree
 
@@ -173,9 +173,9 @@ def test_a_fault_is_judged_at_the_send_time_of_each_message() -> None:
 async def test_skips_reach_the_phase_owner_and_events_wait_for_the_run() -> None:
     """The sim's runtime turns an agent's skip into a lost answer (on_fate with []), and keeps the events of faults
     scheduled at time 0 until the run starts (its first boundary), so the record does not miss them."""
-    from morph_sim.schemas import Event, Phase
-    from morph_sim.services.bus import LocalNetwork
-    from morph_sim.services.faults.schedule import parse_schedule
+    from schemas import Event, Phase
+    from services.bus import LocalNetwork
+    from services.faults.schedule import parse_schedule
 
     net = LocalNetwork()
     sim_bus, agent_bus, monitor = net.session("sim"), net.session("agent-4"), net.session("monitor")

@@ -8,7 +8,7 @@ import math
 
 import pytest
 
-from morph_sim.services.lab.faults_experiment import fault_spec, run_experiment, run_fault_episode
+from morph_sim.lab.faults_experiment import fault_spec, run_experiment, run_fault_episode
 
 
 def test_no_fault_point_loses_nothing_and_is_deterministic() -> None:
@@ -53,7 +53,7 @@ def test_reduced_experiment_writes_json_and_plot(tmp_path) -> None:
     ("MORPH (reference)", "morph", "reference"), ("MORPH (paper)", "morph", "paper"), ("TSG", "tsg", "reference")])
 def test_zero_fault_point_is_the_lab_episode(condition: str, lab_condition: str, preset: str) -> None:
     """Without faults the experiment's protocol is the lab's DESIGN protocol, tick for tick."""
-    from morph_sim.services.lab.runner import EpisodeSpec, run_episode
+    from morph_sim.lab.runner import EpisodeSpec, run_episode
 
     ours = run_fault_episode(condition, "bernoulli", 0, seed=42, steps=200)
     lab = run_episode(EpisodeSpec(scale="tiny", condition=lab_condition, preset=preset, seed=42, steps=200,

@@ -8,10 +8,10 @@ from __future__ import annotations
 import asyncio
 import time
 
-from morph_sim.schemas import FaultCommand, FaultSpec, Latency, Loss, RunKeys, Scope
-from morph_sim.services.bus import LocalNetwork
-from morph_sim.services.bus.vtime import boundaries
-from morph_sim.services.faults.runtime import FaultRuntime
+from schemas import FaultCommand, FaultSpec, Latency, Loss, RunKeys, Scope
+from services.bus import LocalNetwork
+from services.bus.vtime import boundaries
+from services.faults.runtime import FaultRuntime
 
 RUN = "ls"
 K = RunKeys(RUN)
@@ -105,7 +105,7 @@ async def test_lockstep_under_faults_is_live_and_reproducible_on_localbus() -> N
 
 
 async def test_lockstep_same_record_on_zenoh_as_on_localbus() -> None:
-    from morph_sim.services.bus.zenoh_bus import ZenohBus, endpoint, free_port
+    from services.bus.zenoh_bus import ZenohBus, endpoint, free_port
 
     net = LocalNetwork()
 

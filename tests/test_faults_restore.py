@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from morph_sim.services.agent.service import AgentService
-from morph_sim.services.bus import LocalNetwork
-from morph_sim.services.faults.restore import restore_brains
-from morph_sim.services.runconfig import RunConfig
-from morph_sim.services.sim.clock import make_controller
-from morph_sim.services.sim.cta import resolve_requests
+from services.agent.service import AgentService
+from services.bus import LocalNetwork
+from services.faults.restore import restore_brains
+from services.runconfig import RunConfig
+from services.sim.clock import make_controller
+from services.sim.cta import resolve_requests
 
 
 def trained_agents(config: RunConfig, net: LocalNetwork):
@@ -55,8 +55,8 @@ def test_restored_state_equals_the_last_published(preset: str) -> None:
 async def test_restart_restores_from_the_real_monitor_over_the_bus() -> None:
     import asyncio
 
-    from morph_sim.services.faults.restore import fetch_states
-    from morph_sim.services.monitor.service import MonitorService
+    from services.faults.restore import fetch_states
+    from services.monitor.service import MonitorService
 
     config = RunConfig(run_id="rs2", scale="tiny", policy="morph", preset="paper", seed=3, steps=200)
     net = LocalNetwork()

@@ -4,11 +4,11 @@ config give the same run twice."""
 
 from __future__ import annotations
 
-from morph_sim.schemas import FaultSpec, Latency, Loss, Scope
-from morph_sim.services.faults.runtime import FaultRuntime
-from morph_sim.services.faults.schedule import parse_schedule
-from morph_sim.services.runconfig import RunConfig
-from morph_sim.services.supervisor.local import run_local
+from schemas import FaultSpec, Latency, Loss, Scope
+from services.faults.runtime import FaultRuntime
+from services.faults.schedule import parse_schedule
+from services.runconfig import RunConfig
+from services.supervisor.local import run_local
 
 SPEC = FaultSpec(id="acks", loss=Loss(model="gilbert_elliott", percent=25, burst_length=3),
                  latency=Latency(delay=0.3, jitter=0.3), scope=Scope(key_expr="agent/*/**"))
@@ -42,10 +42,10 @@ async def test_agent_killed_every_100_ticks_rejoins_with_its_state_and_no_tick_i
     SIGKILL); a new agent with the same id starts at once, restores its state from the real monitor and rejoins."""
     import asyncio
 
-    from morph_sim.services.agent.service import AgentService
-    from morph_sim.services.bus import LocalNetwork
-    from morph_sim.services.monitor.service import MonitorService
-    from morph_sim.services.sim.clock import SimClock
+    from services.agent.service import AgentService
+    from services.bus import LocalNetwork
+    from services.monitor.service import MonitorService
+    from services.sim.clock import SimClock
 
     config = RunConfig(run_id="kill", scale="tiny", policy="morph", preset="paper", seed=5, steps=320,
                        phase_timeout=2.0, state_every=10)

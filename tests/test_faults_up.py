@@ -14,10 +14,10 @@ import sys
 import time
 from pathlib import Path
 
-from morph_sim.schemas import AgentState, Event
-from morph_sim.schemas.keys import RunKeys
-from morph_sim.services.bus.zenoh_bus import ZenohBus, endpoint, free_port
-from morph_sim.services.monitor.recorder import read_metrics
+from schemas import AgentState, Event
+from schemas.keys import RunKeys
+from services.bus.zenoh_bus import ZenohBus, endpoint, free_port
+from services.monitor.recorder import read_metrics
 
 from _procs import alive, descendants, kill_all
 
@@ -127,13 +127,13 @@ async def test_up_kills_an_agent_every_100_ticks_and_it_rejoins_with_its_state(t
 async def test_the_monitor_publishes_per_link_counters_every_k_ticks() -> None:
     """F3: the monitor's link/* metrics (sent, delivered, dropped … per key class) come from the samples' headers;
     a 30 % loss of acks on the monitor's own ingress shows up as dropped acks, every other class loses nothing."""
-    from morph_sim.schemas import FaultSpec, Loss, MetricSample, Scope
-    from morph_sim.services.agent.service import AgentService
-    from morph_sim.services.bus import LocalNetwork
-    from morph_sim.services.bus.faults import FaultLayer, install
-    from morph_sim.services.monitor.service import MonitorService
-    from morph_sim.services.runconfig import RunConfig
-    from morph_sim.services.sim.clock import SimClock
+    from schemas import FaultSpec, Loss, MetricSample, Scope
+    from services.agent.service import AgentService
+    from services.bus import LocalNetwork
+    from services.bus.faults import FaultLayer, install
+    from services.monitor.service import MonitorService
+    from services.runconfig import RunConfig
+    from services.sim.clock import SimClock
 
     config = RunConfig(run_id="links", scale="tiny", policy="full", seed=3, steps=200, state_every=20)
     net = LocalNetwork()

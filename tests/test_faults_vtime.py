@@ -9,12 +9,12 @@ import time
 
 import pytest
 
-from morph_sim.schemas import FaultSpec, Latency, Loss, RunKeys
-from morph_sim.schemas.faults import Duplicate
-from morph_sim.services.bus import LocalNetwork
-from morph_sim.services.bus.faults import FaultLayer, install
-from morph_sim.services.bus.linkstats import LinkMeter, key_class
-from morph_sim.services.bus.vtime import VirtualTime, boundaries, release_boundary
+from schemas import FaultSpec, Latency, Loss, RunKeys
+from schemas.faults import Duplicate
+from services.bus import LocalNetwork
+from services.bus.faults import FaultLayer, install
+from services.bus.linkstats import LinkMeter, key_class
+from services.bus.vtime import VirtualTime, boundaries, release_boundary
 
 K = RunKeys("vt")
 

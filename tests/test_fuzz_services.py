@@ -13,12 +13,12 @@ import sys
 import msgpack
 import numpy as np
 
-from morph_sim.schemas import Ack, HelpRequest, Stop, encode
-from morph_sim.schemas.keys import RunKeys
-from morph_sim.services.bus.local import LocalNetwork
-from morph_sim.services.monitor.recorder import read_metrics, read_snapshots
-from morph_sim.services.runconfig import RunConfig
-from morph_sim.services.supervisor.local import run_local
+from schemas import Ack, HelpRequest, Stop, encode
+from schemas.keys import RunKeys
+from services.bus.local import LocalNetwork
+from services.monitor.recorder import read_metrics, read_snapshots
+from services.runconfig import RunConfig
+from services.supervisor.local import run_local
 
 from _procs import kill_tree
 
@@ -106,7 +106,7 @@ async def test_fuzzed_local_run_equals_the_clean_run(tmp_path):
 
 def test_fuzzed_distributed_run_equals_the_clean_run(tmp_path):
     """The same over Zenoh: ``morph-sim up`` while an intruder session floods every key."""
-    from morph_sim.services.bus.zenoh_bus import ZenohBus, endpoint, free_port
+    from services.bus.zenoh_bus import ZenohBus, endpoint, free_port
 
     steps = 150
     ep = endpoint(free_port())

@@ -13,12 +13,12 @@ import msgpack
 import numpy as np
 import pytest
 
-from morph_sim.schemas import Ack, Commit, DecodeError, HelpReply, HelpRequest, Phase, Tick, decode
-from morph_sim.schemas.codec import encode_fields
-from morph_sim.schemas.hot import FLAG_ROWS, INT_ROWS, TickArrays, arrays_from_tick, decode_tick, encode_tick_body
-from morph_sim.services.sim.clock import (make_controller, observation_from_arrays, observation_from_tick, tick_fields,
+from schemas import Ack, Commit, DecodeError, HelpReply, HelpRequest, Phase, Tick, decode
+from schemas.codec import encode_fields
+from schemas.hot import FLAG_ROWS, INT_ROWS, TickArrays, arrays_from_tick, decode_tick, encode_tick_body
+from services.sim.clock import (make_controller, observation_from_arrays, observation_from_tick, tick_fields,
                                           tick_from_observation, world_fields)
-from morph_sim.services.runconfig import RunConfig
+from services.runconfig import RunConfig
 
 
 def _ticks(steps: int = 40) -> list[tuple[object, dict]]:

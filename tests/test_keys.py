@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from morph_sim.schemas.keys import (
+from schemas.keys import (
     RunKeys, intersects, matches, validate_key, validate_key_expr, validate_run_id,
 )
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from morph_sim.cli import main as cli_main
-from morph_sim.services.lab.runner import EpisodeSpec, run_episode
-from morph_sim.services.lab.suite import SuiteConfig, markdown_table, run_suite, summarise
+from morph_sim.lab.runner import EpisodeSpec, run_episode
+from morph_sim.lab.suite import SuiteConfig, markdown_table, run_suite, summarise
 
 PAPER_ABLATIONS = ("v1", "no_threshold", "no_reward", "no_neuromod")
 

@@ -6,12 +6,12 @@ import asyncio
 
 import pytest
 
-from morph_sim.schemas import MetricSample
-from morph_sim.services.bus.local import LocalNetwork
-from morph_sim.services.monitor.streams import (STREAM_NAMES, Decimator, Histogram, MessageStats, markdown_table,
+from schemas import MetricSample
+from services.bus.local import LocalNetwork
+from services.monitor.streams import (STREAM_NAMES, Decimator, Histogram, MessageStats, markdown_table,
                                                 subscribe_metrics)
-from morph_sim.services.runconfig import RunConfig
-from morph_sim.services.supervisor.local import run_local
+from services.runconfig import RunConfig
+from services.supervisor.local import run_local
 
 
 async def test_every_documented_stream_is_published_during_a_run(tmp_path):

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from morph_sim.services.monitor import metrics as m
+from services.monitor import metrics as m
 
 
 def sym(n, pairs):

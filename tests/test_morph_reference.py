@@ -8,7 +8,7 @@ reference's switches (sequential dispatch, one shared stream) our trajectories r
 import numpy as np
 import pytest
 
-from morph_sim.services.lab.runner import REFERENCE_SEEDS, EpisodeSpec, run_episode
+from morph_sim.lab.runner import REFERENCE_SEEDS, EpisodeSpec, run_episode
 
 # morph.md §8.2: per-seed final deliveries (seeds 42, 7, 123, 999, 2024), mean ± population std, mean links
 REFERENCE_82 = {

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from morph_sim.services.agent.plasticity import (
+from services.agent.plasticity import (
     PaperInputs,
     PaperState,
     ReferenceState,
@@ -13,7 +13,7 @@ from morph_sim.services.agent.plasticity import (
     position_mi,
     theta_form,
 )
-from morph_sim.services.agent.presets import load_preset
+from services.agent.presets import load_preset
 
 
 @pytest.fixture

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from morph_sim.services.agent.policies import (
+from services.agent.policies import (
     ConstantPolicy,
     Fleet,
     FullPolicy,
@@ -15,10 +15,10 @@ from morph_sim.services.agent.policies import (
     calibrate_radius,
     make_policy,
 )
-from morph_sim.services.agent.presets import load_preset
-from morph_sim.services.lab.runner import EpisodeSpec, run_episode
-from morph_sim.services.sim.cta import CTAController
-from morph_sim.services.sim.warehouse import Warehouse, WarehouseConfig
+from services.agent.presets import load_preset
+from morph_sim.lab.runner import EpisodeSpec, run_episode
+from services.sim.cta import CTAController
+from services.sim.warehouse import Warehouse, WarehouseConfig
 
 
 def _observations(scale="tiny", seed=42, ticks=60):

@@ -6,12 +6,12 @@ import asyncio
 import re
 import urllib.request
 
-from morph_sim.services.bus.local import LocalNetwork
-from morph_sim.services.bus.zenoh_bus import free_port
-from morph_sim.services.envconfig import command_variables
-from morph_sim.services.monitor.prometheus import PrometheusExporter
-from morph_sim.services.monitor.service import MonitorService
-from morph_sim.services.runconfig import RunConfig
+from services.bus.local import LocalNetwork
+from services.bus.zenoh_bus import free_port
+from services.envconfig import command_variables
+from services.monitor.prometheus import PrometheusExporter
+from services.monitor.service import MonitorService
+from services.runconfig import RunConfig
 
 
 def _scrape(port: int) -> str:
@@ -27,8 +27,8 @@ def _value(text: str, name: str, labels: str = 'run="prom"') -> float:
 
 
 async def test_scrape_during_and_after_a_run(tmp_path):
-    from morph_sim.services.agent.service import AgentService
-    from morph_sim.services.sim.clock import SimClock
+    from services.agent.service import AgentService
+    from services.sim.clock import SimClock
 
     config = RunConfig(run_id="prom", scale="tiny", steps=120, policy="morph", output_dir=tmp_path)
     net = LocalNetwork()

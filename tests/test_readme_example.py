@@ -12,8 +12,8 @@ import time
 import pytest
 from pathlib import Path
 
-from morph_sim.services.bus.zenoh_bus import free_port
-from morph_sim.services.monitor.streams import README_EXAMPLE, STREAM_NAMES
+from services.bus.zenoh_bus import free_port
+from services.monitor.streams import README_EXAMPLE, STREAM_NAMES
 
 from _procs import wait_for_port
 

@@ -11,12 +11,12 @@ import sys
 import msgpack
 import pytest
 
-from morph_sim.services.bus.local import LocalNetwork
-from morph_sim.services.bus.zenoh_bus import free_port
-from morph_sim.services.monitor.recorder import read_metrics
-from morph_sim.services.monitor.replay import BusRecorder, read_record, replay
-from morph_sim.services.runconfig import RunConfig
-from morph_sim.services.supervisor.local import run_local
+from services.bus.local import LocalNetwork
+from services.bus.zenoh_bus import free_port
+from services.monitor.recorder import read_metrics
+from services.monitor.replay import BusRecorder, read_record, replay
+from services.runconfig import RunConfig
+from services.supervisor.local import run_local
 
 from _procs import wait_for_port
 

@@ -14,10 +14,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from morph_sim.schemas.keys import RunKeys
-from morph_sim.schemas.messages import Role
-from morph_sim.services.bus import LocalNetwork
-from morph_sim.services.sim.registry import (
+from schemas.keys import RunKeys
+from schemas.messages import Role
+from services.bus import LocalNetwork
+from services.sim.registry import (
     BUSY, FULL, INVALID, IdAllocator, Refusal, RegistrationError, claim_id, default_instance, mount_registry,
     reason_code,
 )
@@ -207,10 +207,10 @@ async def test_a_bad_request_is_refused_as_invalid_and_the_registry_keeps_servin
 # -- the queryable over ZenohBus (real sessions on 127.0.0.1, one agent a real process killed with SIGKILL) --------
 _AGENT_PROCESS = textwrap.dedent("""
     import asyncio, sys
-    from morph_sim.schemas.keys import RunKeys
-    from morph_sim.schemas.messages import Role
-    from morph_sim.services.bus.zenoh_bus import ZenohBus
-    from morph_sim.services.sim.registry import claim_id
+    from schemas.keys import RunKeys
+    from schemas.messages import Role
+    from services.bus.zenoh_bus import ZenohBus
+    from services.sim.registry import claim_id
 
     async def main():
         endpoint, run, instance = sys.argv[1:4]
@@ -232,7 +232,7 @@ async def _read_line(proc: subprocess.Popen, timeout: float) -> str:
 
 
 async def test_registry_over_zenoh_eight_agents_kill_one_and_restart():
-    from morph_sim.services.bus.zenoh_bus import ZenohBus, endpoint, free_port
+    from services.bus.zenoh_bus import ZenohBus, endpoint, free_port
 
     keys = RunKeys("reg-zenoh")
     where = endpoint(free_port())

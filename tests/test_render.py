@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from PIL import Image, ImageSequence
 
-from morph_sim.services.sim.render import (
+from services.sim.render import (
     COLORS,
     DOWN,
     LEFT,

@@ -14,11 +14,11 @@ import psutil
 import pytest
 from PIL import Image
 
-from morph_sim.services.bus.zenoh_bus import free_port
-from morph_sim.services.monitor.recorder import Recorder, read_metrics
-from morph_sim.services.monitor.report import load, numbers, write_report
-from morph_sim.services.runconfig import RunConfig
-from morph_sim.services.supervisor.local import run_local
+from services.bus.zenoh_bus import free_port
+from services.monitor.recorder import Recorder, read_metrics
+from services.monitor.report import load, numbers, write_report
+from services.runconfig import RunConfig
+from services.supervisor.local import run_local
 
 from _procs import wait_for_port
 

@@ -9,14 +9,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from morph_sim.schemas import (
+from schemas import (
     MESSAGE_TYPES, Ack, AgentState, Commit, DecodeError, Event, FaultCommand, FaultReply, FaultSpec, HelpReply,
     HelpRequest, Latency, Loss, MetricSample, Partition, RegistrationReply, RegistrationRequest, Resolve, Stop, Tick,
     decode, encode,
 )
-from morph_sim.schemas import codec
-from morph_sim.schemas.faults import Crash, Duplicate, Reorder, Scope
-from morph_sim.schemas.jsonschema import JSON_DIR, message_schemas, render
+from schemas import codec
+from schemas.faults import Crash, Duplicate, Reorder, Scope
+from schemas.jsonschema import JSON_DIR, message_schemas, render
 
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
 nonneg = st.floats(min_value=0.0, max_value=1e9, allow_nan=False, allow_infinity=False)
@@ -341,10 +341,10 @@ def test_tick_at_128_robots_stays_small() -> None:
 def test_json_schema_files_are_current() -> None:
     fresh = message_schemas()
     committed = {p.name for p in JSON_DIR.glob("*.json")}
-    assert committed == set(fresh), "run: morph-sim schemas export morph_sim/schemas/json"
+    assert committed == set(fresh), "run: morph-sim schemas export schemas/json"
     for name, schema in fresh.items():
         assert (JSON_DIR / name).read_text(encoding="utf-8") == render(schema), (
-            f"{name} is stale; run: morph-sim schemas export morph_sim/schemas/json")
+            f"{name} is stale; run: morph-sim schemas export schemas/json")
 
 
 def test_schemas_export_command(tmp_path) -> None:

@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 
 from morph_sim.cli import build_parser
-from morph_sim.schemas import Stop
-from morph_sim.schemas.keys import RunKeys
-from morph_sim.services.bus.local import LocalNetwork
-from morph_sim.services.lab.runner import EpisodeSpec, run_episode
-from morph_sim.services.monitor.recorder import COLUMNS, read_metrics, read_snapshots
-from morph_sim.services.runconfig import RunConfig, add_config_arguments, config_from_args
-from morph_sim.services.sim.clock import make_controller, observation_from_tick, tick_from_observation, world_fields
-from morph_sim.services.supervisor.graph import PROGRAM, process_graph
-from morph_sim.services.supervisor.local import run_local
+from schemas import Stop
+from schemas.keys import RunKeys
+from services.bus.local import LocalNetwork
+from morph_sim.lab.runner import EpisodeSpec, run_episode
+from services.monitor.recorder import COLUMNS, read_metrics, read_snapshots
+from services.runconfig import RunConfig, add_config_arguments, config_from_args
+from services.sim.clock import make_controller, observation_from_tick, tick_from_observation, world_fields
+from services.supervisor.graph import PROGRAM, process_graph
+from services.supervisor.local import run_local
 
 
 def cfg(tmp_path, **kw) -> RunConfig:
@@ -116,9 +116,9 @@ async def test_absent_agent_does_not_stall_the_run(tmp_path):
     """An agent that leaves (its liveliness token goes) is absent: the sim stops waiting for it and goes on."""
     config = cfg(tmp_path, steps=40, phase_timeout=30.0)
     net = LocalNetwork()
-    from morph_sim.services.agent.service import AgentService
-    from morph_sim.services.monitor.service import MonitorService
-    from morph_sim.services.sim.clock import SimClock
+    from services.agent.service import AgentService
+    from services.monitor.service import MonitorService
+    from services.sim.clock import SimClock
 
     monitor = MonitorService(config, net.session("monitor"), record=False)
     agents = [AgentService(config, net.session(f"agent-{i}"), i) for i in range(config.n_agents)]
@@ -210,7 +210,7 @@ def test_process_graph_is_real_cli_invocations():
 
 
 async def test_monitor_answers_late_joiners_with_the_latest_state(tmp_path):
-    from morph_sim.schemas import AgentState, MetricSample
+    from schemas import AgentState, MetricSample
 
     config = cfg(tmp_path, steps=400)
     net = LocalNetwork()

@@ -8,17 +8,17 @@ import numpy as np
 import pytest
 
 from morph_sim.cli import main as cli_main
-from morph_sim.services.lab.emergent import EmergentConfig, markdown_emergent, run_emergent
-from morph_sim.services.lab.runner import EpisodeSpec, run_episode
-from morph_sim.services.lab.shift import (
+from morph_sim.lab.emergent import EmergentConfig, markdown_emergent, run_emergent
+from morph_sim.lab.runner import EpisodeSpec, run_episode
+from morph_sim.lab.shift import (
     ShiftConfig,
     episode_shift_metrics,
     markdown_shift,
     run_shift,
     table_columns,
 )
-from morph_sim.services.sim.cta import CTAController, resolve_requests
-from morph_sim.services.sim.warehouse import Warehouse, WarehouseConfig
+from services.sim.cta import CTAController, resolve_requests
+from services.sim.warehouse import Warehouse, WarehouseConfig
 
 
 def _full_dispatch_episode(seed: int, steps: int, side=None, assignment_side=None, scale="medium"):

@@ -17,8 +17,8 @@ from pathlib import Path
 import psutil
 import pytest
 
-from morph_sim.services.monitor.recorder import read_metrics
-from morph_sim.services.runconfig import RunConfig
+from services.monitor.recorder import read_metrics
+from services.runconfig import RunConfig
 
 from _procs import alive, descendants, kill_all
 
@@ -142,7 +142,7 @@ def test_up_restarts_an_agent_that_dies(tmp_path):
 
 
 def test_up_fails_clearly_when_nothing_listens_on_the_endpoint(tmp_path):
-    from morph_sim.services.bus.zenoh_bus import free_port
+    from services.bus.zenoh_bus import free_port
 
     proc = start_up(up_argv(tmp_path, "nolisten", "--steps", "5", "--endpoint", f"tcp/127.0.0.1:{free_port()}"))
     try:
@@ -156,7 +156,7 @@ def test_up_fails_clearly_when_nothing_listens_on_the_endpoint(tmp_path):
 
 async def test_supervisor_reports_a_process_that_cannot_start(tmp_path):
     """A child that exits before the run starts makes the supervisor fail with its name and log; nothing is left."""
-    from morph_sim.services.supervisor.launcher import StartError, Supervisor
+    from services.supervisor.launcher import StartError, Supervisor
 
     config = RunConfig(run_id="broken", scale="tiny", steps=5, output_dir=tmp_path, ready_timeout=60)
     sup = Supervisor(config)
@@ -174,7 +174,7 @@ async def test_supervisor_reports_a_process_that_cannot_start(tmp_path):
 
 def test_up_joins_an_existing_router_with_endpoint(tmp_path):
     """``--endpoint``: every process, the sim included, is a client of a router that is already running."""
-    from morph_sim.services.bus.zenoh_bus import endpoint, free_port, zenoh, zenoh_config
+    from services.bus.zenoh_bus import endpoint, free_port, zenoh, zenoh_config
 
     ep = endpoint(free_port())
     router = zenoh.open(zenoh_config(listen=ep, mode="router"))
@@ -201,7 +201,7 @@ async def test_a_stalled_run_fails_clearly_instead_of_hanging(tmp_path):
     import os
     import signal
 
-    from morph_sim.services.supervisor.launcher import RunStalled, Supervisor
+    from services.supervisor.launcher import RunStalled, Supervisor
 
     config = RunConfig(run_id="stall", scale="tiny", steps=100000, output_dir=tmp_path, ready_timeout=60)
     sup = Supervisor(config, stall_timeout=3.0)

@@ -8,10 +8,10 @@ import io
 from rich.console import Console
 
 from morph_sim.commands.watch import WatchState, find_run, sparkline, watch
-from morph_sim.schemas import AgentState, Event, MetricSample
-from morph_sim.services.bus.local import LocalNetwork
-from morph_sim.services.runconfig import RunConfig
-from morph_sim.services.supervisor.local import run_local
+from schemas import AgentState, Event, MetricSample
+from services.bus.local import LocalNetwork
+from services.runconfig import RunConfig
+from services.supervisor.local import run_local
 
 from _procs import wait_for_port
 
@@ -74,7 +74,7 @@ def test_the_watch_command_follows_a_live_up_run(tmp_path):
     import sys
     import time
 
-    from morph_sim.services.bus.zenoh_bus import free_port
+    from services.bus.zenoh_bus import free_port
 
     port = free_port()
     up = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "up", "--scale", "tiny", "--steps", "100000",

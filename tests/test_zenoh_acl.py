@@ -17,9 +17,9 @@ from pathlib import Path
 
 import pytest
 
-from morph_sim.schemas.keys import RunKeys
-from morph_sim.services.bus.zenoh_bus import ZenohBus, endpoint, free_port, zenoh_config
-from morph_sim.services.sim.registry import claim_id, mount_registry
+from schemas.keys import RunKeys
+from services.bus.zenoh_bus import ZenohBus, endpoint, free_port, zenoh_config
+from services.sim.registry import claim_id, mount_registry
 
 import zenoh  # noqa: E402  (after zenoh_bus set the runtime environment)
 

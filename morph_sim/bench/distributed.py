@@ -5,7 +5,7 @@ Measured in one invocation, back to back on the same machine:
 1. a zero-fault ``morph-sim up`` run (sim + one OS process per agent + monitor, over Zenoh) of the chosen scale and
    policy; its rate is the sim's tick loop (``run.finished``: steps / wall seconds between tick 0 and the end, process
    start-up excluded);
-2. the raw lock-step barrier (``morph_sim.services.bus.barrier_bench``, plain zenoh-python callbacks, recommended
+2. the raw lock-step barrier (``services.bus.barrier_bench``, plain zenoh-python callbacks, recommended
    settings) with the same number of agent processes.
 
 The ratio says how much of the transport's ceiling the protocol, the warehouse and the agents' plasticity leave. The
@@ -115,7 +115,7 @@ def load_average() -> str:
 def distributed_rate(config) -> dict:
     """Run ``config`` with the supervisor; the sim's tick-loop rate from the record's run.finished event, and the
     CPU per tick of every process (:class:`CpuMeter`)."""
-    from morph_sim.services.supervisor.launcher import Supervisor
+    from services.supervisor.launcher import Supervisor
 
     started = time.monotonic()
     supervisor = Supervisor(config)
@@ -144,8 +144,8 @@ def distributed_rate(config) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from morph_sim.services.bus.barrier_bench import run_barrier
-    from morph_sim.services.runconfig import RunConfig
+    from services.bus.barrier_bench import run_barrier
+    from services.runconfig import RunConfig
 
     with tempfile.TemporaryDirectory(prefix="morph-bench-") as tmp:
         out = Path(args.output_dir) if args.output_dir else Path(tmp)

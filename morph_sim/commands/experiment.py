@@ -87,7 +87,7 @@ def _validated(model, **kw):
 
 
 def _run_shift(args) -> int:
-    from morph_sim.services.lab.shift import SHIFT_CONDITIONS, SHIFT_SEEDS, ShiftConfig, markdown_shift, run_shift
+    from morph_sim.lab.shift import SHIFT_CONDITIONS, SHIFT_SEEDS, ShiftConfig, markdown_shift, run_shift
 
     cfg = _validated(
         ShiftConfig, seeds=_seeds(args.seeds, SHIFT_SEEDS), phase_steps=args.phase_steps,
@@ -105,7 +105,7 @@ def _run_shift(args) -> int:
 
 
 def _run_emergent(args) -> int:
-    from morph_sim.services.lab.emergent import EmergentConfig, markdown_emergent, run_emergent
+    from morph_sim.lab.emergent import EmergentConfig, markdown_emergent, run_emergent
 
     cfg = _validated(
         EmergentConfig, seeds=_seeds(args.seeds, (42, 7, 123, 999, 2024)), steps=args.steps or 1500,
@@ -123,7 +123,7 @@ def _run_emergent(args) -> int:
 def _run_faults(args) -> int:
     from datetime import datetime, timezone
 
-    from morph_sim.services.lab.faults_experiment import run_experiment
+    from morph_sim.lab.faults_experiment import run_experiment
 
     out = Path(args.out) / (args.run_id or f"{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%SZ')}-faults")
     out.mkdir(parents=True, exist_ok=True)
@@ -142,8 +142,8 @@ def run(args) -> int:
     if args.suite == "faults":
         return _run_faults(args)
     started = time.perf_counter()
-    from morph_sim.services.lab.runner import SCALE_STUDY
-    from morph_sim.services.lab.suite import ABLATION_STUDY, SuiteConfig, markdown_table, run_suite, summarise
+    from morph_sim.lab.runner import SCALE_STUDY
+    from morph_sim.lab.suite import ABLATION_STUDY, SuiteConfig, markdown_table, run_suite, summarise
 
     preset = args.preset or ("reference" if args.suite == "scale" else "paper")
     default_conditions = SCALE_STUDY if args.suite == "scale" else ABLATION_STUDY
@@ -163,7 +163,7 @@ def run(args) -> int:
         err = exc.errors()[0]
         field = ".".join(str(p) for p in err["loc"]) or "config"
         raise ValueError(f"{field}: {err['msg']}") from None
-    from morph_sim.services.agent.presets import load_preset
+    from services.agent.presets import load_preset
 
     load_preset(preset)  # fail early, naming the preset
     result = run_suite(cfg, Path(args.out), args.run_id, show_progress=not args.no_progress,

@@ -59,9 +59,9 @@ def build_command(args: argparse.Namespace):
     """The FaultCommand the arguments describe; ValueError naming the bad field."""
     from pydantic import ValidationError
 
-    from morph_sim.schemas.keys import validate_run_id
-    from morph_sim.schemas.messages import FaultCommand
-    from morph_sim.services.faults.schedule import _explain
+    from schemas.keys import validate_run_id
+    from schemas.messages import FaultCommand
+    from services.faults.schedule import _explain
 
     validate_run_id(args.run)
     if args.timeout <= 0:
@@ -119,12 +119,12 @@ def build_command(args: argparse.Namespace):
 
 async def send(endpoint: str, run: str, command, timeout: float = 2.0, bus=None) -> list:
     """Send ``command`` as a query on ``morph/<run>/ctl/faults``; the FaultReply of every process that answered."""
-    from morph_sim.schemas.keys import RunKeys
-    from morph_sim.schemas.messages import FaultReply
+    from schemas.keys import RunKeys
+    from schemas.messages import FaultReply
 
     own = bus is None
     if own:
-        from morph_sim.services.supervisor.process import open_bus
+        from services.supervisor.process import open_bus
 
         bus = await open_bus(f"faults-cli-{int(time.time() * 1000) % 10**9}", connect=endpoint)
     try:

@@ -9,7 +9,7 @@ HELP = "record every message of a run to a file (msgpack frames with receive tim
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from morph_sim.services.runconfig import add_config_arguments
+    from services.runconfig import add_config_arguments
 
     parser.add_argument("--out", required=True, help="file to write (appended if it exists), e.g. runs/r1.mbr")
     parser.add_argument("--timeout", type=float, default=None, help="stop after this many seconds")
@@ -21,9 +21,9 @@ def run(args: argparse.Namespace) -> int:
     import signal
     from pathlib import Path
 
-    from morph_sim.services.monitor.replay import BusRecorder
-    from morph_sim.services.runconfig import config_from_args
-    from morph_sim.services.supervisor.process import open_bus
+    from services.monitor.replay import BusRecorder
+    from services.runconfig import config_from_args
+    from services.supervisor.process import open_bus
 
     config = config_from_args(args)
     if not config.endpoint:

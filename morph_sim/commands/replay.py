@@ -19,7 +19,7 @@ def run(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from morph_sim.services.monitor.replay import replay
+    from services.monitor.replay import replay
 
     path = Path(args.record)
     if not path.is_file():

@@ -17,7 +17,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from morph_sim.services.monitor.report import write_report
+    from services.monitor.report import write_report
 
     out = Path(args.out) if args.out else Path(args.run_dirs[0]) / "report"
     md = write_report([Path(d) for d in args.run_dirs], out, gif=not args.no_gif)

@@ -11,15 +11,15 @@ HELP = "run all services in one process over the in-process bus (deterministic)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from morph_sim.services.runconfig import add_config_arguments
+    from services.runconfig import add_config_arguments
 
     parser.add_argument("--no-record", action="store_true", help="do not write runs/<run-id>/")
     add_config_arguments(parser, skip=("endpoint", "listen"))
 
 
 def run(args: argparse.Namespace) -> int:
-    from morph_sim.services.runconfig import config_from_args
-    from morph_sim.services.supervisor.local import run_local
+    from services.runconfig import config_from_args
+    from services.supervisor.local import run_local
 
     config = config_from_args(args)
     started = time.monotonic()

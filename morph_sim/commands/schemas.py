@@ -15,7 +15,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from morph_sim.schemas.jsonschema import export
+    from schemas.jsonschema import export
 
     if args.schemas_action != "export":
         raise ValueError(f"schemas: unknown action {args.schemas_action!r}")

@@ -11,7 +11,7 @@ HELP = "start a distributed run: sim (Zenoh endpoint), one process per agent, mo
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from morph_sim.services.runconfig import add_config_arguments
+    from services.runconfig import add_config_arguments
 
     parser.add_argument("--quiet", action="store_true", help="no live progress line")
     add_config_arguments(parser)
@@ -20,8 +20,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from morph_sim.services.runconfig import config_from_args
-    from morph_sim.services.supervisor.launcher import StartError, Supervisor
+    from services.runconfig import config_from_args
+    from services.supervisor.launcher import StartError, Supervisor
 
     config = config_from_args(args)
     console = Console(stderr=True)

@@ -124,8 +124,8 @@ async def watch(bus, run_id: str | None, *, steps: int | None = None, duration: 
     """Follow the run on ``bus`` until it finishes (or ``duration`` seconds); draw with rich ``Live`` on ``console``."""
     from rich.live import Live
 
-    from morph_sim.schemas import AgentState, Event, MetricSample, Tick
-    from morph_sim.schemas.keys import RunKeys
+    from schemas import AgentState, Event, MetricSample, Tick
+    from schemas.keys import RunKeys
 
     if run_id is None:
         run_id = await find_run(bus)
@@ -191,9 +191,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from morph_sim.schemas.keys import validate_run_id
-    from morph_sim.services.runconfig import RunConfig
-    from morph_sim.services.supervisor.process import open_bus
+    from schemas.keys import validate_run_id
+    from services.runconfig import RunConfig
+    from services.supervisor.process import open_bus
 
     if args.run is not None:
         validate_run_id(args.run)

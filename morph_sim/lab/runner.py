@@ -1,0 +1,413 @@
+"""In-process episodes: the warehouse, the CTA controller and every agent's brain in one process, no bus.
+
+One episode is ``T`` ticks of the DESIGN §3 protocol driven directly on the pure core:
+
+1. the controller runs steps 1-2 and produces the tick's observation;
+2. every agent applies its plasticity update for the previous step (``Brains.learn``);
+3. AGVs that need a picker pick a candidate and draw their gate; pickers resolve the requests;
+4. the controller applies the commitments, releases pickers and steps the warehouse.
+
+After the last step the agents get one more observation to learn from, so the link count of step t is
+the one after the update for step t, as the reference logs it.
+
+Two switches reproduce the reference: ``dispatch="sequential"`` (an AGV whose nearest free picker was
+just taken asks the next-nearest in the same tick, spec §5) instead of the DESIGN's concurrent
+resolution, and ``shared_stream=True`` (gate draws from the warehouse's request stream re-seeded after
+reset, spec §2) instead of each agent's own generator. The other mode's outcome is computed each tick
+with the same draws and the number of ticks where the two differ is reported.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from services.agent.observation import TickObservation
+from services.agent.policies import (
+    Brains,
+    ConstantPolicy,
+    CoordinationPolicy,
+    Fleet,
+    FullPolicy,
+    MorphPolicy,
+    NonePolicy,
+    ProximityPolicy,
+    TSGPolicy,
+)
+from services.monitor import metrics
+from services.sim.cta import CTAController, resolve_requests
+from services.sim.warehouse import Warehouse, WarehouseConfig
+
+SCALES = ("tiny", "small", "medium", "large")
+REFERENCE_SEEDS = (42, 7, 123, 999, 2024)
+
+#: condition key -> (label, policy kind, MORPH ablation); the scale study's nine, in the reference's order
+CONDITIONS: dict[str, tuple[str, str, str | None]] = {
+    "none": ("No coordination", "none", None),
+    "proximity": ("Proximity", "proximity", None),
+    "tsg": ("TSG", "tsg", None),
+    "v1": ("MORPH v1", "morph", "v1"),
+    "no_threshold": ("v2 − threshold", "morph", "no_threshold"),
+    "no_reward": ("v2 − reward", "morph", "no_reward"),
+    "no_neuromod": ("v2 − neuromod", "morph", "no_neuromod"),
+    "morph": ("MORPH", "morph", None),
+    "full": ("Full-Graph", "full", None),
+    "constant": ("Constant 0.25", "constant", None),
+    "reset_at_boundary": ("MORPH-reset", "morph", "reset_at_boundary"),
+}
+SCALE_STUDY = ("none", "proximity", "tsg", "v1", "no_threshold", "no_reward", "no_neuromod", "morph", "full")
+
+
+def check_choices(values, known, what: str):
+    """A settings validator's check that every value is one of ``known``; the error names the bad value."""
+    for v in values:
+        if v not in known:
+            raise ValueError(f"unknown {what} {v!r}; choose from {', '.join(known)}")
+    return values
+
+
+def check_nonempty(values, what: str):
+    """A settings validator's check that a list of ``what`` is not empty."""
+    if not values:
+        raise ValueError(f"at least one {what}")
+    return values
+
+
+def make_condition_policy(condition: str, preset: str = "reference", radius: int | None = None,
+                          reset_every: int | None = None) -> CoordinationPolicy:
+    if condition not in CONDITIONS:
+        raise ValueError(f"condition: unknown {condition!r} (known: {', '.join(CONDITIONS)})")
+    _, kind, ablation = CONDITIONS[condition]
+    if kind == "morph":
+        return MorphPolicy(preset=preset, ablation=ablation,
+                           reset_every=reset_every if ablation == "reset_at_boundary" else None)
+    if kind == "proximity":
+        if radius is None:
+            raise ValueError("radius: the proximity condition needs a radius (or calibration)")
+        return ProximityPolicy(radius=radius)
+    return {"none": NonePolicy, "tsg": TSGPolicy, "full": FullPolicy, "constant": ConstantPolicy}[kind]()
+
+
+class EpisodeSpec(BaseModel):
+    """One episode of the lab: which warehouse, which condition, which seed, which switches."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    scale: str
+    condition: str
+    seed: int
+    steps: int = Field(default=800, ge=1)
+    preset: str = "reference"
+    radius: int | None = Field(default=None, ge=0)
+    dispatch: Literal["concurrent", "sequential"] = "concurrent"
+    shared_stream: bool = False
+    fiedler_every: int = Field(default=1, ge=1, description="compute λ₂ every this many ticks")
+    #: demand shift (issue 8): the side of each consecutive ``phase_steps``-long phase; empty = no shift
+    demand_phases: tuple[Literal["left", "right"], ...] = ()
+    phase_steps: int = Field(default=400, ge=1)
+    #: "requests": new requests drawn from the active half (the paper); "assignment": shift.py's filter;
+    #: "none": phases only mark boundaries (the no-shift control: same episode length, same resets)
+    demand_mode: Literal["requests", "assignment", "none"] = "requests"
+    #: bursty message loss (Gilbert–Elliott, mean burst 4 messages) on the dispatch messages, in percent; 0 = none.
+    #: The same model as the fault experiment (lab/faults_experiment.py): a gate that opened dispatches only if its
+    #: HelpRequest and Ack arrive on time, and the sim's Resolve and the picker's Commit too; Ticks are not faulted.
+    loss_percent: float = Field(default=0.0, ge=0.0, lt=100.0)
+
+    @model_validator(mode="after")
+    def _phases_fill_episode(self) -> EpisodeSpec:
+        if self.demand_phases and self.steps != len(self.demand_phases) * self.phase_steps:
+            raise ValueError(f"steps: {self.steps} != {len(self.demand_phases)} phases × {self.phase_steps} steps")
+        return self
+
+    def policy(self) -> CoordinationPolicy:
+        # MORPH-reset clears its state at every phase boundary of a shift episode
+        reset = self.phase_steps if self.demand_phases else None
+        return make_condition_policy(self.condition, self.preset, self.radius, reset_every=reset)
+
+    def boundaries(self) -> list[int]:
+        return [p * self.phase_steps for p in range(len(self.demand_phases))] if self.demand_phases else [0]
+
+    @property
+    def key(self) -> str:
+        return f"{self.scale}_{self.condition}_s{self.seed}"
+
+
+@dataclass
+class DispatchStats:
+    decisions: int = 0  # gate evaluations (a request that reached a candidate)
+    dispatched: int = 0
+    p_sum: float = 0.0
+    w_positive: int = 0  # decisions where the gate was above its floor
+    divergent_ticks: int = 0  # ticks where the other dispatch mode would have committed differently
+    lost_messages: int = 0  # resolved requests whose Resolve/Commit was lost (message-loss runs)
+
+
+def _gate(brains: Brains, agv: int, picker: int, obs: TickObservation, u: float | None) -> tuple[bool, float]:
+    p = brains.probability(agv, picker, obs)
+    if not brains.draws:
+        return p >= 1.0, p
+    return (u is not None and u < p), p
+
+
+def dispatch_tick(
+    obs: TickObservation,
+    brains: Brains,
+    mode: str,
+    shared_rng: np.random.RandomState | None,
+    stats: DispatchStats,
+) -> list[tuple[int, int]]:
+    """The tick's dispatch decisions; returns (picker, agv) commitments in mission order."""
+    draws: dict[int, float] = {}
+
+    def draw(agv: int) -> float:
+        if agv not in draws:
+            draws[agv] = float(shared_rng.random_sample()) if shared_rng is not None else brains.draw(agv)
+        return draws[agv]
+
+    requesters = obs.requesters()
+
+    def gate_passes(agv: int, cand: int, live: bool) -> bool:
+        # the live mode draws from the AGV's stream and counts; the other replays the same draws for comparison
+        u = (draw(agv) if live else draws.get(agv)) if brains.draws else None
+        ok, p = _gate(brains, agv, cand, obs, u)
+        if live:
+            _count(stats, ok, p, brains)
+        return ok
+
+    def sequential(live: bool) -> list[tuple[int, int]]:
+        free = obs.free_picker.copy()
+        cells: set[tuple[int, int]] = set()
+        commits = []
+        for agv in requesters.tolist():
+            cell = (int(obs.target[agv, 0]), int(obs.target[agv, 1]))
+            if cell in cells or not free.any():
+                continue
+            cand = brains.candidate(agv, obs, free)
+            if cand >= 0 and gate_passes(agv, cand, live):
+                commits.append((cand, agv))
+                free[cand] = False
+                cells.add(cell)
+        return commits
+
+    def concurrent(live: bool) -> list[tuple[int, int]]:
+        requests = []
+        for agv in requesters.tolist():
+            cand = brains.candidate(agv, obs)
+            if cand >= 0 and gate_passes(agv, cand, live):
+                requests.append((agv, cand))
+        # one picker per cell: a later request to an already served cell is dropped by the controller
+        return resolve_requests(requests)
+
+    if mode == "sequential":
+        commits = sequential(True)
+        other = concurrent(False)
+    else:
+        commits = concurrent(True)
+        other = sequential(False)
+    if _dedupe_cells(obs, commits) != _dedupe_cells(obs, other):
+        stats.divergent_ticks += 1
+    return commits
+
+
+def _lossy_dispatch(obs: TickObservation, brains: Brains, layer, stats: DispatchStats) -> list[tuple[int, int]]:
+    """Concurrent dispatch whose messages go through the fault layer's decision (lab/faults_experiment.py)."""
+    from morph_sim.lab import faults_experiment as fx
+
+    requests = []
+    for agv in obs.requesters().tolist():
+        cand = brains.candidate(agv, obs)
+        if cand < 0:
+            continue
+        ok, p = _gate(brains, agv, cand, obs, brains.draw(agv) if brains.draws else None)
+        _count(stats, ok, p, brains)
+        if ok and fx._on_time(layer, fx.K.request(agv, cand), agv, cand) and fx._on_time(
+                layer, fx.K.ack(agv), agv, "sim"):
+            requests.append((agv, cand))
+    commits = []
+    for picker, agv in resolve_requests(requests):
+        if fx._on_time(layer, fx.K.resolve, "sim", picker) and fx._on_time(layer, fx.K.commit(picker), picker, "sim"):
+            commits.append((picker, agv))
+            layer.fate(fx.K.reply(picker, agv), picker, agv)  # sent; a lost reply is healed by the next Tick
+    stats.lost_messages += len(requests) - len(commits)
+    return commits
+
+
+def _dedupe_cells(obs: TickObservation, commits) -> set[tuple[int, int]]:
+    seen, out = set(), set()
+    for picker, agv in commits:
+        cell = (int(obs.target[agv, 0]), int(obs.target[agv, 1]))
+        if cell in seen:
+            continue
+        seen.add(cell)
+        out.add((picker, agv))
+    return out
+
+
+def _count(stats: DispatchStats, ok: bool, p: float, brains: Brains) -> None:
+    stats.decisions += 1
+    stats.dispatched += int(ok)
+    stats.p_sum += p
+    stats.w_positive += int(p > 0.25 + 1e-12)
+
+
+@dataclass
+class EpisodeResult:
+    spec: EpisodeSpec
+    ticks: dict[str, np.ndarray]
+    summary: dict
+    wall_s: float
+    final_weights: np.ndarray | None = field(default=None, repr=False)
+    final_links: np.ndarray | None = field(default=None, repr=False)
+    mean_distance: np.ndarray | None = field(default=None, repr=False)
+    tracker: metrics.LinkTracker | None = field(default=None, repr=False)
+    snapshots: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
+
+
+def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> EpisodeResult:
+    """Run one episode on the pure core. ``trace_hook(obs, brains)`` is called after each update.
+
+    ``snapshot_ticks``: copies of the team's W after the update that opens each of these ticks (tick T: the
+    final update), returned in ``EpisodeResult.snapshots``.
+    """
+    t0 = time.perf_counter()
+    cfg = WarehouseConfig.named(spec.scale, max_steps=max(spec.steps, 1) + 1)
+    wh = Warehouse(cfg)
+    cta = CTAController(wh)
+    cta.reset(spec.seed)
+    fleet = Fleet(cta.n_agvs, cta.n_pickers, spec.scale)
+    n, T = fleet.n, spec.steps
+    policy = spec.policy()
+    brains = policy.brains(fleet, range(n), spec.seed)
+    shared = cta.shared_rng if spec.shared_stream else None
+    is_agv = np.arange(n) < fleet.n_agvs
+    directed = isinstance(policy, MorphPolicy) and policy.params is not None and _rules(policy) == "paper"
+    tracker = metrics.LinkTracker(n, directed=directed)
+    stats = DispatchStats()
+
+    cols = {
+        name: np.zeros(T)
+        for name in (
+            "deliveries", "dispatched", "committed", "gate_p_sum", "links", "links_directed", "mean_w_links", "fiedler_ref", "alg_conn",
+            "eta", "h_mean", "formed", "pruned",
+        )
+    }
+    dist_sum = np.zeros((n, n))
+    committed = 0
+
+    def record(step: int) -> None:
+        A = brains.team_links()
+        on = A != 0  # diagonal is zero by construction
+        cols["links"][step] = np.count_nonzero(on | on.T) // 2  # = metrics.undirected_link_count(A)
+        cols["links_directed"][step] = np.count_nonzero(on)  # = metrics.directed_link_count(A)
+        if not brains.memoryless:
+            W = brains.team_weights()
+            cols["mean_w_links"][step] = float(W[on].mean()) if on.any() else 0.0
+            tracker.update(A, step)
+        else:
+            cols["mean_w_links"][step] = 1.0 if policy.name == "full" else 0.0
+        if step % spec.fiedler_every == 0:
+            cols["fiedler_ref"][step] = metrics.reference_normalized_fiedler(A)
+            cols["alg_conn"][step] = metrics.algebraic_connectivity(A)
+        for k, v in brains.extra_metrics().items():
+            if k in cols:
+                cols[k][step] = v
+
+    layer = None
+    if spec.loss_percent > 0:
+        if spec.dispatch != "concurrent" or spec.shared_stream:
+            raise ValueError("loss_percent: message loss is modelled for concurrent dispatch with per-agent draws")
+        from services.bus.faults import FaultLayer
+        from morph_sim.lab import faults_experiment as fx
+
+        layer = FaultLayer(fx.RUN, base_seed=spec.seed)
+        layer.set(fx.fault_spec("bursty", spec.loss_percent, spec.seed))
+    snaps = set(snapshot_ticks)
+    snapshots: dict[int, np.ndarray] = {}
+    for t in range(T):
+        if spec.demand_phases and t % spec.phase_steps == 0:
+            side = spec.demand_phases[t // spec.phase_steps]
+            if spec.demand_mode == "requests":
+                wh.set_demand_side(side)
+            elif spec.demand_mode == "assignment":
+                cta.assignment_side = side
+        obs = cta.begin_tick()
+        brains.learn(obs)
+        if t in snaps:
+            snapshots[t] = brains.team_weights().copy()
+        if t > 0 and not brains.memoryless:
+            record(t - 1)
+        if brains.memoryless:
+            record(t)
+        if trace_hook is not None:
+            trace_hook(obs, brains)
+        c = obs.cells
+        dist_sum += np.abs(c[:, None, 0] - c[None, :, 0]) + np.abs(c[:, None, 1] - c[None, :, 1])
+        if layer is not None:
+            commits = _lossy_dispatch(obs, brains, layer, stats)
+        else:
+            commits = dispatch_tick(obs, brains, spec.dispatch, shared, stats)
+        committed += len(cta.commit(commits))
+        cta.finish_tick()
+        cols["deliveries"][t] = cta.deliveries
+        cols["dispatched"][t] = stats.dispatched  # gate successes (requests sent)
+        cols["committed"][t] = committed  # pickers actually sent
+        cols["gate_p_sum"][t] = stats.p_sum  # Σ P(respond) over the gate decisions so far
+    final = cta.final_observation()
+    if not brains.memoryless:
+        brains.learn(final)
+        record(T - 1)
+        if T in snaps:
+            snapshots[T] = brains.team_weights().copy()
+        if trace_hook is not None:
+            trace_hook(final, brains)
+
+    W = brains.team_weights()
+    A = brains.team_links()
+    blocks = metrics.mean_w_by_block(W, is_agv)
+    mean_dist = dist_sum / T
+    summary = {
+        "scale": spec.scale,
+        "condition": spec.condition,
+        "seed": spec.seed,
+        "steps": T,
+        "n_agents": n,
+        "deliveries": int(cta.deliveries),
+        "mean_links": float(cols["links"].mean()),
+        "max_links": n * (n - 1) // 2,
+        "mean_links_directed": float(cols["links_directed"].mean()),
+        "dispatch_decisions": stats.decisions,
+        "dispatched": stats.dispatched,
+        "committed": committed,
+        "mean_p_respond": stats.p_sum / stats.decisions if stats.decisions else float("nan"),
+        "share_above_floor": stats.w_positive / stats.decisions if stats.decisions else float("nan"),
+        "divergent_dispatch_ticks": stats.divergent_ticks,
+        "w_agv_agv": blocks.agv_agv,
+        "w_agv_picker": blocks.agv_picker,
+        "w_picker_picker": blocks.picker_picker,
+        "w_asymmetry": float(np.abs(W - W.T).max()),
+    }
+    if not brains.memoryless:
+        life, _ = tracker.lifetimes()
+        summary["link_events"] = int(life.size)
+        summary["median_lifetime"] = float(np.median(life)) if life.size else float("nan")
+        summary["core_links"] = tracker.core_periphery()[0]
+        h = getattr(brains, "h", None)
+        summary["final_h_mean"] = float(np.mean(h())) if h else float("nan")
+        summary["eta_mean"] = float(cols["eta"].mean())
+        summary["eta_positive_share"] = float((cols["eta"] > 0).mean())
+        if np.any(W):
+            summary["spearman_agv_picker"] = metrics.spearman_agv_picker(W, mean_dist, is_agv, n_permutations=0).rho
+            summary["spearman_all_pairs"] = metrics.spearman_reference_pairs(W, mean_dist).rho
+    summary["wall_s"] = time.perf_counter() - t0
+    return EpisodeResult(spec, cols, summary, summary["wall_s"], W, A, mean_dist,
+                         tracker if not brains.memoryless else None, snapshots)
+
+
+def _rules(policy: MorphPolicy) -> str:
+    from services.agent.presets import load_preset
+
+    return load_preset(policy.preset).rules

@@ -1,0 +1,458 @@
+"""MORPH plasticity rules: pure numpy state and updates, no I/O.
+
+Two rule sets share the parameter model (:mod:`.presets`):
+
+* :class:`ReferenceState` reproduces the reference code (spec research/morph.md §4): symmetric W and A,
+  the η → BCM → decay → Hebbian → burst → clip → homeostasis → structural → ageing order, MI of the
+  current positions, greedy ``max_new`` formation. It is batched over *replicas*: every agent that runs
+  the reference preset owns one full replica (shape ``(B, n, n)``), so a process holding one agent has
+  B = 1 and the in-process lab holds all agents with B = n. Replicas see the same inputs and stay equal.
+* :class:`PaperState` implements the paper as written (Eq. 1-4, Algorithm 1): each agent owns only its
+  directed out-row (shape ``(B, n)`` for B owned agents), learns from its own reward, credits the partner
+  that shared the delivered task, estimates MI from task-assignment histories, forms links against a
+  binding threshold and runs homeostasis every k steps from h = 0. docs/morph.md lists every choice.
+
+Both are updated with arrays derived from a :class:`~.observation.TickObservation`; the translation
+lives in :mod:`.policies`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from services.agent.presets import MorphParams
+
+_EPS = 1e-9
+
+
+def theta_form(params: MorphParams, t: int) -> float:
+    """The annealed formation threshold at update count ``t``."""
+    p = min(t / params.theta_form_anneal, 1.0)
+    return params.theta_form_start - (params.theta_form_start - params.theta_form_end) * p
+
+
+def neuromodulation(params: MorphParams, dhat: float, delivery: float, d_exp: float, t: int):
+    """One step of the arousal signal: returns (new d̂, η, effective α, adjusted θ_form)."""
+    dhat = params.neuromod_ema * delivery + (1.0 - params.neuromod_ema) * dhat
+    # np.clip's value in plain floats (NaN passes through, as with np.clip): this runs every tick in every agent
+    eta = float(min(max((dhat - d_exp) / (d_exp + _EPS), -1.0), 1.0))
+    alpha_eff = params.alpha * (1.0 + params.neuromod_gain * max(eta, 0.0))
+    theta_adj = theta_form(params, t) - params.neuromod_explore * max(-eta, 0.0)
+    theta_adj = max(theta_adj, 0.8 * params.theta_form_end)
+    return dhat, eta, alpha_eff, theta_adj
+
+
+def position_mi(positions: np.ndarray) -> np.ndarray:
+    """The reference's "MI": |Pearson correlation| of the agents' normalised position rows.
+
+    Identically 1 off the diagonal unless an agent's x/cols equals its y/rows (spec §4.5). Computed
+    the way the reference does (centre, divide by std + 1e-9) because the last bits of it break the
+    formation ties.
+    """
+    oc = positions - positions.mean(axis=1, keepdims=True)
+    on = oc / (oc.std(axis=1, keepdims=True) + _EPS)
+    mi = np.abs(on @ on.T) / positions.shape[1]
+    np.fill_diagonal(mi, 0.0)
+    return mi
+
+
+def _clip(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """``np.clip(x, lo, hi, out=x)`` as two ufunc calls (same values, NaN included; np.clip's Python wrappers cost more
+    than the clipping on the small arrays of one agent)."""
+    return np.minimum(np.maximum(x, lo, out=x), hi, out=x)
+
+
+def _zero_diagonal(x: np.ndarray) -> None:
+    """``x[..., i, i] = 0`` for every i of a (..., n, n) array."""
+    n = x.shape[-1]
+    idx = np.arange(n)
+    x[..., idx, idx] = 0.0
+
+
+# --------------------------------------------------------------------------------------------------
+# reference rule set
+
+
+@dataclass
+class ReferenceState:
+    """B replicas of the reference's symmetric n×n state."""
+
+    params: MorphParams
+    n: int
+    replicas: int
+    d_exp: float
+    W: np.ndarray = field(init=False)
+    A: np.ndarray = field(init=False)
+    age: np.ndarray = field(init=False)
+    theta_bcm: np.ndarray = field(init=False)
+    j_prev: np.ndarray = field(init=False)
+    h: np.ndarray = field(init=False)
+    dhat: float = field(init=False)
+    t: int = field(init=False)
+    # last update's bookkeeping, for metrics
+    eta: float = field(init=False, default=0.0)
+    formed: np.ndarray = field(init=False)
+    pruned: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        shape = (self.replicas, self.n, self.n)
+        self.W = np.zeros(shape)
+        self.A = np.zeros(shape)
+        self.age = np.zeros(shape)
+        self.theta_bcm = np.zeros(shape)
+        self.j_prev = np.zeros(shape)
+        self.h = np.full((self.replicas, self.n), self.params.rho_target)
+        self.dhat = self.d_exp
+        self.t = 0
+        self.formed = np.zeros(self.replicas, dtype=int)
+        self.pruned = np.zeros(self.replicas, dtype=int)
+        self._eye = np.eye(self.n, dtype=bool)
+        self._offdiag = ~self._eye
+
+    def reset_links(self) -> None:
+        """MORPH-reset (spec §6): clear W, A, θ_bcm, age and J_prev, h back to ρ_target; keep d̂ and t."""
+        for arr in (self.W, self.A, self.age, self.theta_bcm, self.j_prev):
+            arr[...] = 0.0
+        self.h[...] = self.params.rho_target
+
+    def step(
+        self,
+        positions: np.ndarray,
+        jaccard: np.ndarray,
+        delivery: int,
+        pred: np.ndarray | None,
+    ) -> None:
+        """One ``MORPH.step`` (spec §4.4) applied to every replica.
+
+        positions: (n, 2) normalised (x/cols, y/rows); jaccard: (n, n) co-assignment of this step;
+        delivery: deliveries in this step; pred: the predictive hint or None.
+        """
+        p = self.params
+        self.t += 1
+        self.dhat, eta, alpha_eff, theta_adj = neuromodulation(p, self.dhat, delivery, self.d_exp, self.t)
+        self.eta = eta
+        W, theta, A = self.W, self.theta_bcm, self.A
+        # Element for element the reference's arithmetic, in the same order; fewer calls and no temporaries, because
+        # each agent process runs this on a small (n, n) array every tick, where the per-call overhead is the cost.
+
+        # BCM threshold tracks W before this step's decay
+        theta *= p.bcm_tau
+        scratch = np.multiply(W, 1.0 - p.bcm_tau)
+        theta += scratch
+        _zero_diagonal(theta)
+
+        # decay, with extra decay on mature links that rise above their threshold
+        if p.bcm_gain > 0.0:
+            # extra = bcm_gain · clip(W / (θ + ε) − 1, 0, 3) · (1 − γ) · mature;  W *= clip(γ − extra, 0.5, 1)
+            np.add(theta, _EPS, out=scratch)
+            np.divide(W, scratch, out=scratch)
+            scratch -= 1.0
+            _clip(scratch, 0.0, 3.0)
+            np.multiply(p.bcm_gain, scratch, out=scratch)
+            scratch *= 1.0 - p.gamma
+            scratch *= self.age > p.grace
+            np.subtract(p.gamma, scratch, out=scratch)
+            W *= _clip(scratch, 0.5, 1.0)
+        else:
+            W *= min(max(p.gamma, 0.5), 1.0)
+
+        # Hebbian term with the constant r^t = cov
+        np.multiply(alpha_eff, jaccard, out=scratch)
+        scratch *= p.cov
+        scratch *= A
+        W += scratch
+        # delivery burst credits the pairs co-assigned on the previous step
+        if delivery > 0 and p.reward_alpha > 0.0:
+            credit = np.where(self.j_prev > p.credit_threshold, self.j_prev, 0.0)
+            self.W += p.reward_alpha * delivery * credit * self.A
+        self.j_prev[...] = jaccard
+        _clip(W, 0.0, 1.0)
+        _zero_diagonal(W)
+
+        # homeostasis every step, from the degrees before the structural update
+        deg = A.sum(axis=2)
+        self.h += p.beta * (p.rho_target * (self.n - 1) - deg) / (self.n - 1)
+        _clip(self.h, 0.0, 1.0)
+
+        self.formed[:] = 0
+        self.pruned[:] = 0
+        if self.t % p.k == 0:
+            self._structural(positions, pred, theta_adj)
+
+        # age + 1 on links, 0 elsewhere (the reference's np.where, in place: age ≥ 0, so no −0.0 appears)
+        age = self.age
+        age += 1.0
+        age *= A > 0
+
+    def _structural(self, positions: np.ndarray, pred: np.ndarray | None, theta_adj: float) -> None:
+        p = self.params
+        n = self.n
+        mi = position_mi(positions)
+        if pred is not None and p.pred_boost > 0.0:
+            mi = _clip(mi + p.pred_boost * pred, 0.0, 1.0)
+            np.fill_diagonal(mi, 0.0)
+
+        prune = (self.A > 0) & (self.W < p.theta_prune) & (self.age > p.grace)
+        if prune.any():  # rare: most structural steps prune nothing (self.pruned is 0 already)
+            self.pruned[:] = prune.sum(axis=(1, 2)) // 2
+            for arr in (self.A, self.W, self.theta_bcm, self.age):
+                arr[prune] = 0.0
+
+        gain = self.h[:, :, None] + self.h[:, None, :]
+        score = mi[None, :, :] * (1.0 + gain)
+        score[(self.A != 0) | self._eye] = -1.0
+        if self.replicas == 1:
+            self._form_one(score[0], p.max_new(n), theta_adj)
+            return
+        flat = score.reshape(self.replicas, n * n)
+        rows = np.arange(self.replicas)
+        active = np.ones(self.replicas, dtype=bool)
+        for _ in range(p.max_new(n)):
+            idx = flat.argmax(axis=1)
+            ok = active & (flat[rows, idx] >= theta_adj)
+            active = ok
+            if not ok.any():
+                break
+            b = rows[ok]
+            i, j = np.divmod(idx[ok], n)
+            self.A[b, i, j] = 1.0
+            self.A[b, j, i] = 1.0
+            self.age[b, i, j] = 0.0
+            self.age[b, j, i] = 0.0
+            for x in (i, j):  # each agent gains at most one new link per structural step
+                score[b, x, :] = -1.0
+                score[b, :, x] = -1.0
+            self.formed[b] += 1
+
+    def _form_one(self, score: np.ndarray, max_new: int, theta_adj: float) -> None:
+        """The greedy formation above for a single replica (an agent process): the same picks with scalar indices."""
+        n = self.n
+        flat = score.reshape(n * n)
+        A, age = self.A[0], self.age[0]
+        formed = 0
+        for _ in range(max_new):
+            idx = int(flat.argmax())
+            if not flat[idx] >= theta_adj:
+                break
+            i, j = divmod(idx, n)
+            A[i, j] = A[j, i] = 1.0
+            age[i, j] = age[j, i] = 0.0
+            for x in (i, j):  # each agent gains at most one new link per structural step
+                score[x, :] = -1.0
+                score[:, x] = -1.0
+            formed += 1
+        self.formed[0] = formed
+
+
+# --------------------------------------------------------------------------------------------------
+# paper rule set
+
+
+def entropy_columns(labels: np.ndarray) -> np.ndarray:
+    """Plug-in entropy (nats) of each column of an integer (T, M) array."""
+    T = labels.shape[0]
+    s = np.sort(labels, axis=0)
+    # Σ_values c·log c = Σ_positions log(run length of the position's value)
+    new = np.ones_like(s, dtype=bool)
+    new[1:] = s[1:] != s[:-1]
+    idx = np.arange(T)[:, None]
+    start = np.maximum.accumulate(np.where(new, idx, 0), axis=0)
+    end_marker = np.ones_like(s, dtype=bool)
+    end_marker[:-1] = new[1:]
+    end = np.minimum.accumulate(np.where(end_marker, idx, T - 1)[::-1], axis=0)[::-1]
+    counts = end - start + 1
+    return np.log(T) - np.log(counts).sum(axis=0) / T
+
+
+def coassignment_rate(history: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(len(rows), n): share of agent i's busy ticks in the window on which agent j held the same task.
+
+    The plug-in estimate of P(T_j = T_i | T_i ≠ ∅) over the history; 0 for an agent idle all window.
+    """
+    own = history[:, rows]
+    same = (own[:, :, None] == history[:, None, :]) & (own[:, :, None] > 0)
+    busy = (own > 0).sum(axis=0)
+    rate = same.sum(axis=0) / np.maximum(busy, 1)[:, None]
+    rate[np.arange(len(rows)), rows] = 0.0
+    return rate
+
+
+def history_nmi(history: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Normalised mutual information between task-label histories.
+
+    history: (T, n) task ids (0 = idle) over the last T ticks. Returns (len(rows), n):
+    MI(X_i; X_j) / sqrt(H(X_i) H(X_j)) for i in ``rows`` (0 where either history is constant).
+    """
+    T, n = history.shape
+    hx = np.maximum(entropy_columns(history), 0.0)
+    big = int(history.max()) + 1
+    joint = history[:, rows, None].astype(np.int64) * big + history[:, None, :]
+    hj = entropy_columns(joint.reshape(T, -1)).reshape(len(rows), n)
+    mi = hx[rows, None] + hx[None, :] - hj
+    denom = np.sqrt(hx[rows, None] * hx[None, :])
+    out = np.where(denom > 1e-12, mi / np.maximum(denom, 1e-12), 0.0)
+    out = np.clip(out, 0.0, 1.0)
+    out[np.arange(len(rows)), rows] = 0.0
+    return out
+
+
+@dataclass
+class PaperInputs:
+    """What one paper-preset update needs, derived from a tick (arrays over all n agents)."""
+
+    task: np.ndarray  # (n,) task ids during the step (0 idle); T_i is built from them over a window
+    reward: np.ndarray  # (n,) each agent's step reward (see PaperState.step)
+    delivered: np.ndarray  # (n,) bool
+    loader: np.ndarray  # (n,) int picker that loaded each delivered shelf
+    deliveries: int
+    hint: np.ndarray  # (n, n) 0/1 anticipated co-assignment (non-spatial)
+
+
+@dataclass
+class PaperState:
+    """Directed out-rows of the agents ``owners`` (B of the n agents)."""
+
+    params: MorphParams
+    n: int
+    owners: np.ndarray
+    d_exp: float
+    W: np.ndarray = field(init=False)
+    A: np.ndarray = field(init=False)
+    age: np.ndarray = field(init=False)
+    theta_bcm: np.ndarray = field(init=False)
+    h: np.ndarray = field(init=False)
+    history: np.ndarray = field(init=False)  # (window, n) task labels seen in ticks
+    filled: int = field(init=False)
+    dhat: float = field(init=False)
+    baseline: float = field(init=False)
+    t: int = field(init=False)
+    eta: float = field(init=False, default=0.0)
+    formed: np.ndarray = field(init=False)
+    pruned: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.owners = np.asarray(self.owners, dtype=int)
+        b = len(self.owners)
+        shape = (b, self.n)
+        self.W = np.zeros(shape)
+        self.A = np.zeros(shape)
+        self.age = np.zeros(shape)
+        self.theta_bcm = np.zeros(shape)
+        self.h = np.zeros(b)
+        self.history = np.zeros((self.params.mi_window, self.n), dtype=np.int64)
+        self.filled = 0
+        self.dhat = self.d_exp
+        self.baseline = self.d_exp
+        self.t = 0
+        self.formed = np.zeros(b, dtype=int)
+        self.pruned = np.zeros(b, dtype=int)
+        self._self = (np.arange(b), self.owners)
+
+    def reset_links(self) -> None:
+        for arr in (self.W, self.A, self.age, self.theta_bcm):
+            arr[...] = 0.0
+        self.h[...] = 0.0
+
+    def task_jaccard(self) -> np.ndarray:
+        """(B, n) Jaccard of task sets: T_i = the distinct tasks agent i held in the last ``task_window`` ticks."""
+        p = self.params
+        hist = self.history[-min(self.filled, p.task_window):] if self.filled else self.history[-1:]
+        labels, inv = np.unique(hist, return_inverse=True)
+        member = np.zeros((self.n, labels.size), dtype=bool)
+        member[np.tile(np.arange(self.n), hist.shape[0]), inv.reshape(-1)] = True
+        member[:, labels == 0] = False  # idle is not a task
+        m = member.astype(float)
+        inter = m[self.owners] @ m.T
+        size = m.sum(axis=1)
+        union = size[self.owners][:, None] + size[None, :] - inter
+        jac = np.where(union > 0, inter / np.maximum(union, 1.0), 0.0)
+        jac[self._self] = 0.0
+        return jac
+
+    def step(self, x: PaperInputs) -> None:
+        p = self.params
+        own = self.owners
+        self.t += 1
+
+        # the task history every agent keeps from the ticks (input of J and of MI)
+        self.history[:-1] = self.history[1:]
+        self.history[-1] = x.task
+        self.filled = min(self.filled + 1, p.mi_window)
+
+        # R4a: BCM threshold before the Hebbian step; extra decay on mature links above it
+        self.theta_bcm *= p.bcm_tau
+        self.theta_bcm += (1.0 - p.bcm_tau) * self.W
+        mature = self.age > p.grace
+        ratio = self.W / (self.theta_bcm + _EPS)
+        extra = p.bcm_gain * _clip(ratio - 1.0, 0.0, 3.0) * (1.0 - p.gamma) * mature
+        retention = _clip(p.gamma - extra, 0.5, 1.0)
+
+        # Algorithm 1 runs R4b after R1, so R1 uses the α modulated by the previous step's η
+        alpha_eff = p.alpha * (1.0 + p.neuromod_gain * max(self.eta, 0.0))
+
+        # R1, Eq. 2: W ← γW + α J r A with J the Jaccard of recent task sets and r the agent's own step
+        # reward (TA-RWARE's individual reward: +1 to the delivering AGV, +0.1 to the picker per load/unload,
+        # -0.001 per step). Only J > 0.25 is credited, so the AGV's delivery strengthens its link to the
+        # picker that shared the delivered task, not every co-active pair.
+        jac = self.task_jaccard()
+        self.last_jaccard = jac
+        credit = np.where(jac > p.credit_threshold, jac, 0.0)
+        r = x.reward[own] if p.use_step_reward else np.full(len(own), p.cov)
+        self.W *= retention
+        self.W += alpha_eff * credit * r[:, None] * self.A
+        # α_r: the picker that loaded a delivered shelf is credited for the delivery too (its own reward
+        # for it is 0 in TA-RWARE's individual scheme)
+        if p.reward_alpha > 0.0 and x.deliveries > 0:
+            helped = (x.loader[None, :] == own[:, None]) & x.delivered[None, :]
+            if helped.any():
+                self.W += p.reward_alpha * helped * self.A
+        _clip(self.W, 0.0, 1.0)
+        self.W[self._self] = 0.0
+
+        # R4b: η compares the delivery rate with a running baseline (fixed d_exp if baseline_ema = 0)
+        self.dhat, self.eta, _, theta_adj = neuromodulation(p, self.dhat, x.deliveries, self.baseline, self.t)
+        self.baseline += p.baseline_ema * (x.deliveries - self.baseline)
+
+        self.formed[:] = 0
+        self.pruned[:] = 0
+        if self.t % p.k == 0:
+            self._structural(x, theta_adj)
+            # R2 every k steps, from h = 0
+            deg = self.A.sum(axis=1)
+            self.h += p.beta * (p.rho_target - deg / (self.n - 1))
+            _clip(self.h, p.h_min, p.h_max)
+
+        self.age = np.where(self.A > 0, self.age + 1.0, 0.0)
+
+    def _structural(self, x: PaperInputs, theta_adj: float) -> None:
+        p = self.params
+        own = self.owners
+        hist = self.history[-self.filled :] if self.filled >= 2 else self.history[-2:]
+        if p.mi_estimator == "nmi":
+            mi = history_nmi(hist, own)
+        else:
+            mi = coassignment_rate(hist, own)
+        if p.use_pred_hint and p.pred_boost > 0.0:
+            mi = mi + p.pred_boost * x.hint[own]
+        # Eq. 3-4 prune (age ≥ g) then form; a pair pruned now waits for the next structural step
+        prune = (self.A > 0) & (self.W < p.theta_prune) & (self.age >= p.grace)
+        self.pruned[:] = prune.sum(axis=1)
+        for arr in (self.A, self.W, self.theta_bcm, self.age):
+            arr[prune] = 0.0
+        # H_gain,ij = h_i + h_j; an agent knows only its own h, so it uses 2 h_i
+        score = mi * (1.0 + 2.0 * self.h[:, None])
+        cand = (self.A == 0) & ~prune & (score >= theta_adj)
+        cand[self._self] = False
+        cap = p.max_new(self.n)
+        if cap < self.n:
+            # keep the best `cap` candidates of each row (stable: ties by index)
+            masked = np.where(cand, score, -np.inf)
+            order = np.argsort(-masked, axis=1, kind="stable")[:, :cap]
+            keep = np.zeros_like(cand)
+            np.put_along_axis(keep, order, True, axis=1)
+            cand &= keep
+        self.A[cand] = 1.0
+        self.age[cand] = 0.0
+        self.formed[:] = cand.sum(axis=1)

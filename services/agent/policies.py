@@ -1,0 +1,502 @@
+"""Coordination policies: what an agent needs to decide dispatch requests and to learn.
+
+One small interface, used unchanged by the in-process lab and by the per-agent services:
+
+* a :class:`CoordinationPolicy` is a stateless description (``full``, ``constant``, ``tsg``,
+  ``proximity``, ``none``, ``morph``) that builds :class:`Brains`;
+* :class:`Brains` hold the coordination state of a set of *owned* agents (one agent in a service
+  process, all agents in the lab, where the updates are vectorised across them). Each owned agent has
+  its own state slice and its own seeded :class:`numpy.random.Generator` for gate draws; nothing is
+  read across agents. An agent learns only from :class:`~.observation.TickObservation` objects.
+
+Per tick (DESIGN §3): ``learn(obs)`` applies the update for step ``t-1``; then each AGV that needs a
+picker takes ``candidate(agv, obs, free)`` and, if ``draws`` is true, draws ``draw(agv)`` and asks
+when the draw is below ``probability(agv, picker, obs)``. Policies with ``draws = False`` (full, none)
+dispatch with P = 1 or 0 and consume no random number, as in the reference.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from services.agent.observation import NEEDS_PICKER, TickObservation
+from services.agent.plasticity import PaperInputs, PaperState, ReferenceState
+from services.agent.presets import ABLATIONS, MorphParams, load_preset
+
+W_FLOOR = 0.25  # the reference's gate floor for the memoryless gates (TSG, Proximity)
+
+
+@dataclass(frozen=True)
+class Fleet:
+    """The fleet an agent belongs to: sizes (AGVs first) and the scale name (for d_exp)."""
+
+    n_agvs: int
+    n_pickers: int
+    scale: str | None = None
+
+    @property
+    def n(self) -> int:
+        return self.n_agvs + self.n_pickers
+
+
+def agent_rng(seed: int, agent: int) -> np.random.Generator:
+    """Agent ``agent``'s own gate stream: independent of the warehouse's and of the other agents'."""
+    return np.random.default_rng(np.random.SeedSequence(entropy=seed, spawn_key=(agent,)))
+
+
+class Brains(ABC):
+    """Coordination state of the agents in ``owners`` (indices into the fleet)."""
+
+    #: whether the gate consumes a uniform draw per request
+    draws: ClassVar[bool] = True
+    #: whether links are recomputed from the current tick (no memory): then the links of step t are
+    #: known after ``learn(obs_t)``; for plastic policies they are known after ``learn(obs_{t+1})``
+    memoryless: ClassVar[bool] = True
+
+    def __init__(self, fleet: Fleet, owners, seed: int) -> None:
+        self.fleet = fleet
+        self.owners = np.asarray(list(owners), dtype=int)
+        if self.owners.size and (self.owners.min() < 0 or self.owners.max() >= fleet.n):
+            raise ValueError(f"owners: agent indices must lie in 0..{fleet.n - 1}")
+        self._slot = {int(a): k for k, a in enumerate(self.owners)}
+        self._rngs = [agent_rng(seed, int(a)) for a in self.owners]
+
+    def slot(self, agent: int) -> int:
+        try:
+            return self._slot[agent]
+        except KeyError:
+            raise ValueError(f"agent: {agent} is not owned by these brains") from None
+
+    def draw(self, agent: int) -> float:
+        """One uniform draw from the agent's own gate stream."""
+        return float(self._rngs[self.slot(agent)].random())
+
+    def learn(self, obs: TickObservation) -> None:  # noqa: B027 - memoryless default
+        """Apply the update for step ``obs.t - 1`` (and refresh per-tick topology)."""
+
+    def candidate(self, agv: int, obs: TickObservation, free: np.ndarray | None = None) -> int:
+        """The picker this AGV asks: the nearest free one to its target (the reference's rule)."""
+        return obs.nearest_free_picker(agv, free)
+
+    @abstractmethod
+    def probability(self, agv: int, picker: int, obs: TickObservation) -> float:
+        """P(respond) for this AGV asking this picker at this tick."""
+
+    @abstractmethod
+    def link_rows(self) -> np.ndarray:
+        """(B, n) 0/1 out-links of the owned agents (row k is agent owners[k])."""
+
+    def out_links(self, agent: int) -> list[int]:
+        """The robot ids owned agent ``agent`` links to (what its ack reports every tick)."""
+        return np.flatnonzero(self.link_rows()[self.slot(agent)]).tolist()
+
+    def weight_rows(self) -> np.ndarray:
+        """(B, n) preference weights of the owned agents (the gate's W)."""
+        return self.link_rows().astype(float)
+
+    # metrics helpers for a bank that owns the whole fleet
+    def team_links(self) -> np.ndarray:
+        """(n, n) the fleet's link matrix, row i from agent i's own state (needs all agents owned)."""
+        return self._team(self.link_rows())
+
+    def team_weights(self) -> np.ndarray:
+        return self._team(self.weight_rows())
+
+    def _team(self, rows: np.ndarray) -> np.ndarray:
+        n = self.fleet.n
+        if len(self.owners) != n:
+            raise ValueError("owners: the team view needs every agent of the fleet")
+        out = np.zeros((n, n))
+        out[self.owners] = rows
+        return out
+
+    def extra_metrics(self) -> dict[str, float]:
+        return {}
+
+
+class CoordinationPolicy(ABC):
+    """A named coordination policy; ``brains`` builds the per-agent state."""
+
+    name: str = ""
+
+    @abstractmethod
+    def brains(self, fleet: Fleet, owners, seed: int) -> Brains: ...
+
+    def describe(self) -> dict:
+        return {"name": self.name}
+
+
+# --------------------------------------------------------------------------------------------------
+# memoryless policies
+
+
+class _FullBrains(Brains):
+    draws = False
+
+    def probability(self, agv, picker, obs):
+        return 1.0
+
+    def link_rows(self):
+        rows = np.ones((len(self.owners), self.fleet.n))
+        rows[np.arange(len(self.owners)), self.owners] = 0.0
+        return rows
+
+
+class _NoneBrains(Brains):
+    draws = False
+
+    def probability(self, agv, picker, obs):
+        return 0.0
+
+    def link_rows(self):
+        return np.zeros((len(self.owners), self.fleet.n))
+
+
+class _ConstantBrains(Brains):
+    def __init__(self, fleet, owners, seed, p: float) -> None:
+        super().__init__(fleet, owners, seed)
+        self.p = p
+
+    def probability(self, agv, picker, obs):
+        return self.p
+
+    def link_rows(self):
+        return np.zeros((len(self.owners), self.fleet.n))
+
+
+class _TopologyBrains(Brains):
+    """Gate 0.25 + 0.75·A[agv, picker] with A recomputed from the current tick."""
+
+    def __init__(self, fleet, owners, seed) -> None:
+        super().__init__(fleet, owners, seed)
+        self._rows = np.zeros((len(self.owners), fleet.n))
+
+    def learn(self, obs):
+        self._rows = self._topology(obs)
+
+    @abstractmethod
+    def _topology(self, obs: TickObservation) -> np.ndarray: ...
+
+    def probability(self, agv, picker, obs):
+        return W_FLOOR + (1.0 - W_FLOOR) * float(self._rows[self.slot(agv), picker])
+
+    def link_rows(self):
+        return self._rows
+
+
+class _TSGBrains(_TopologyBrains):
+    def _topology(self, obs):
+        # pairs sharing a current mission target (before dispatch): a free picker has none, so the
+        # gate entry for the candidate is always 0 — TSG behaves as a constant 0.25 gate (spec §1.9)
+        return obs.coassignment(previous=False)[self.owners]
+
+
+class _ProximityBrains(_TopologyBrains):
+    def __init__(self, fleet, owners, seed, radius: int) -> None:
+        super().__init__(fleet, owners, seed)
+        self.radius = radius
+
+    def _topology(self, obs):
+        c = obs.cells
+        mine = c[self.owners]
+        d = np.abs(mine[:, None, 0] - c[None, :, 0]) + np.abs(mine[:, None, 1] - c[None, :, 1])
+        rows = (d <= self.radius).astype(float)
+        rows[np.arange(len(self.owners)), self.owners] = 0.0
+        return rows
+
+
+class _SimplePolicy(CoordinationPolicy):
+    """A policy whose brains are ``BRAINS(fleet, owners, seed, *parameters)``; ``PARAMS`` names the parameter
+    fields, each checked on creation (:meth:`_problem`) and shown by :meth:`describe`."""
+
+    BRAINS: ClassVar[type[Brains]]
+    PARAMS: ClassVar[tuple[str, ...]] = ()
+
+    def __post_init__(self):
+        for param in self.PARAMS:
+            problem = self._problem(getattr(self, param))
+            if problem:
+                raise ValueError(f"{param}: {problem}")
+
+    def _problem(self, value) -> str | None:
+        """Why ``value`` is not a valid parameter, or None."""
+        return None
+
+    def brains(self, fleet, owners, seed):
+        return self.BRAINS(fleet, owners, seed, *(getattr(self, param) for param in self.PARAMS))
+
+    def describe(self):
+        return {"name": self.name, **{param: getattr(self, param) for param in self.PARAMS}}
+
+
+@dataclass(frozen=True)
+class FullPolicy(_SimplePolicy):
+    name: str = "full"
+    BRAINS: ClassVar[type[Brains]] = _FullBrains
+
+
+@dataclass(frozen=True)
+class NonePolicy(_SimplePolicy):
+    name: str = "none"
+    BRAINS: ClassVar[type[Brains]] = _NoneBrains
+
+
+@dataclass(frozen=True)
+class ConstantPolicy(_SimplePolicy):
+    p: float = 0.25
+    name: str = "constant"
+    BRAINS: ClassVar[type[Brains]] = _ConstantBrains
+    PARAMS: ClassVar[tuple[str, ...]] = ("p",)
+
+    def _problem(self, value):
+        return None if 0.0 <= value <= 1.0 else f"gate probability must lie in [0, 1], got {value}"
+
+
+@dataclass(frozen=True)
+class TSGPolicy(_SimplePolicy):
+    name: str = "tsg"
+    BRAINS: ClassVar[type[Brains]] = _TSGBrains
+
+
+@dataclass(frozen=True)
+class ProximityPolicy(_SimplePolicy):
+    radius: int = 4
+    name: str = "proximity"
+    BRAINS: ClassVar[type[Brains]] = _ProximityBrains
+    PARAMS: ClassVar[tuple[str, ...]] = ("radius",)
+
+    def _problem(self, value):
+        return None if value >= 0 else f"must be >= 0, got {value}"
+
+
+#: the radii the reference's calibration tries (spec §6)
+PROXIMITY_RADII = (2, 3, 4, 5, 6, 8, 10)
+
+
+def calibrate_radius(target_links: float, mean_links_for_radius, radii=PROXIMITY_RADII) -> int:
+    """The reference's calibration: the radius whose mean link count is closest to ``target_links``.
+
+    ``mean_links_for_radius(r)`` runs one Proximity episode (seed 42 in the reference) and returns its
+    mean link count. Ties keep the first radius (strict improvement only, as in the reference).
+    """
+    best_r, best = radii[0], float("inf")
+    for r in radii:
+        diff = abs(mean_links_for_radius(r) - target_links)
+        if diff < best:
+            best_r, best = r, diff
+    return best_r
+
+
+# --------------------------------------------------------------------------------------------------
+# MORPH
+
+
+_PICKING, _RETURNING = (int(m) for m in NEEDS_PICKER)  # plain ints: numpy compares them without enum lookups
+
+
+def reference_hint(obs: TickObservation) -> np.ndarray:
+    """The reference's predictive hint δ_pred (spec §4.8) for the step before ``obs``.
+
+    For every AGV that had a PICKING or RETURNING mission, the picker nearest (Manhattan, from the
+    pickers' post-move cells, busy ones included, first on ties) to the AGV's target is hinted.
+    """
+    n, na = obs.n, obs.n_agvs
+    pred = np.zeros((n, n))
+    pm = obs.prev_mission[:na]
+    agvs = np.flatnonzero((pm == _PICKING) | (pm == _RETURNING))
+    if agvs.size == 0 or obs.n_pickers == 0:
+        return pred
+    # Manhattan distances (AGV target, picker cell): |dx| + |dy| summed over the last axis (integers, exact)
+    d = np.abs(obs.cells[None, na:] - obs.prev_target[agvs, None]).sum(axis=2)
+    nearest = na + d.argmin(axis=1)
+    pred[agvs, nearest] = 1.0
+    pred[nearest, agvs] = 1.0
+    return pred
+
+
+def open_request_hint(obs: TickObservation) -> np.ndarray:
+    """The paper preset's non-spatial predictive hint: an AGV waiting for a picker and a free picker.
+
+    Both will be co-assigned as soon as one of them is dispatched to the other, so the pair is an
+    anticipated co-assignment; no position enters.
+    """
+    pairs = np.outer(obs.needs_picker, obs.free_picker)  # (waiting AGV, free picker), both ways below
+    hint = (pairs | pairs.T).astype(float)
+    np.fill_diagonal(hint, 0.0)
+    return hint
+
+
+HANDLING_REWARD = 0.1  # TA-RWARE's reward for a load or unload (paid to the picker only)
+
+
+def paper_step_reward(obs: TickObservation) -> np.ndarray:
+    """r_i^t for the paper preset: the reward of the step's events agent i took part in.
+
+    TA-RWARE's individual reward (+1 delivery to the AGV, +0.1 per load/unload to the picker, -0.001
+    per step), with the +0.1 of a load or unload also counted for the AGV that made it: the event is
+    joint, and only an AGV's row gates dispatch.
+    """
+    r = obs.reward.astype(float).copy()
+    agv = np.zeros(obs.n, dtype=bool)
+    agv[: obs.n_agvs] = True
+    r[agv & obs.handled] += HANDLING_REWARD
+    return r
+
+
+class MorphBrains(Brains):
+    memoryless = False
+
+    def __init__(self, fleet, owners, seed, preset: str, params: MorphParams, share_replicas: bool = True) -> None:
+        super().__init__(fleet, owners, seed)
+        self.preset = preset
+        self.params = params
+        d_exp = params.d_exp(fleet.scale)
+        b = len(self.owners)
+        if preset == "reference":
+            # Every owned agent has its own replica of the symmetric state. Replicas created at the same tick
+            # and fed the same ticks are identical, so a bank that owns several agents may store them once
+            # (``share_replicas``); ``_rep[k]`` is where owned agent k's replica lives.
+            copies = 1 if (share_replicas and b > 0) else max(b, 1)
+            self.state = ReferenceState(params, fleet.n, copies, d_exp)
+            self._rep = np.zeros(b, dtype=int) if copies == 1 else np.arange(b)
+        else:
+            self.state = PaperState(params, fleet.n, self.owners, d_exp)
+
+    def learn(self, obs: TickObservation) -> None:
+        p = self.params
+        if obs.has_previous:
+            if self.preset == "reference":
+                rows, cols = obs.grid_shape
+                positions = obs.cells / np.array([cols, rows], dtype=float)
+                pred = reference_hint(obs) if p.use_pred_hint else None
+                self.state.step(positions, obs.coassignment(previous=True), obs.deliveries, pred)
+            else:
+                hint = open_request_hint(obs) if p.use_pred_hint else np.zeros((obs.n, obs.n))
+                self.state.step(
+                    PaperInputs(
+                        task=obs.prev_task,
+                        reward=paper_step_reward(obs),
+                        delivered=obs.delivered,
+                        loader=obs.loader,
+                        deliveries=obs.deliveries,
+                        hint=hint,
+                    )
+                )
+        if p.reset_every and obs.t > 0 and obs.t % p.reset_every == 0 and not obs.final:
+            self.state.reset_links()
+
+    def _rows(self, arr: np.ndarray) -> np.ndarray:
+        if self.preset == "reference":
+            return arr[self._rep, self.owners]
+        return arr
+
+    def candidate(self, agv, obs, free=None):
+        if self.params.candidate == "nearest":
+            return obs.nearest_free_picker(agv, free)
+        free = obs.free_picker if free is None else free
+        pickers = np.flatnonzero(free)
+        if pickers.size == 0:
+            return -1
+        k = self.slot(agv)
+        if self.preset == "reference":
+            r = self._rep[k]
+            w, a = self.state.W[r, agv, pickers], self.state.A[r, agv, pickers]
+        else:
+            w, a = self.state.W[k, pickers], self.state.A[k, pickers]
+        tx, ty = obs.target[agv]
+        d = np.abs(obs.cells[pickers, 0] - tx) + np.abs(obs.cells[pickers, 1] - ty)
+        # ask over a link first, the most preferred partner first, then the nearest, then the lowest index
+        best = np.lexsort((pickers, d, -w, -a))[0]
+        return int(pickers[best])
+
+    def probability(self, agv, picker, obs):
+        k = self.slot(agv)
+        w = self.state.W[self._rep[k], agv, picker] if self.preset == "reference" else self.state.W[k, picker]
+        return self.params.w_floor + (1.0 - self.params.w_floor) * float(w)
+
+    def link_rows(self):
+        return self._rows(self.state.A)
+
+    def out_links(self, agent):
+        k = self.slot(agent)
+        row = self.state.A[self._rep[k], agent] if self.preset == "reference" else self.state.A[k]
+        return np.flatnonzero(row).tolist()
+
+    def weight_rows(self):
+        return self._rows(self.state.W)
+
+    def extra_metrics(self):
+        s = self.state
+        return {
+            "eta": float(s.eta),
+            "h_mean": float(np.mean(self._h_rows())),
+            "formed": float(s.formed.mean()),
+            "pruned": float(s.pruned.mean()),
+        }
+
+    def _h_rows(self):
+        if self.preset == "reference":
+            return self.state.h[self._rep, self.owners]
+        return self.state.h
+
+    def h(self) -> np.ndarray:
+        """(B,) homeostatic variable of each owned agent."""
+        return self._h_rows()
+
+
+@dataclass(frozen=True)
+class MorphPolicy(CoordinationPolicy):
+    preset: str = "reference"
+    ablation: str | None = None
+    name: str = "morph"
+    #: store identical reference replicas of co-owned agents once (see MorphBrains)
+    share_replicas: bool = True
+    #: override of the preset's reset period (the shift experiment's phase length for MORPH-reset); None: keep
+    reset_every: int | None = None
+
+    def __post_init__(self):
+        loaded = load_preset(self.preset)
+        if self.ablation not in (None, "full") and self.ablation not in ABLATIONS:
+            raise ValueError(f"ablation: unknown {self.ablation!r} (known: {', '.join(ABLATIONS)})")
+        if self.reset_every is not None and self.reset_every < 0:
+            raise ValueError(f"reset_every: must be >= 0, got {self.reset_every}")
+        loaded.resolve(self.ablation)
+
+    @property
+    def params(self) -> MorphParams:
+        params = load_preset(self.preset).resolve(self.ablation)
+        if self.reset_every is not None:
+            params = params.model_copy(update={"reset_every": self.reset_every})
+        return params
+
+    def brains(self, fleet, owners, seed):
+        preset = load_preset(self.preset)
+        return MorphBrains(fleet, owners, seed, preset.rules, self.params, self.share_replicas)
+
+    def describe(self):
+        return {"name": self.name, "preset": self.preset, "ablation": self.ablation or "full"}
+
+
+POLICY_NAMES = ("full", "constant", "tsg", "proximity", "none", "morph")
+
+
+def make_policy(name: str, **options) -> CoordinationPolicy:
+    """A policy by name with its options (p for constant, radius for proximity, preset/ablation for morph)."""
+    classes = {
+        "full": FullPolicy,
+        "none": NonePolicy,
+        "constant": ConstantPolicy,
+        "tsg": TSGPolicy,
+        "proximity": ProximityPolicy,
+        "morph": MorphPolicy,
+    }
+    if name not in classes:
+        raise ValueError(f"policy: unknown {name!r} (known: {', '.join(POLICY_NAMES)})")
+    try:
+        return classes[name](**options)
+    except TypeError as exc:
+        raise ValueError(f"policy.{name}: {exc}") from None

@@ -1,0 +1,421 @@
+"""The agent service: one robot's coordination brain, learning and deciding from messages only.
+
+It owns that robot's :class:`~services.agent.policies.Brains` (its plasticity state and its own seeded
+RNG) and nothing else. Per tick ``t`` (DESIGN §3):
+
+* on ``Tick`` it rebuilds the observation from the message alone, applies the plasticity update of step t−1,
+  and, as an AGV that needs a picker, picks a candidate by the policy's rule, draws its gate and on success sends a
+  ``HelpRequest`` to that picker; then it acks (with its out-links, for the monitor);
+* as a picker, on ``Resolve`` it waits for the requests it was told to expect, takes the first in mission order
+  (deterministic), sends ``Commit`` to the sim and ``HelpReply`` to every requester;
+* every ``state_every`` ticks (and at the final tick) it publishes its state (row of W, links, h, η).
+
+The final tick (``t == steps``) only reports the last step: the agent learns and acks, and never asks.
+Bad input never stops the agent: rejected messages are counted and logged.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from schemas import Ack, AgentState, Commit, Event, HelpReply, HelpRequest, Phase, Resolve, Stop, Tick
+from schemas.codec import encode_fields, unpack_envelope
+from schemas.hot import decode_tick
+from schemas.keys import RunKeys
+from services.agent.policies import Fleet, MorphBrains
+from services.bus.base import Bus, Sample
+from services.rejects import Rejects
+from services.runconfig import RunConfig
+from services.sim.clock import observation_from_arrays
+
+log = logging.getLogger("morph_sim.agent")
+
+STOP_GRACE = 3.0  # seconds an agent waits for the sim's end of run after someone else's stop
+
+def _ack_fields() -> set[str]:
+    return set(Ack.model_fields)
+
+
+@dataclass
+class AgentCounters:
+    ticks: int = 0
+    requests: int = 0
+    commits: int = 0
+    rejected: int = 0
+
+
+class AgentService:
+    """Agent ``agent_id`` of the run of ``config`` over ``bus``. ``await run()`` until stop."""
+
+    def __init__(self, config: RunConfig, bus: Bus, agent_id: int, *, restore: bool = True, faults=None):
+        # issue 5: this process's FaultRuntime (ingress faults on what this agent receives, its ctl/faults
+        # controller, sim-time stamps); in virtual time it advances on every Tick/Resolve that arrives (_on_arrival)
+        self.faults = faults
+        # picker, with faults: t -> AGVs whose request arrived but was dropped (or held past the boundary)
+        self._arrived: dict[int, set[int]] = {}
+        # restore (issue 5): a (re)started agent loads its plasticity state from the monitor's latest states
+        # (state/agent/*) before it joins; a first start finds none. restore=False is the cold restart.
+        self.restore = restore
+        self.restored_from: AgentState | None = None
+        if not 0 <= agent_id < config.n_agents:
+            raise ValueError(f"id: agent {agent_id} outside 0..{config.n_agents - 1} for this fleet")
+        self.config = config
+        self._rejects = Rejects(log, f"agent {agent_id}")
+        self.bus = bus
+        self.id = agent_id
+        self.keys = RunKeys(config.run_id)
+        self.is_agv = agent_id < config.n_agvs
+        self.role = "agv" if self.is_agv else "picker"
+        fleet = Fleet(config.n_agvs, config.n_pickers, config.scale)
+        self.brains = config.make_policy().brains(fleet, [agent_id], config.seed)
+        self.counters = AgentCounters()
+        self.last_t = -1
+        self._ack_extras = _ack_fields() & {"links", "eta"}
+        self._stop = asyncio.Event()
+        self._seq = 0
+        # picker side: requests received per tick, and the resolve being decided
+        self._inbox: dict[int, dict[int, HelpRequest]] = {}
+        self._pending: tuple[int, list[int]] | None = None
+        self._resolved_t = -1  # the last tick this picker decided: a duplicated Resolve never decides twice
+        self._pending_timer: asyncio.TimerHandle | None = None
+        self._stop_timer: asyncio.TimerHandle | None = None
+        # The hot path (tick, request, resolve) runs inline on the transport's receive thread; the resolve deadline
+        # fires on the loop. This lock keeps the picker's inbox and pending resolve consistent between the two.
+        self._lock = threading.RLock()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._virtual = faults is not None and faults.vtime is not None
+
+    def _reject(self, what: str, why: object) -> None:
+        self._rejects.count(what, why)
+        self.counters.rejected = self._rejects.total
+
+    # -- lifecycle -----------------------------------------------------------------------------------------------------
+    async def run(self) -> AgentCounters:
+        k, bus = self.keys, self.bus
+        self._loop = asyncio.get_running_loop()
+        if self.faults is not None:
+            layer = self.faults.attach(bus, meter=False, receiver=self.id)  # stamps sim time if virtual
+            layer.on_fate = self._on_arrival
+            self._layer = layer
+            await self.faults.start()  # ctl/faults, and the schedule from time 0
+        restored = await self._restore() if self.restore else None
+        # inline: the lock-step hot path skips the hop to the loop (3-4x the tick rate over Zenoh, zenoh.md §4c)
+        await bus.subscribe(k.tick, self._on_tick, inline=True)
+        await bus.subscribe(k.event("sim"), self._on_probe)
+        await bus.subscribe(k.stop, self._on_stop)
+        if not self.is_agv:
+            await bus.subscribe(k.resolve, self._on_resolve, inline=True)
+            await bus.subscribe(k.requests_to(self.id), self._on_request, inline=True)
+        else:
+            await bus.subscribe(k.replies_to(self.id), self._on_reply, inline=True)
+        # the token last: once the sim sees it, the subscriptions above are declared
+        token = await bus.declare_token(k.alive(self.id))
+        if restored is not None:  # published once the session is established, so the record does not miss it
+            await bus.publish(k.event(self.id), restored)
+        await self._stop.wait()
+        for timer in (self._pending_timer, self._stop_timer):
+            if timer is not None:
+                timer.cancel()
+        await token.close()
+        return self.counters
+
+    async def _restore(self) -> Event | None:
+        """Load the monitor's latest states into the brain; the ``agent.restored`` event to publish, if any."""
+        from services.faults.restore import fetch_states, restore_brains
+
+        try:
+            states = await fetch_states(self.bus, self.config.run_id, timeout=1.0)
+            restored = restore_brains(self.brains, self.id, states)
+            self.restored_from = states.get(self.id)
+        except Exception as exc:  # a failed restore is a cold start, never a crash
+            self._reject("state/agent", f"restore failed: {exc}")
+            return None
+        if restored is None:
+            return None
+        log.info("agent %d: restored state of tick %d", self.id, restored)
+        return Event(
+            kind="agent.restored", source=self.id, t=restored,
+            # the row the brain holds now (read back from it, not copied from the state): the record can show that a
+            # restarted agent resumed with the W row last published (issue 5 acceptance)
+            details={"from_t": restored, "w_row": self.state_message(restored).w_row})
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def _on_stop(self, sample: Sample) -> None:
+        try:
+            sample.decode(Stop)
+        except ValueError as exc:
+            self._reject(sample.key, exc)
+            return
+        if sample.sender == "sim":
+            self._stop.set()
+        elif self._stop_timer is None:
+            # someone else's stop: the sim ends the run (final tick, then its own stop); leave anyway if it cannot
+            self._stop_timer = asyncio.get_running_loop().call_later(STOP_GRACE, self._stop.set)
+
+    async def _on_probe(self, sample: Sample) -> None:
+        if self._stop.is_set():
+            return  # a stopped agent is gone, even while its session closes
+        try:
+            msg = sample.decode(Event)
+        except ValueError as exc:
+            self._reject(sample.key, exc)
+            return
+        if msg.kind == "ready.probe":
+            await self.bus.publish(self.keys.event(self.id), Event(
+                kind="ready.ack", source=self.id, details={"round": msg.details.get("round", 0), "role": self.role}))
+
+    def _next_seq(self) -> int:
+        self._seq += 1
+        return self._seq
+
+    # -- virtual time (issue 5) ------------------------------------------------------------------------------------
+    def _on_arrival(self, sample: Sample, fate: list[float]) -> None:
+        """Fault layer hook: a sample physically arrived (any thread, under the runtime's lock, before it is
+        delivered, dropped or held). A Tick or Resolve carries the sim's boundary: reach it first (releasing what is
+        due by then, applying the schedule). One that will not be delivered now cannot be answered in its phase:
+        skip it at once, so the sim never waits on a wall timeout. A request that will not be delivered now has
+        arrived all the same: the picker does not wait for it. (Wall time: only a dropped sample is "not delivered";
+        a delayed one comes after a real sleep and is answered then.)"""
+        k = self.keys
+        key = sample.key
+        if self._virtual:
+            missed = not self._layer.delivers_now(sample, fate)
+        else:
+            missed = not fate
+        if key == k.tick or key == k.resolve:
+            if sample.sender != "sim":
+                return  # only the sim's own samples carry its boundary (not a stray publisher's, nor a fuzzer's)
+            if self._virtual:
+                self.faults.advance(self._layer.sent_at(sample))
+            elif key == k.tick:
+                self._advance_wall(sample)
+            if not missed or self._stop.is_set():
+                return
+            try:
+                if key == k.tick:
+                    t, phase = sample.decode(Tick).t, Phase.TICK
+                    if t <= self.last_t:
+                        return
+                else:
+                    msg = sample.decode(Resolve)
+                    if not msg.expected(self.id):
+                        return
+                    t, phase = msg.t, Phase.RESOLVE
+            except ValueError:
+                return  # the handler rejects it if it is ever delivered
+            self.faults.skip(self.bus, self.id, t, phase)
+        elif missed and not self.is_agv and "/request/" in key:
+            try:
+                msg = sample.decode(HelpRequest)
+            except ValueError:
+                return
+            if msg.picker != self.id:
+                return
+            with self._lock:
+                self._arrived.setdefault(msg.t, set()).add(msg.agv)
+                self._try_decide()
+
+    def _advance_wall(self, sample: Sample) -> None:
+        """Wall time: a Tick still marks its tick's start, where scheduled and ``at_tick`` commands apply (sim
+        stamps are wall clock here, so the tick number is read off the message itself)."""
+        try:
+            t = unpack_envelope(sample.payload)[1].get("t")
+        except ValueError:
+            return
+        if type(t) is int and t >= 0:
+            self.faults.advance(t * self.config.dt)
+
+    def _came_late(self, sample: Sample) -> bool:
+        """Virtual time: a Tick/Resolve released at a later boundary than it was sent at (it was held): this agent
+        has skipped that phase already, so the protocol drops it as stale."""
+        return self._virtual and sample.sent_at < self.faults.now() - 1e-9
+
+    # -- tick ------------------------------------------------------------------------------------------------------------
+    def _on_tick(self, sample: Sample) -> None:
+        if self._stop.is_set() or self._came_late(sample):
+            return  # a stopped agent is gone, even while its session closes
+        try:
+            tick = decode_tick(sample.payload)  # validated, straight into arrays (schemas/hot.py)
+            if tick.n != self.config.n_agents:
+                raise ValueError(f"tick has {tick.n} robots, this fleet {self.config.n_agents}")
+            obs = observation_from_arrays(tick, self.config.steps)
+        except (ValueError, IndexError) as exc:
+            self._reject(sample.key, exc)
+            return
+        if tick.t <= self.last_t:
+            return  # a duplicate or stale tick: each tick is learnt from once
+        self.last_t = tick.t
+        self.counters.ticks += 1
+        final = tick.t >= self.config.steps or bool(getattr(obs, "final", False))
+        if not final or not self.brains.memoryless:
+            # the final tick only reports the last step: a memoryless brain has nothing to learn from it
+            self.brains.learn(obs)
+        asked: list[int] = []
+        if self.is_agv and not final and obs.needs_picker[self.id]:
+            picker = self.brains.candidate(self.id, obs)
+            if picker >= 0:
+                p = self.brains.probability(self.id, picker, obs)
+                ask = self.brains.draw(self.id) < p if self.brains.draws else p >= 1.0
+                if ask:
+                    tx, ty = (int(v) for v in obs.target[self.id])
+                    self.bus.put(self.keys.request(self.id, picker), encode_fields(
+                        HelpRequest, t=tick.t, agv=self.id, picker=picker, target_x=tx, target_y=ty,
+                        mission=int(obs.mission[self.id]), seq=self._next_seq()))
+                    self.counters.requests += 1
+                    asked.append(picker)
+        extras = {}
+        if "links" in self._ack_extras:
+            extras["links"] = self.brains.out_links(self.id)
+        if "eta" in self._ack_extras:
+            extras["eta"] = float(self.brains.state.eta) if isinstance(self.brains, MorphBrains) else None
+        # Without per-tick links in the ack (older wire schema) the state row carries them every tick.
+        publish_state = tick.t % self.config.state_every == 0 or final or "links" not in self._ack_extras
+        # encoded from plain values (no model round trip: the hot path, codec.encode_fields)
+        ack = encode_fields(Ack, t=tick.t, agent=self.id, phase=int(Phase.TICK), requests_sent=asked,
+                            seq=self._next_seq(), **extras)
+        if publish_state and (final or "links" not in self._ack_extras):
+            # Before the ack, on the same link: the last state must reach the monitor before the run ends, and a
+            # state that carries the per-tick links of step t−1 before tick t+1 (the monitor closes row t−1 then).
+            self.bus.put(self.keys.agent_state(self.id), self.state_message(tick.t))
+            publish_state = False
+        self.bus.put(self.keys.ack(self.id), ack)  # the ack first: it is on the sim's critical path
+        if publish_state:
+            # still before this agent's ack of t+1, hence before tick t+2, when the monitor closes row t
+            self.bus.put(self.keys.agent_state(self.id), self.state_message(tick.t))
+
+    def state_message(self, t: int) -> AgentState:
+        b = self.brains
+        w = b.weight_rows()[0]
+        a = b.link_rows()[0]
+        n = len(w)
+        theta = np.zeros(n)
+        age = np.zeros(n, dtype=int)
+        h = eta = d_hat = 0.0
+        if isinstance(b, MorphBrains):
+            s = b.state
+            if b.preset == "reference":
+                theta, age = s.theta_bcm[0, self.id], s.age[0, self.id]
+            else:
+                theta, age = s.theta_bcm[0], s.age[0]
+            h, eta, d_hat = float(b.h()[0]), float(s.eta), float(s.dhat)
+        return AgentState(
+            agent=self.id, role=self.role, t=t, w_row=[float(v) for v in w], a_row=[bool(v) for v in a],
+            theta_row=[float(v) for v in theta], age_row=[int(v) for v in age], h=h, eta=eta, d_hat=d_hat,
+            seq=self._next_seq())
+
+    # -- AGV side --------------------------------------------------------------------------------------------------------
+    def _on_reply(self, sample: Sample) -> None:
+        # World state is authoritative (the next tick tells the AGV whether a picker comes); replies are only checked.
+        try:
+            msg = sample.decode(HelpReply)
+        except ValueError as exc:
+            self._reject(sample.key, exc)
+            return
+        if msg.agv != self.id:
+            self._reject(sample.key, f"reply addressed to AGV {msg.agv}")
+
+    # -- picker side -----------------------------------------------------------------------------------------------------
+    def _on_request(self, sample: Sample) -> None:
+        if self._stop.is_set():
+            return  # a stopped agent is gone, even while its session closes
+        try:
+            msg = sample.decode(HelpRequest)
+            sender = self.keys.sender_of(sample.key)
+        except ValueError as exc:
+            self._reject(sample.key, exc)
+            return
+        if msg.picker != self.id or sender != msg.agv:
+            self._reject(sample.key, f"request {msg.agv}->{msg.picker} on key of {sender}")
+            return
+        if msg.t < self.last_t:
+            return  # stale: the protocol drops it
+        with self._lock:
+            self._inbox.setdefault(msg.t, {})[msg.agv] = msg
+            self._try_decide()
+
+    def _on_resolve(self, sample: Sample) -> None:
+        if self._stop.is_set() or self._came_late(sample):
+            return  # a stopped agent is gone, even while its session closes
+        try:
+            msg = sample.decode(Resolve)
+        except ValueError as exc:
+            self._reject(sample.key, exc)
+            return
+        expected = msg.expected(self.id)
+        if not expected or msg.t < self.last_t or msg.t <= self._resolved_t:
+            return
+        with self._lock:
+            self._pending = (msg.t, expected)
+            self._try_decide()
+            if self._pending is not None:
+                # Lockstep: wait for every expected request; past the deadline decide over those that arrived.
+                wait = self.config.phase_timeout if self.config.mode == "lockstep" else 0.4 * self.config.period
+                assert self._loop is not None
+                self._loop.call_soon_threadsafe(self._arm_deadline, msg.t, wait)
+
+    def _arm_deadline(self, t: int, wait: float) -> None:  # on the loop
+        with self._lock:
+            if self._pending is None or self._pending[0] != t:
+                return  # decided already
+            if self._pending_timer is not None:
+                self._pending_timer.cancel()
+            self._pending_timer = self._loop.call_later(wait, self._decide_now, t)
+
+    def _try_decide(self) -> None:
+        if self._pending is None:
+            return
+        t, expected = self._pending
+        got = self._inbox.get(t, {})
+        # with faults: decide once every expected request has *arrived* — delivered by the resolve boundary (in got),
+        # or dropped / held past it (in _arrived, virtual time: the same set whatever the wall order of arrivals)
+        lost = self._arrived.get(t, ())
+        if all(a in got or a in lost for a in expected):
+            self._decide()
+
+    def _decide_now(self, t: int) -> None:  # on the loop, at the resolve's deadline
+        with self._lock:
+            self._pending_timer = None
+            if self._pending is not None and self._pending[0] == t:
+                self._decide()
+
+    def _decide(self) -> None:
+        assert self._pending is not None
+        t, expected = self._pending
+        self._pending = None
+        self._resolved_t = t
+        timer, self._pending_timer = self._pending_timer, None
+        if timer is not None:
+            self._loop.call_soon_threadsafe(timer.cancel)  # TimerHandle.cancel is not thread-safe
+        got = self._inbox.pop(t, {})
+        for old in [s for s in self._inbox if s <= t]:
+            del self._inbox[old]
+        for old in [s for s in self._arrived if s <= t]:
+            del self._arrived[old]
+        chosen = next((a for a in expected if a in got), None)  # first in the sim's mission order
+        self._answer(t, expected, got, chosen)
+
+    def _answer(self, t: int, expected: list[int], got: dict[int, HelpRequest], chosen: int | None) -> None:
+        k = self.keys
+        if chosen is not None:
+            self.bus.put(k.commit(self.id), Commit(t=t, picker=self.id, agv=chosen, seq=self._next_seq()))
+            self.counters.commits += 1
+        else:
+            self.bus.put(k.ack(self.id), Ack(t=t, agent=self.id, phase=Phase.RESOLVE, seq=self._next_seq()))
+        for agv in expected:
+            if agv in got:
+                self.bus.put(k.reply(self.id, agv), HelpReply(
+                    t=t, picker=self.id, agv=agv, accepted=agv == chosen, seq=self._next_seq()))
+
+
+async def run_agent(config: RunConfig, bus: Bus, agent_id: int) -> AgentCounters:
+    return await AgentService(config, bus, agent_id).run()
+
+
+__all__ = ["AgentCounters", "AgentService", "run_agent"]

@@ -1,0 +1,411 @@
+"""Application-layer fault injection for the bus (DESIGN §4, issue 5): loss (Bernoulli, Gilbert–Elliott), latency
+(fixed, jitter, uniform/normal/pareto, correlation), duplicate, reorder and directional partitions, scoped by key
+expression and agent ids, with optional auto-heal, and a seeded RNG per (fault, link) so a run is reproducible.
+
+Pure core: :meth:`FaultLayer.fate` decides what happens to one message on one link and returns the delivery delays
+(``[]`` = dropped, ``[d]`` = delivered after d seconds, ``[d1, d2]`` = duplicated). The thin shell
+(:meth:`FaultLayer.on_deliver`, the bus's ingress seam) delivers at once or hands delayed copies to a scheduler:
+``loop.call_later`` by default (wall time); a virtual-time run passes its own scheduler that releases messages at
+the first phase boundary at or after their due sim time.
+
+Faults are applied at ingress, where both ends of the link are known (the sender from the sample header, the
+receiver is the bus that owns the layer), so each receiver keeps its own per-link random streams.
+Semantics follow ``tc netem``:
+
+* correlation c (percent): the uniform draw u is mixed with the previous one, u' = (1−c)·u + c·u_prev (the formula
+  Chaos Mesh documents), then used for the decision or the inverse CDF;
+* Gilbert–Elliott: per message, lose with probability 1−k in the good state and 1−h in the bad state, then move
+  good→bad with p and bad→good with r (simple Gilbert: 1−h = 1, 1−k = 0, so a burst lasts 1/r messages on average);
+* latency distributions with mean ``delay`` and spread ``jitter``: uniform on [delay−jitter, delay+jitter]; normal
+  N(delay, jitter) truncated at 0; pareto with mean ``delay`` and standard deviation ``jitter`` (shape
+  a = 1 + sqrt(1 + delay²/jitter²), scale delay·(a−1)/a);
+* reorder P gap G: every G-th message of a link is a candidate, and with probability P it skips the delay.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import math
+import random
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from statistics import NormalDist
+
+from schemas.faults import FaultSpec, Latency, Loss
+from schemas.messages import FaultCommand, FaultReply
+from schemas.keys import RunKeys, matches, parse_agent_id
+from services.bus.base import Bus, Sample
+from services.bus.linkstats import LinkMeter
+from services.bus.vtime import EPS as _VT_EPS, VirtualTime
+
+_STD_NORMAL = NormalDist()
+_EPS = 1e-12
+# A sample stamped later than this (seconds) carries a wall clock (time.time()), not a sim time: a process in wall time
+# or a tool (the faults CLI, the supervisor). Sim times stay far below it (1e8 s is three years of robot time).
+WALL_STAMP = 1e8
+# Virtual time keeps healed fault windows this many steps, to judge stragglers sent while they were active.
+HISTORY_STEPS = 64
+
+
+def is_wall_stamp(sent_at: float) -> bool:
+    return sent_at > WALL_STAMP
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# distributions (pure)
+# ---------------------------------------------------------------------------------------------------------------
+def pareto_params(mean: float, std: float) -> tuple[float, float]:
+    """(shape a, scale xm) of the Pareto distribution with this mean and standard deviation."""
+    a = 1.0 + math.sqrt(1.0 + (mean / std) ** 2)
+    return a, mean * (a - 1.0) / a
+
+
+def latency_quantile(lat: Latency, q: float) -> float:
+    """Quantile ``q`` of the configured latency distribution (no correlation), in seconds."""
+    q = min(max(q, _EPS), 1.0 - _EPS)
+    if lat.jitter == 0.0:
+        return lat.delay
+    if lat.distribution == "uniform":
+        return lat.delay - lat.jitter + 2.0 * lat.jitter * q
+    if lat.distribution == "normal":
+        return max(0.0, lat.delay + lat.jitter * _STD_NORMAL.inv_cdf(q))
+    if lat.delay == 0.0:
+        return 0.0
+    a, xm = pareto_params(lat.delay, lat.jitter)
+    return xm * (1.0 - q) ** (-1.0 / a)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# per (fault, link) state
+# ---------------------------------------------------------------------------------------------------------------
+@dataclass
+class _Link:
+    rng: random.Random
+    last: dict[str, float] = field(default_factory=dict)  # previous uniform draw per effect (correlation)
+    bad: bool = False  # Gilbert–Elliott state
+    count: int = 0  # messages seen (reorder gap)
+
+    def uniform(self, effect: str, correlation_pct: float) -> float:
+        u = self.rng.random()
+        if correlation_pct > 0.0:
+            c = correlation_pct / 100.0
+            prev = self.last.get(effect, u)
+            u = (1.0 - c) * u + c * prev
+        self.last[effect] = u
+        return u
+
+
+@dataclass
+class ActiveFault:
+    spec: FaultSpec
+    fault_id: str
+    started: float
+    expires: float | None
+    serial: int = 0  # one per activation: a re-set fault gets fresh streams, its old window keeps its own
+
+    def window_has(self, at: float) -> bool:
+        """Was this fault active at sim time ``at`` (virtual time: faults are judged at a message's send time)?"""
+        return self.started <= at + _VT_EPS and (self.expires is None or at < self.expires - _VT_EPS)
+
+    def applies(self, rel_key: str, sender: object, receiver: object) -> bool:
+        scope = self.spec.scope
+        if not matches(scope.key_expr, rel_key):
+            return False
+        if scope.agents is not None and sender not in scope.agents and receiver not in scope.agents:
+            return False
+        return True
+
+
+@dataclass
+class FaultStats:
+    seen: int = 0
+    dropped: int = 0
+    duplicated: int = 0
+    delayed: int = 0
+    partitioned: int = 0
+
+
+class FaultLayer:
+    """The fault layer of one receiver. Install with ``bus.set_interposer(FaultLayer(run, ...))``.
+
+    ``clock`` gives the current time in the unit faults are expressed in (sim seconds for virtual time, wall seconds
+    otherwise); it decides when a fault with a ``duration`` heals. ``schedule(delay, fn)`` runs ``fn`` after
+    ``delay`` of that time; default: the running loop's ``call_later`` (wall time).
+
+    Virtual time across processes (docs/faults.md): a message is judged by the faults active at its *send* time
+    (``sample.sent_at``), not at the moment it happens to arrive, and ``before_fate(sent_at)`` lets the owner bring
+    its schedule up to that time first; healed windows are kept (``HISTORY_STEPS``) for stragglers; ``events/**``
+    (presence handshake, run record: wall-paced, before any boundary) is not faulted. ``per_key`` gives every
+    (fault, sender, receiver, key) its own stream, so the order in which a receiver's subscriptions (separate
+    transport threads) see two keys of one sender never shifts a stream. ``lock`` serializes the decision, the
+    hook and the hold (one per process, shared with :meth:`VirtualTime.advance` by the FaultRuntime).
+    """
+
+    def __init__(self, run: str, *, base_seed: int = 0, clock: Callable[[], float] | None = None,
+                 schedule: Callable[[float, Callable[[], None]], object] | None = None,
+                 on_change: Callable[[str, ActiveFault], None] | None = None,
+                 loop: asyncio.AbstractEventLoop | None = None, vtime: VirtualTime | None = None,
+                 meter: LinkMeter | None = None, per_key: bool = False, lock: threading.RLock | None = None):
+        self.keys = RunKeys(run)
+        self.base_seed = int(base_seed)
+        self.per_key = per_key
+        # the receiver's agent id (an int for a robot) when its bus identity is a process name like "agent-3"
+        self.receiver: int | str | None = None
+        self.lock = lock or threading.RLock()
+        self.before_fate: Callable[[float], None] | None = None
+        self._history: list[ActiveFault] = []  # virtual time: healed/replaced windows, judged by send time
+        self._serials = itertools.count(1)
+        # virtual time: faults heal, messages wait and lateness is judged in sim seconds (see vtime.py)
+        self.vtime = vtime
+        self.clock = clock or (vtime.now if vtime is not None else time.monotonic)
+        self.schedule = schedule
+        self.meter = meter  # measures what this receiver actually got (linkstats.py)
+        # called with (sample, fate) the moment a sample physically arrives, before it is dropped or held: a lockstep
+        # receiver counts arrivals here, so it never waits for a message the fault layer already decided to lose
+        self.on_fate: Callable[[Sample, list[float]], None] | None = None
+        if vtime is not None:
+            vtime.on_advance(lambda _now: self._expire())  # auto-heal is logged at the boundary it happens
+        self.on_change = on_change  # ("set" | "healed" | "reset", fault): for events in the run record
+        self.loop = loop  # needed when deliveries arrive on a transport thread (inline subscriptions)
+        self.stats = FaultStats()
+        self._faults: dict[str, ActiveFault] = {}
+        self._links: dict[tuple, _Link] = {}
+        self._auto_ids = itertools.count(1)
+
+    # -- control -----------------------------------------------------------------------------------------------
+    def set(self, spec: FaultSpec, at: float | None = None) -> str:
+        """Activate ``spec`` (replacing an active fault with the same id) from sim time ``at`` (default: now);
+        returns its id."""
+        if spec.crash is not None and all(x is None for x in (spec.latency, spec.loss, spec.duplicate, spec.reorder,
+                                                                 spec.partition)):
+            raise ValueError("crash faults are carried out by the supervisor, not by the bus fault layer")
+        fault_id = spec.id or f"fault-{next(self._auto_ids)}"
+        with self.lock:
+            now = self.clock() if at is None else at
+            fault = ActiveFault(spec, fault_id, now, None if spec.duration is None else now + spec.duration,
+                                next(self._serials))
+            old = self._faults.pop(fault_id, None)
+            if old is not None:
+                self._retire(old, now)
+            self._faults[fault_id] = fault
+        if self.on_change:
+            self.on_change("set", fault)
+        return fault_id
+
+    def reset(self, fault_id: str | None = None, at: float | None = None) -> list[str]:
+        """Heal one fault, or all of them (at sim time ``at``, default now); returns the ids removed. Always
+        succeeds."""
+        with self.lock:
+            now = self.clock() if at is None else at
+            ids = list(self._faults) if fault_id is None else [fault_id] if fault_id in self._faults else []
+            removed = [self._faults.pop(fid) for fid in ids]
+            for fault in removed:
+                self._retire(fault, now)
+        for fault in removed:
+            if self.on_change:
+                self.on_change("reset", fault)
+        return ids
+
+    def _retire(self, fault: ActiveFault, now: float) -> None:
+        """A fault leaves the active set. Virtual time keeps its window (ending now) for messages sent during it;
+        wall time forgets it and its streams."""
+        if self.vtime is not None:
+            fault.expires = now if fault.expires is None else min(fault.expires, now)
+            self._history.append(fault)
+            horizon = self.clock() - HISTORY_STEPS * self.vtime.dt
+            old = [f for f in self._history if f.expires is not None and f.expires < horizon]
+            if old:
+                gone = {f.serial for f in old}
+                self._history = [f for f in self._history if f.serial not in gone]
+                self._links = {k: v for k, v in self._links.items() if k[0] not in gone}
+        else:
+            self._links = {k: v for k, v in self._links.items() if k[0] != fault.serial}
+
+    def apply(self, command: FaultCommand) -> FaultReply:
+        """Carry out a ``ctl/faults`` command; a rejected spec comes back as ``ok=False`` with the reason."""
+        try:
+            if command.op == "set":
+                assert command.spec is not None  # FaultCommand's validator guarantees it
+                self.set(command.spec)
+            elif command.op == "reset":
+                if command.fault_id is not None and command.fault_id not in self._faults:
+                    return FaultReply(ok=False, error=f"no active fault {command.fault_id!r}", active=self.active())
+                self.reset(command.fault_id)
+        except ValueError as exc:
+            return FaultReply(ok=False, error=str(exc), active=self.active())
+        return FaultReply(ok=True, active=self.active())
+
+    def active(self) -> list[FaultSpec]:
+        with self.lock:
+            self._expire()
+            return [f.spec.model_copy(update={"id": f.fault_id}) for f in self._faults.values()]
+
+    def _expire(self) -> None:
+        now = self.clock()
+        for fid, fault in list(self._faults.items()):
+            if fault.expires is not None and now >= fault.expires - _VT_EPS * (self.vtime is not None):
+                del self._faults[fid]
+                self._retire(fault, now)
+                if self.on_change:
+                    self.on_change("healed", fault)
+
+    # -- pure decision -----------------------------------------------------------------------------------------
+    def _link(self, fault: ActiveFault, sender: object, receiver: object, rel: str) -> _Link:
+        key = (fault.serial, sender, receiver, rel if self.per_key else None)
+        link = self._links.get(key)
+        if link is None:
+            seed = fault.spec.seed if fault.spec.seed is not None else self.base_seed
+            name = f"{seed}|{fault.fault_id}|{sender}|{receiver}" + (f"|{rel}" if self.per_key else "")
+            link = self._links[key] = _Link(random.Random(name))
+        return link
+
+    def fate(self, key: str, sender: object, receiver: object, at: float | None = None) -> list[float]:
+        """Delivery delays for one message on link sender → receiver: [] dropped, [d] once, [d1, d2] duplicated.
+
+        ``at`` (virtual time): the message's send time; the faults active then decide, healed ones included."""
+        self._expire()
+        self.stats.seen += 1
+        if not self._faults and (at is None or not self._history):
+            return [0.0]
+        try:
+            chunks = self.keys.relative(key)
+        except ValueError:
+            return [0.0]  # not this run's traffic: untouched
+        if chunks[0] == "ctl":
+            return [0.0]  # control traffic (fault reset, stop) is never faulted: `reset` always works
+        if at is not None and chunks[0] == "events":
+            return [0.0]  # virtual time: the presence handshake runs before any boundary could release it
+        if len(chunks) == 3 and chunks[0] == "agent" and chunks[2] == "skip":
+            return [0.0]  # an agent's skip (virtual-time null message, faults/runtime.py): synchronisation, not traffic
+        rel = "/".join(chunks)
+        if at is None:
+            faults: list[ActiveFault] = list(self._faults.values())
+        else:
+            faults = sorted((f for f in (*self._history, *self._faults.values()) if f.window_has(at)),
+                            key=lambda f: f.serial)
+        delay = 0.0
+        copies = 1
+        for fault in faults:
+            if not fault.applies(rel, sender, receiver):
+                continue
+            spec = fault.spec
+            if spec.partition is not None and spec.partition.cuts(sender, receiver):
+                self.stats.partitioned += 1
+                self.stats.dropped += 1
+                return []
+            link = self._link(fault, sender, receiver, rel)
+            link.count += 1
+            if spec.loss is not None and _lost(spec.loss, link):
+                self.stats.dropped += 1
+                return []
+            if spec.latency is not None:
+                skip = False
+                if spec.reorder is not None and link.count % spec.reorder.gap == 0:
+                    skip = link.uniform("reorder", spec.reorder.correlation) < spec.reorder.percent / 100.0
+                if not skip:
+                    u = link.uniform("latency", spec.latency.correlation)
+                    delay += latency_quantile(spec.latency, u)
+            if spec.duplicate is not None:
+                if link.uniform("duplicate", spec.duplicate.correlation) < spec.duplicate.percent / 100.0:
+                    copies = 2
+        if delay > 0.0:
+            self.stats.delayed += 1
+        if copies == 2:
+            self.stats.duplicated += 1
+        return [delay] * copies
+
+    # -- the bus seam ------------------------------------------------------------------------------------------
+    def on_publish(self, sample: Sample, send: Callable[[Sample], None]) -> None:
+        send(sample)  # faults are applied per link at the receiver
+
+    def sent_at(self, sample: Sample) -> float:
+        """A sample's send time in this layer's time: its stamp, or now for a wall-stamped sample in virtual time."""
+        vt = self.vtime
+        return sample.sent_at if vt is None or not is_wall_stamp(sample.sent_at) else vt.now()
+
+    def delivers_now(self, sample: Sample, fate: list[float]) -> bool:
+        """Will ``on_deliver`` hand this sample over at once (rather than drop it or hold it for later)?"""
+        if not fate:
+            return False
+        delay = min(fate)
+        vt = self.vtime
+        return delay <= 0.0 or (vt is not None and self.sent_at(sample) + delay <= vt.now() + _VT_EPS)
+
+    def on_deliver(self, sample: Sample, receiver: str, deliver: Callable[[Sample], None]) -> None:
+        with self.lock:
+            self._on_deliver(sample, receiver, deliver)
+
+    def _sender(self, sample: Sample) -> object:
+        # the link's sender off the key (every agent-sent key starts agent/<id>/, keys.py), whatever the publishing
+        # process calls itself ("agent-3", a container's host name); else the publisher's identity
+        try:
+            who = self.keys.sender_of(sample.key)
+        except ValueError:
+            who = None
+        if who is not None:
+            return who
+        return parse_agent_id(sample.sender) if sample.sender else ""
+
+    def _on_deliver(self, sample: Sample, receiver: str, deliver: Callable[[Sample], None]) -> None:
+        sender = self._sender(sample)
+        rcv = self.receiver if self.receiver is not None else parse_agent_id(receiver)
+        vt = self.vtime
+        at = None
+        if vt is not None:
+            at = self.sent_at(sample)
+            if self.before_fate is not None:
+                self.before_fate(at)  # the schedule up to the send time: a fault starts at its time everywhere
+        fate = self.fate(sample.key, sender, rcv, at)
+        if self.on_fate is not None:
+            self.on_fate(sample, fate)
+        if self.meter is not None:
+            deliver = self._metered(deliver, receiver)
+        for copy, delay in enumerate(fate):
+            if delay <= 0.0:
+                deliver(sample)  # no latency: within its own phase, whatever clock stamped it
+            elif vt is not None:
+                # due at send time + latency, released at the first boundary at or after it; the tie order is the
+                # message's identity, not its arrival order (deterministic across processes)
+                vt.hold(at + delay, lambda s=sample: deliver(s),
+                        order=(sample.sender, sample.key, sample.seq, copy),
+                        deadline=vt.deadline_of(at))
+            elif self.schedule is not None:
+                self.schedule(delay, lambda s=sample: deliver(s))
+            else:
+                loop = self.loop or asyncio.get_running_loop()
+                loop.call_soon_threadsafe(loop.call_later, delay, deliver, sample)
+
+    def _metered(self, deliver: Callable[[Sample], None], receiver: str) -> Callable[[Sample], None]:
+        meter, vt = self.meter, self.vtime
+        assert meter is not None
+
+        def metered(sample: Sample) -> None:
+            if vt is not None:
+                now, late = vt.now(), vt.is_late(self.sent_at(sample))
+            else:
+                now, late = time.time(), False
+            meter.record(sample.key, sample.sender, sample.seq, sample.sent_at, now, late=late)
+            deliver(sample)
+        return metered
+
+
+def install(bus: Bus, layer: FaultLayer) -> FaultLayer:
+    """Put ``layer`` on ``bus``'s ingress; in virtual time also stamp the bus's samples with sim time."""
+    bus.set_interposer(layer)
+    if layer.vtime is not None:
+        bus.set_clock(layer.vtime.now)
+    return layer
+
+
+def _lost(loss: Loss, link: _Link) -> bool:
+    if loss.model == "bernoulli":
+        return link.uniform("loss", loss.correlation) < (loss.percent or 0.0) / 100.0
+    p, r, one_minus_h, one_minus_k = loss.gilbert_elliott()
+    u = link.rng.random()
+    lost = u < (one_minus_h if link.bad else one_minus_k)
+    v = link.rng.random()
+    link.bad = (v >= r) if link.bad else (v < p)
+    return lost

@@ -1,0 +1,119 @@
+"""Measured, not assumed (issue 5): per-key sent / delivered / dropped / duplicated / late counts and the observed
+latency distribution, computed by a receiver from the samples themselves.
+
+Every sample carries its publisher, a per-(publisher, key) sequence number starting at 0, and the publisher's send
+time (bus.base). So a receiver knows, per (publisher, key):
+
+* sent       = highest sequence number seen + 1 (messages lost after the last one that arrived are invisible until a
+               later one arrives; a restarted publisher starts again at 0 and is counted from its new numbers on);
+* delivered  = deliveries, duplicates included; unique = distinct sequence numbers; duplicated = delivered − unique;
+* dropped    = sent − unique;
+* late       = deliveries the caller flagged as after their deadline (virtual time: :meth:`VirtualTime.is_late`);
+* latency    = receive time − send time, in the unit of the clocks (sim seconds in virtual time).
+
+:class:`LinkMeter` is pure (no I/O, no clock): the caller passes the receive time. Counts are grouped by key class:
+the key relative to ``morph/<run>/`` with robot ids replaced by ``*`` (``agent/*/ack``), so a report has a handful
+of rows whatever the fleet size. :meth:`LinkMeter.metrics` turns the report into ``MetricSample``\\ s
+(``link/<counter>`` with label ``key``) for the monitor to publish.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from schemas.messages import MetricSample
+
+QUANTILES = (0.5, 0.9, 0.99)
+
+
+def key_class(rel_chunks: list[str]) -> str:
+    """``['agent', '3', 'request', '7']`` → ``'agent/*/request/*'``."""
+    return "/".join("*" if c.isdigit() else c for c in rel_chunks)
+
+
+@dataclass
+class _Stream:
+    """One (publisher, key) stream."""
+
+    max_seq: int = -1
+    seen: set[int] = field(default_factory=set)
+    delivered: int = 0
+    late: int = 0
+
+
+@dataclass(frozen=True)
+class KeyReport:
+    key: str
+    sent: int
+    delivered: int
+    unique: int
+    dropped: int
+    duplicated: int
+    late: int
+    latency: dict[str, float]  # mean, p50, p90, p99, max (empty when nothing arrived)
+
+    @property
+    def loss_rate(self) -> float:
+        return self.dropped / self.sent if self.sent else 0.0
+
+
+class LinkMeter:
+    """Accumulates what one receiver observed. ``record`` per delivery, ``report`` / ``metrics`` whenever."""
+
+    def __init__(self, run_prefix: str = ""):
+        self._prefix = run_prefix.rstrip("/") + "/" if run_prefix else ""
+        self._streams: dict[tuple[str, str], _Stream] = {}
+        self._latency: dict[str, list[float]] = {}
+
+    def _class(self, key: str) -> str:
+        rel = key[len(self._prefix):] if self._prefix and key.startswith(self._prefix) else key
+        return key_class(rel.split("/"))
+
+    def record(self, key: str, sender: str, seq: int, sent_at: float, received_at: float, *,
+               late: bool = False) -> None:
+        stream = self._streams.get((key, sender))
+        if stream is None:
+            stream = self._streams[(key, sender)] = _Stream()
+        stream.delivered += 1
+        stream.seen.add(seq)
+        if seq > stream.max_seq:
+            stream.max_seq = seq
+        if late:
+            stream.late += 1
+        self._latency.setdefault(self._class(key), []).append(received_at - sent_at)
+
+    def report(self) -> dict[str, KeyReport]:
+        """Per key class, sorted by key."""
+        acc: dict[str, list[int]] = {}
+        for (key, _sender), s in self._streams.items():
+            row = acc.setdefault(self._class(key), [0, 0, 0, 0])
+            row[0] += s.max_seq + 1
+            row[1] += s.delivered
+            row[2] += len(s.seen)
+            row[3] += s.late
+        out: dict[str, KeyReport] = {}
+        for cls in sorted(acc):
+            sent, delivered, unique, late = acc[cls]
+            lat = np.asarray(self._latency.get(cls, ()), dtype=float)
+            stats: dict[str, float] = {}
+            if lat.size:
+                stats = {"mean": float(lat.mean()), "max": float(lat.max())}
+                for q in QUANTILES:
+                    stats[f"p{round(q * 100)}"] = float(np.quantile(lat, q))
+            out[cls] = KeyReport(cls, sent, delivered, unique, sent - unique, delivered - unique, late, stats)
+        return out
+
+    def metrics(self, t: int, sim_time: float, receiver: str = "") -> list[MetricSample]:
+        """The report as metric samples ``link/<counter>`` labelled by key class (and receiver)."""
+        out: list[MetricSample] = []
+        for cls, r in self.report().items():
+            labels = {"key": cls, **({"receiver": receiver} if receiver else {})}
+            for name in ("sent", "delivered", "dropped", "duplicated", "late"):
+                out.append(MetricSample(name=f"link/{name}", t=t, sim_time=sim_time, value=float(getattr(r, name)),
+                                        labels=labels, unit="messages"))
+            for stat, value in r.latency.items():
+                out.append(MetricSample(name=f"link/latency/{stat}", t=t, sim_time=sim_time, value=value,
+                                        labels=labels, unit="s"))
+        return out

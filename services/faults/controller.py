@@ -1,0 +1,234 @@
+"""The ``ctl/faults`` controller (DESIGN §4): every process mounts one over its fault layers.
+
+* a queryable on ``morph/<run>/ctl/faults``: ``morph-sim faults set|list|reset`` sends a :class:`FaultCommand` as the
+  query payload; each process applies it to its own layers (each keeps its own seeded per-link streams) and replies
+  a :class:`FaultReply` naming itself, so the operator sees every process's answer;
+* a subscriber on the same key: a put reaches every process the same way (no reply);
+* a schedule (:mod:`.schedule`) applied locally at sim-time boundaries through :meth:`FaultController.advance`.
+
+Crash faults are not the bus's business: they go to ``on_crash`` (the supervisor's hook) and are rejected with the
+reason in a process that has none. ``reset`` always heals every network fault of the process, whatever else fails.
+
+The process that owns the run record (the sim, ``events=True``) publishes each change as an ``Event`` on
+``events/<source>`` with its tick and sim time — ``fault.set``, ``fault.reset``, ``fault.healed`` — so plots can
+shade fault windows.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import time
+from collections.abc import Callable
+
+from pydantic import ValidationError
+
+from schemas.base import DecodeError
+from schemas.codec import decode
+from schemas.faults import FaultSpec
+from schemas.keys import RunKeys
+from schemas.messages import Event, FaultCommand, FaultReply
+from services.bus.base import Bus, Query, Sample
+from services.bus.faults import ActiveFault, FaultLayer
+from services.faults.schedule import FaultSchedule
+
+log = logging.getLogger("morph_sim.faults")
+
+CrashHook = Callable[[FaultSpec], str | None]  # returns an error message, or None when accepted
+
+
+def _network_part(spec: FaultSpec) -> bool:
+    return any(x is not None for x in (spec.latency, spec.loss, spec.duplicate, spec.reorder, spec.partition))
+
+
+class FaultController:
+    """Applies fault commands to ``layers`` (all fault layers of this process)."""
+
+    def __init__(self, bus: Bus, run: str, layers: list[FaultLayer], *, clock: Callable[[], float],
+                 dt: float = 1.0, events: bool = False, on_crash: CrashHook | None = None,
+                 schedule: FaultSchedule | None = None, lock=None, hold_events: bool = False):
+        self.bus = bus
+        # the process's fault lock (FaultRuntime): commands arrive on the loop while transport threads decide fates
+        self.lock = lock if lock is not None else contextlib.nullcontext()
+        # hold_events: events of changes before the run starts are kept and published by publish_held() at tick 0,
+        # once the monitor is known to listen (a fault scheduled at tick 0 is applied when the process starts)
+        self._held_events: list[Event] | None = [] if events and hold_events else None
+        self.crashes: list[FaultSpec] = []  # crash specs accepted (the supervisor lists them: it has no layers)
+        self.keys = RunKeys(run)
+        self.layers = list(layers)
+        self.clock = clock  # sim seconds
+        self.dt = dt
+        self.events = events
+        self.on_crash = on_crash
+        self.log: list[Event] = []  # every change this controller reported, in order
+        self._timeline = [self._named(i, c) for i, c in enumerate(schedule.timeline(dt))] if schedule else []
+        self._next = 0
+        self._reached = -math.inf  # the latest sim time whose scheduled commands were applied (advance)
+        if self.layers and events:
+            first = self.layers[0]  # heals happen in every layer at the same sim time: report one of them
+            chained = first.on_change
+
+            def changed(what: str, fault: ActiveFault) -> None:
+                if chained is not None:
+                    chained(what, fault)
+                if what == "healed":
+                    self._event("fault.healed", fault.fault_id, fault.spec)
+            first.on_change = changed
+
+    async def start(self) -> None:
+        await self.bus.declare_queryable(self.keys.faults, self._on_query)
+        await self.bus.subscribe(self.keys.faults, self._on_put)
+
+    # -- commands ------------------------------------------------------------------------------------------------------
+    def handle(self, command: FaultCommand, at: float | None = None) -> FaultReply:
+        """Apply one command to every layer of this process; never raises. ``at``: the sim time it takes effect
+        (a scheduled command's own time, so every process starts the fault at the same instant); default now.
+        A command with ``at_tick`` joins this process's timeline and is applied at that tick's start."""
+        with self.lock:
+            if command.at_tick is not None and at is None:
+                return self._schedule(command)
+            return self._handle(command, at)
+
+    def _schedule(self, command: FaultCommand) -> FaultReply:
+        """Put a runtime command with ``at_tick`` into the timeline, as if it had been in the schedule file. Only a
+        tick this process has not reached yet is accepted: one it has reached could no longer start at that tick's
+        boundary here while it would elsewhere."""
+        source = self.bus.identity
+        at = command.at_tick * self.dt
+        if at <= self._reached + 1e-9:
+            reached = math.floor(self._reached / self.dt + 1e-9)
+            return FaultReply(ok=False, error=f"at_tick: tick {command.at_tick} is not in this process's future (it "
+                              f"has reached tick {reached}); give a later tick", active=self._active(), source=source)
+        timed = command.model_copy(update={"at_tick": None})
+        if timed.op == "set" and timed.spec is not None and timed.spec.id is None:
+            # the same id in every process (hence the same seeded streams), whatever else each one has seen
+            timed = timed.model_copy(update={"spec": timed.spec.model_copy(update={"id": f"tick{command.at_tick}"})})
+        index = len(self._timeline)
+        while index > self._next and self._timeline[index - 1][0] > at + 1e-9:
+            index -= 1  # after every command due at the same time: arrival order, like a schedule file's order
+        self._timeline.insert(index, (at, timed))
+        return FaultReply(ok=True, active=self._active(), source=source)
+
+    def _handle(self, command: FaultCommand, at: float | None) -> FaultReply:
+        source = self.bus.identity
+        try:
+            if command.op == "reset":
+                if command.fault_id is None:
+                    healed = [fid for layer in self.layers for fid in layer.reset(at=at)]
+                    for fid in dict.fromkeys(healed):
+                        self._event("fault.reset", fid, None, at)
+                    self.crashes.clear()
+                    return FaultReply(ok=True, active=[], source=source)
+                if not any(command.fault_id in {s.id for s in layer.active()} for layer in self.layers):
+                    return FaultReply(ok=False, error=f"no active fault {command.fault_id!r}",
+                                      active=self._active(), source=source)
+                for layer in self.layers:
+                    layer.reset(command.fault_id, at=at)
+                self._event("fault.reset", command.fault_id, None, at)
+            elif command.op == "set":
+                spec = command.spec
+                assert spec is not None  # FaultCommand guarantees it
+                if spec.crash is not None:
+                    if self.on_crash is None:
+                        return FaultReply(ok=False, error="crash: this process has no supervisor to carry it out",
+                                          active=self._active(), source=source)
+                    error = self.on_crash(spec)
+                    if error:
+                        return FaultReply(ok=False, error=f"crash: {error}", active=self._active(), source=source)
+                    self.crashes.append(spec)
+                    if not _network_part(spec):
+                        self._event("fault.crash", spec.id or "crash", spec, at)
+                        return FaultReply(ok=True, active=self._active(), source=source)
+                    spec = spec.model_copy(update={"crash": None})
+                if spec.id is None:  # one id for the fault in every layer (and in the event log)
+                    when = self.clock() if at is None else at
+                    spec = spec.model_copy(update={"id": f"fault-{len(self.log) + 1}-{round(when * 1000)}"})
+                for layer in self.layers:
+                    layer.set(spec, at=at)
+                self._event("fault.set", spec.id or "", spec, at)
+        except (ValueError, ValidationError) as exc:
+            return FaultReply(ok=False, error=str(exc), active=self._active(), source=source)
+        return FaultReply(ok=True, active=self._active(), source=source)
+
+    def _active(self) -> list[FaultSpec]:
+        # a process without fault layers (the supervisor) lists the crash faults it carries out
+        return self.layers[0].active() if self.layers else list(self.crashes)
+
+    def advance(self, now: float) -> list[FaultReply]:
+        """Apply the scheduled commands due by sim time ``now`` (call at each tick start, or register on a
+        VirtualTime's ``on_advance``), each at its own time."""
+        out = []
+        with self.lock:
+            self._reached = max(self._reached, now)
+            while self._next < len(self._timeline) and self._timeline[self._next][0] <= now + 1e-9:
+                out.append(self._scheduled(self._next))
+                self._next += 1
+        return out
+
+    @staticmethod
+    def _named(index: int, timed: tuple[float, FaultCommand]) -> tuple[float, FaultCommand]:
+        at, command = timed
+        if command.op == "set" and command.spec is not None and command.spec.id is None:
+            # an id from the schedule itself (not from this process's log or clock): the same fault, hence the same
+            # seeded streams, in every process
+            command = command.model_copy(update={"spec": command.spec.model_copy(update={"id": f"at{index}"})})
+        return at, command
+
+    def _scheduled(self, index: int) -> FaultReply:
+        at, command = self._timeline[index]
+        reply = self._handle(command, at)
+        if not reply.ok:
+            log.warning("fault schedule at %.3f s: %s", at, reply.error)
+        return reply
+
+    # -- transport -----------------------------------------------------------------------------------------------------
+    def _decode(self, payload: bytes | None) -> FaultCommand | str:
+        if not payload:
+            return FaultCommand(op="list")  # a bare query lists
+        try:
+            return decode(payload, FaultCommand)  # type: ignore[return-value]
+        except (DecodeError, ValueError) as exc:
+            return f"bad fault command: {exc}"
+
+    def _on_query(self, query: Query) -> None:
+        command = self._decode(query.payload)
+        reply = (FaultReply(ok=False, error=command, active=self._active(), source=self.bus.identity)
+                 if isinstance(command, str) else self.handle(command))
+        query.reply(self.keys.faults, reply)
+
+    def _on_put(self, sample: Sample) -> None:
+        command = self._decode(sample.payload)
+        if isinstance(command, str):
+            log.warning("ctl/faults from %r: %s", sample.sender, command)
+            return
+        reply = self.handle(command)
+        if not reply.ok:
+            log.warning("ctl/faults %s from %r rejected: %s", command.op, sample.sender, reply.error)
+
+    def _event(self, kind: str, fault_id: str, spec: FaultSpec | None, at: float | None = None) -> None:
+        now = self.clock() if at is None else at
+        details: dict = {"fault_id": fault_id}
+        if spec is not None:
+            details["spec"] = spec.model_dump(mode="json", exclude_none=True)
+        event = Event(kind=kind, source=self.bus.identity, t=max(0, math.floor(now / self.dt + 1e-9)),
+                      sim_time=now, wall_time=time.time(), details=details)
+        self.log.append(event)
+        if self._held_events is not None:
+            self._held_events.append(event)
+        elif self.events:
+            self._publish(event)
+
+    def publish_held(self) -> None:
+        """The run has started (the monitor listens): publish the events kept so far, and the next ones at once."""
+        held, self._held_events = self._held_events, None
+        for event in held or ():
+            self._publish(event)
+
+    def _publish(self, event: Event) -> None:
+        if self.bus.closed:
+            return
+        try:
+            self.bus.put(self.keys.event(self.bus.identity), event)
+        except Exception:  # the record loses one event; the run goes on
+            log.exception("could not publish %s", event.kind)

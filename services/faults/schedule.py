@@ -1,0 +1,93 @@
+"""A schedule of timed faults for one run (TOML), validated by pydantic with errors naming the field.
+
+Format — one ``[[at]]`` table per command, at a tick or at a sim time (seconds)::
+
+    [[at]]
+    tick = 100                       # or: time = 100.0
+    [at.spec]                        # op defaults to "set"
+    id = "burst"
+    duration = 50.0                  # auto-heal after 50 sim seconds
+    [at.spec.loss]
+    model = "gilbert_elliott"
+    percent = 20
+    burst_length = 4
+
+    [[at]]
+    tick = 300
+    op = "reset"                     # heal everything (or fault_id = "burst")
+
+Every process of a run loads the same file and applies each command locally at its boundary (no message has to
+race the tick traffic), so a scheduled run is as deterministic as one without faults.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from schemas.faults import FaultOp, FaultSpec
+from schemas.messages import FaultCommand
+
+
+class TimedCommand(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    tick: int | None = Field(default=None, ge=0, description="apply at the start of this tick")
+    time: float | None = Field(default=None, ge=0.0, allow_inf_nan=False, description="apply at this sim time, s")
+    op: FaultOp = "set"
+    spec: FaultSpec | None = None
+    fault_id: str | None = None
+
+    @model_validator(mode="after")
+    def _when_and_what(self) -> TimedCommand:
+        if (self.tick is None) == (self.time is None):
+            raise ValueError("give exactly one of tick and time")
+        FaultCommand(op=self.op, spec=self.spec, fault_id=self.fault_id)  # same rules as the wire command
+        return self
+
+    def at(self, dt: float) -> float:
+        """Sim time of this command for a run with Δ = ``dt``."""
+        return self.tick * dt if self.tick is not None else self.time  # type: ignore[return-value]
+
+    def command(self) -> FaultCommand:
+        return FaultCommand(op=self.op, spec=self.spec, fault_id=self.fault_id, sender="schedule")
+
+
+class FaultSchedule(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    at: list[TimedCommand] = Field(default_factory=list)
+
+    def timeline(self, dt: float) -> list[tuple[float, FaultCommand]]:
+        """(sim time, command) in time order; commands at the same time keep their file order."""
+        indexed = sorted(enumerate(self.at), key=lambda ic: (ic[1].at(dt), ic[0]))
+        return [(c.at(dt), c.command()) for _, c in indexed]
+
+
+def _explain(exc: ValidationError, where: str) -> ValueError:
+    parts = []
+    for err in exc.errors():
+        loc = "".join(f"[{x}]" if isinstance(x, int) else f".{x}" for x in err["loc"]).lstrip(".")
+        parts.append(f"{loc or '<root>'}: {err['msg']}")
+    return ValueError(f"{where}: " + "; ".join(parts))
+
+
+def parse_schedule(data: dict, where: str = "schedule") -> FaultSchedule:
+    try:
+        return FaultSchedule.model_validate(data)
+    except ValidationError as exc:
+        raise _explain(exc, where) from None
+
+
+def load_schedule(path: str | Path) -> FaultSchedule:
+    """Read and validate a schedule file; ValueError naming the file and the bad field."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"fault schedule {path}: no such file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"fault schedule {path}: not valid TOML: {exc}") from None
+    return parse_schedule(data, f"fault schedule {path}")

@@ -1,0 +1,9 @@
+"""``python -m services.monitor``: this service as its own process (the same as ``morph-sim monitor``)."""
+
+import sys
+
+from services.monitor import command
+from services.supervisor.process import command_main
+
+if __name__ == "__main__":
+    sys.exit(command_main(command))

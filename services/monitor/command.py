@@ -1,0 +1,63 @@
+"""``morph-sim monitor`` / ``python -m services.monitor``: metrics, metric streams, latest-state queryable and the
+run record, as its own process."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+NAME = "monitor"
+HELP = "run the monitor service (metrics, streams, run record) over Zenoh"
+# On SIGTERM the sim ends the run within a second (final tick, run.finished); the monitor waits that long for it so
+# the record says how the run ended, and still exits well within the supervisor's 3 s before SIGKILL.
+SIGNAL_GRACE = 1.5
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from services.runconfig import add_config_arguments
+
+    parser.add_argument("--max-rate", type=float, default=10.0,
+                        help="metric stream updates per second at most (0 = none; the record is always complete)")
+    parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+    parser.add_argument("--prometheus-port", type=int, default=None,
+                        help="serve Prometheus /metrics on 127.0.0.1:PORT (compose uses 9464; default: off)")
+    parser.add_argument("--prometheus-host", default="127.0.0.1",
+                        help="address of the /metrics endpoint (0.0.0.0 inside a container)")
+    add_config_arguments(parser, skip=("listen",))
+    from services.envconfig import apply_env_defaults
+
+    apply_env_defaults(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    from services.monitor.service import MonitorService
+    from services.supervisor.process import exit_now, run_or_exit, serve, service_config, setup_logging
+
+    config = service_config(args)
+    if not config.endpoint:
+        raise ValueError("endpoint: the monitor needs --endpoint ENDPOINT (e.g. tcp/127.0.0.1:7447)")
+    if args.max_rate < 0:
+        raise ValueError(f"max_rate: must be >= 0, got {args.max_rate}")
+    setup_logging(args.log_level, "monitor")
+    port = None if args.prometheus_port in (None, "") else int(args.prometheus_port)
+
+    def make(bus):
+        svc = MonitorService(config, bus, max_rate=float(args.max_rate), keep_rows=False)
+        if config.fault_time == "virtual":
+            # The monitor is the run's measuring instrument: no fault layer (it records what was sent and what the
+            # sim decided, docs/decisions.md), but it stamps sim time like every process of a virtual-time run:
+            # the start of the last tick it saw.
+            bus.set_clock(lambda: max(getattr(svc, "_last_tick", 0), 0) * config.dt)
+        if port is not None:
+            from services.monitor.prometheus import PrometheusExporter
+
+            PrometheusExporter(svc, port, args.prometheus_host)  # daemon thread; lives as long as the process
+        return svc
+
+    result = run_or_exit(NAME, serve(
+        "monitor", make,
+        lambda svc: svc.run(), lambda svc, why: svc.stop(grace=SIGNAL_GRACE), connect=config.endpoint))
+    print(json.dumps({"record": str(config.record_dir), "deliveries": result.deliveries_total,
+                      "rejected": result.rejected}))
+    exit_now(0)
+    return 1  # not reached

@@ -1,0 +1,303 @@
+"""Markdown report of one or more run records (DESIGN §6), with figures and an animation of the warehouse.
+
+Reads only the record files (``manifest.json``, ``metrics.csv``, ``events.jsonl``, ``snapshots/``,
+``positions.csv``, ``links.csv``, ``summary.json``), so a report can be made long after the run, for a record written
+by a live monitor, a restarted one or ``morph-sim replay``. Figures: cumulative deliveries, delivery rate with fault
+windows shaded, links over time, W heatmaps with the AGV/picker blocks, link-lifetime histogram; a GIF with the
+coordination links drawn (stable green, new, pruned red dashed — the renderer's colours).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from services.monitor import metrics as M
+from services.monitor.recorder import read_metrics, read_snapshots
+
+RATE_WINDOW = 50
+
+
+@dataclass
+class Record:
+    """One run record, loaded."""
+
+    dir: Path
+    manifest: dict
+    rows: list[dict]
+    events: list[dict]
+    summary: dict | None
+    n_agvs: int
+    n_agents: int
+    name: str = ""
+    gaps: list[tuple[int, int]] = field(default_factory=list)
+
+    def column(self, name: str) -> np.ndarray:
+        return np.array([float(r[name]) if r.get(name) not in (None, "") else math.nan for r in self.rows])
+
+    @property
+    def t(self) -> np.ndarray:
+        return np.array([int(r["t"]) for r in self.rows])
+
+    def fault_windows(self) -> list[tuple[float, float, str]]:
+        """(start tick, end tick, label) of every fault window, from the events (open windows end with the run)."""
+        end = float(self.t[-1] + 1) if self.rows else 0.0
+        open_: dict[str, tuple[float, str]] = {}
+        out = []
+        for e in self.events:
+            kind, t = e.get("kind", ""), e.get("t")
+            if t is None:
+                continue
+            fid = str((e.get("details") or {}).get("fault_id") or (e.get("details") or {}).get("id") or kind)
+            if kind == "fault.set":
+                open_[fid] = (float(t), fid)
+            elif kind in ("fault.healed", "fault.reset") and fid in open_:
+                start, label = open_.pop(fid)
+                out.append((start, float(t), label))
+            elif kind == "fault.reset":
+                for start, label in open_.values():
+                    out.append((start, float(t), label))
+                open_.clear()
+        out += [(start, end, label) for start, label in open_.values()]
+        return out
+
+    def crashes(self) -> list[float]:
+        return [float(e["t"]) for e in self.events if e.get("kind") in ("fault.crash", "agent.restart")
+                and e.get("t") is not None]
+
+    def positions(self) -> dict[int, np.ndarray]:
+        path = self.dir / "positions.csv"
+        out: dict[int, np.ndarray] = {}
+        if not path.exists():
+            return out
+        n = self.n_agents
+        for line in path.read_text(encoding="utf-8").splitlines():
+            cells = line.split(",")
+            if len(cells) != 1 + 4 * n:
+                continue  # a line cut by a killed monitor
+            out[int(cells[0])] = np.array(cells[1:], dtype=np.int64).reshape(4, n)
+        return out
+
+    def links(self) -> dict[int, np.ndarray]:
+        path = self.dir / "links.csv"
+        out: dict[int, np.ndarray] = {}
+        if not path.exists():
+            return out
+        n = self.n_agents
+        for line in path.read_text(encoding="utf-8").splitlines():
+            t, _, pairs = line.partition(",")
+            A = np.zeros((n, n), dtype=bool)
+            try:
+                for p in pairs.split():
+                    i, j = map(int, p.split("-"))
+                    A[i, j] = A[j, i] = True
+                out[int(t)] = A
+            except ValueError:
+                continue
+        return out
+
+
+def load(directory: Path) -> Record:
+    d = Path(directory)
+    if not (d / "metrics.csv").exists():
+        raise ValueError(f"run_dir: {d} holds no run record (metrics.csv missing)")
+    manifest = json.loads((d / "manifest.json").read_text()) if (d / "manifest.json").exists() else {}
+    events = []
+    if (d / "events.jsonl").exists():
+        for line in (d / "events.jsonl").read_text(encoding="utf-8").splitlines():
+            try:
+                events.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue  # a line cut by a killed monitor
+    summary = json.loads((d / "summary.json").read_text()) if (d / "summary.json").exists() else None
+    fleet = manifest.get("fleet", {})
+    rows = read_metrics(d)
+    rec = Record(d, manifest, rows, events, summary, int(fleet.get("agvs", 0)),
+                 int(fleet.get("agvs", 0)) + int(fleet.get("pickers", 0)), name=d.name)
+    rec.gaps = [(int(e["details"]["first"]), int(e["details"]["last"])) for e in events
+                if e.get("kind") == "monitor.gap" and "first" in e.get("details", {})]
+    return rec
+
+
+def numbers(rec: Record) -> dict:
+    """The report's table of one record (what a restarted monitor's record must reproduce apart from its gap)."""
+    d = rec.column("deliveries")
+    links = rec.column("links")
+    return {
+        "rows": len(rec.rows),
+        "deliveries": int(np.nansum(d)),
+        "deliveries_total": int(rec.column("deliveries_total")[-1]) if rec.rows else 0,
+        "mean_links": float(np.nanmean(links)) if rec.rows else math.nan,
+        "final_links": int(links[-1]) if rec.rows and not math.isnan(links[-1]) else None,
+        "gaps": rec.gaps,
+    }
+
+
+# -- figures --------------------------------------------------------------------------------------------------------
+def _shade(ax, rec: Record) -> None:
+    for i, (a, b, label) in enumerate(rec.fault_windows()):
+        ax.axvspan(a, b, color="tab:red", alpha=0.15, label="fault window" if i == 0 else None)
+    for i, (a, b) in enumerate(rec.gaps):
+        ax.axvspan(a, b + 1, color="grey", alpha=0.3, label="record gap" if i == 0 else None)
+    for t in rec.crashes():
+        ax.axvline(t, color="tab:red", lw=0.8, ls=":")
+
+
+def figures(recs: list[Record], out: Path) -> dict[str, Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths: dict[str, Path] = {}
+
+    def save(fig, name: str) -> None:
+        p = out / f"{name}.png"
+        fig.tight_layout()
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        paths[name] = p
+
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    for rec in recs:
+        ax.plot(rec.t, np.nancumsum(rec.column("deliveries")), label=rec.name)
+    ax.set(xlabel="tick", ylabel="deliveries", title="Cumulative deliveries")
+    ax.legend(fontsize=7)
+    save(fig, "deliveries")
+
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    for rec in recs:
+        d = np.nan_to_num(rec.column("deliveries"))
+        ax.plot(rec.t, M.rolling_rate(d, RATE_WINDOW), label=rec.name)
+        _shade(ax, rec)
+    ax.set(xlabel="tick", ylabel=f"deliveries / step ({RATE_WINDOW}-step window)", title="Delivery rate")
+    ax.legend(fontsize=7)
+    save(fig, "delivery_rate")
+
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    for rec in recs:
+        ax.plot(rec.t, rec.column("links"), label=rec.name)
+        _shade(ax, rec)
+    ax.set(xlabel="tick", ylabel="undirected links", title="Coordination links")
+    ax.legend(fontsize=7)
+    save(fig, "links")
+
+    for k, rec in enumerate(recs):
+        snaps = read_snapshots(rec.dir)
+        if snaps:
+            ts = sorted(snaps)
+            pick = sorted({ts[0], ts[len(ts) // 3], ts[2 * len(ts) // 3], ts[-1]})
+            fig, axes = plt.subplots(1, len(pick), figsize=(3.2 * len(pick), 3.2), squeeze=False)
+            for ax, t in zip(axes[0], pick):
+                W = snaps[t]["W"]
+                im = ax.imshow(W, cmap="viridis", vmin=0, vmax=max(1e-9, float(np.nanmax(W))))
+                b = rec.n_agvs - 0.5
+                ax.axhline(b, color="white", lw=1)
+                ax.axvline(b, color="white", lw=1)
+                ax.set_title(f"W at t={t}", fontsize=9)
+                ax.set_xticks([rec.n_agvs / 2, rec.n_agvs + (rec.n_agents - rec.n_agvs) / 2], ["AGV", "picker"])
+                ax.set_yticks([rec.n_agvs / 2, rec.n_agvs + (rec.n_agents - rec.n_agvs) / 2],
+                              ["AGV", "picker"] if ax is axes[0][0] else ["", ""])
+            fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8)
+            fig.suptitle(f"{rec.name}: W snapshots (AGV / picker blocks)", fontsize=10)
+            p = out / f"w_heatmaps_{k}.png"
+            fig.savefig(p, dpi=110)
+            plt.close(fig)
+            paths[f"w_heatmaps_{k}"] = p
+
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    any_links = False
+    for rec in recs:
+        links = rec.links()
+        if not links:
+            continue
+        tracker = M.LinkTracker(rec.n_agents)
+        for t in sorted(links):
+            tracker.update(links[t], tick=t)
+        life, censored = tracker.lifetimes()
+        if life.size:
+            any_links = True
+            ax.hist([life[~censored], life[censored]], bins=30, stacked=True,
+                    label=[f"{rec.name} pruned", f"{rec.name} alive at end"])
+    ax.set(xlabel="link lifetime (ticks)", ylabel="links", title="Link lifetimes", yscale="log")
+    if any_links:
+        ax.legend(fontsize=7)
+    save(fig, "link_lifetimes")
+    return paths
+
+
+def warehouse_gif(rec: Record, path: Path, *, max_frames: int = 200, cell_px: int = 12) -> int | None:
+    """GIF of the robots with their coordination links, from ``positions.csv`` and ``links.csv``; None if absent."""
+    from services.sim.layout import layout_for, named_sizes
+    from services.sim.render import Frame, link_statuses, write_gif
+
+    positions, links = rec.positions(), rec.links()
+    ticks = sorted(set(positions) & set(links))
+    if not ticks:
+        return None
+    config = rec.manifest.get("config", {})
+    lay = layout_for(named_sizes()[config.get("scale", "tiny")][0])
+    stride = max(1, math.ceil(len(ticks) / max_frames))
+    shown = ticks[::stride]
+    is_agv = np.arange(rec.n_agents) < rec.n_agvs
+
+    def frames():
+        prev = None
+        for t in shown:
+            x, y, heading, carrying = positions[t]
+            A = links[t]
+            yield Frame(height=lay.H, width=lay.W, highway=lay.highway, goals=np.array(lay.goals, dtype=np.int64),
+                        shelves=~lay.highway, requested=np.zeros_like(lay.highway),
+                        agent_x=x, agent_y=y, agent_dir=heading, is_agv=is_agv, carrying=carrying > 0,
+                        step=t, caption=f"{rec.name}  links {int(np.triu(A, 1).sum())}",
+                        links=link_statuses(A, prev))
+            prev = A
+
+    return write_gif(frames(), path, fps=8, cell_px=cell_px)
+
+
+def write_report(run_dirs: list[Path], out: Path, *, gif: bool = True) -> Path:
+    """Write ``out/report.md`` with its figures; returns the Markdown path."""
+    recs = [load(Path(d)) for d in run_dirs]
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    figs = figures(recs, out)
+    lines = ["# morph-sim run report", ""]
+    lines += ["| run | scale | policy | seed | steps | deliveries | mean links | final links | gaps |",
+              "|---|---|---|---|---|---|---|---|---|"]
+    for rec in recs:
+        c = rec.manifest.get("config", {})
+        nb = numbers(rec)
+        gaps = ", ".join(f"{a}–{b}" for a, b in nb["gaps"]) or "none"
+        lines.append(f"| {rec.name} | {c.get('scale')} | {c.get('policy')} | {c.get('seed')} | {nb['rows']} | "
+                     f"{nb['deliveries']} | {nb['mean_links']:.1f} | {nb['final_links']} | {gaps} |")
+    lines.append("")
+    for rec in recs:
+        windows = rec.fault_windows()
+        if windows:
+            lines.append(f"Fault windows of {rec.name}: " + ", ".join(f"{lab} [{a:g}, {b:g})" for a, b, lab in windows))
+    lines += ["", "## Figures", ""]
+    titles = {"deliveries": "Cumulative deliveries", "delivery_rate": "Delivery rate (fault windows shaded)",
+              "links": "Links over time", "link_lifetimes": "Link-lifetime histogram"}
+    for name, p in figs.items():
+        title = titles.get(name, "W heatmap snapshots (AGV/picker blocks)")
+        lines += [f"### {title}", "", f"![{title}]({p.name})", ""]
+    if gif:
+        lines += ["## Warehouse animation", ""]
+        for k, rec in enumerate(recs):
+            g = out / f"warehouse_{k}.gif"
+            count = warehouse_gif(rec, g)
+            if count is None:
+                lines.append(f"{rec.name}: no animation — the record has no positions.csv/links.csv "
+                             "(recorded before issue 6)")
+            else:
+                lines += [f"![{rec.name}]({g.name})", "",
+                          f"{count} frames; links: stable green, new, pruned red dashed."]
+        lines.append("")
+    md = out / "report.md"
+    md.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return md

@@ -1,0 +1,442 @@
+"""The monitor service: observes the whole run, computes per-tick metrics from messages alone, records the run.
+
+One subscription on ``morph/<run>/**`` (one Zenoh callback thread, fan-out in Python — zenoh.md §8.12) feeds:
+
+* ``sim/tick``            deliveries of step t−1 (its ``delivered_by``), sim time;
+* ``agent/<id>/ack``      requests sent, the agent's out-links after its update (→ links, λ₂), η;
+* ``agent/<id>/commit``   commitments;
+* ``agent/<id>/state``    rows of W and A (→ mean W by block, W/A snapshots), latest state per agent;
+* ``events/*``            run events into ``events.jsonl``;
+* ``ctl/stop``            end: last rows, snapshots and summary are written, then the service returns.
+
+Row ``t`` of the record is final once tick t+2 (or the end of the run) has been seen: the lockstep sim cannot
+publish tick t+2 before every message of tick t reached the router that also forwards them here.
+
+Metric streams ``metrics/<name>`` are decimated to ``max_rate`` updates per second (live views need no more); the
+record is complete regardless. ``get`` on ``state/**`` answers with the latest metric samples
+(``state/metrics/<name>``) and agent states (``state/agent/<id>``) for late joiners.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from schemas import Ack, AgentState, Commit, Event, MetricSample, Phase, Stop
+from schemas.hot import TickArrays, decode_tick
+from schemas.keys import RunKeys, intersects
+from services.bus.base import Bus, Query, Sample
+from services.monitor import metrics as M
+from services.monitor.recorder import Recorder
+from services.monitor.streams import MessageStats
+from services.rejects import Rejects
+from services.runconfig import RunConfig
+
+log = logging.getLogger("morph_sim.monitor")
+
+ROW_GRACE_TICKS = 8
+STREAMS = ("deliveries", "deliveries_total", "requests", "commits", "links", "lambda2", "eta", "acks",
+           "w_agv_agv", "w_agv_picker", "w_picker_picker")
+ACK_HAS_LINKS = "links" in Ack.model_fields  # the wire schema's per-tick link report (else: state rows)
+STOP_GRACE = 3.0  # seconds the monitor waits for the sim's end of run after someone else's stop
+QUIET_EVENTS = ("ready.probe", "ready.ack")
+
+
+@dataclass
+class Row:
+    t: int
+    sim_time: float = 0.0
+    deliveries: int | None = None
+    requests: int = 0
+    commits: int = 0
+    ackers: set[int] = field(default_factory=set)
+    links: dict[int, list[int]] = field(default_factory=dict)
+    etas: list[float] = field(default_factory=list)
+
+
+@dataclass
+class MonitorResult:
+    rows: list[dict] = field(default_factory=list)
+    snapshots: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    deliveries_total: int = 0
+    rejected: int = 0
+    messages: dict[str, int] = field(default_factory=dict)
+    finished: dict | None = None
+
+
+class MonitorService:
+    """Monitor of the run of ``config`` over ``bus``; ``await run()`` until the run stops."""
+
+    def __init__(self, config: RunConfig, bus: Bus, *, record: bool = True, max_rate: float = 10.0,
+                 keep_rows: bool = True):
+        self.config = config
+        self._rejects = Rejects(log, "monitor")
+        self.bus = bus
+        self.keys = RunKeys(config.run_id)
+        self.n = config.n_agents
+        self.is_agv = np.arange(self.n) < config.n_agvs
+        self.recorder = Recorder(config) if record else None
+        self.max_rate = max_rate
+        self.keep_rows = keep_rows
+        self.result = MonitorResult()
+        self._rows: dict[int, Row] = {}
+        self._next_row = 0
+        self._last_tick = -1
+        self._total = 0
+        self._states: dict[int, dict[int, AgentState]] = {}  # tick -> agent -> state
+        self.latest_state: dict[int, AgentState] = {}
+        self.latest_metric: dict[str, MetricSample] = {}
+        self._block: dict[int, M.BlockMeans] = {}
+        self._last_publish = 0.0
+        self._stop = asyncio.Event()
+        self._pending_publish: list[MetricSample] = []
+        self._last_values: dict = {}
+        self._links_sum = 0
+        self._graph: tuple[dict[int, list[int]] | None, int, float] = (None, 0, 0.0)  # (links, count, λ₂) of a row
+        self._fresh: dict[str, tuple[int, float, float]] = {}  # stream -> newest (t, sim time, value) unpublished
+        self._unbuilt = False  # rows queued since the metric samples were last built
+        self._done = False
+        self._stop_timer: asyncio.TimerHandle | None = None
+        self._link_shift = 1 if config.policy == "morph" else 0
+        self.stats = MessageStats(self.n, config.dt)  # message streams (counts, drops, latency, dispatch)
+        # issue 5 (F3): per key class sent / delivered / dropped / duplicated / late and latency, from the samples'
+        # own headers, published as link/* metrics every k (state_every) ticks
+        from services.bus.linkstats import LinkMeter
+
+        self.link_meter = LinkMeter(f"morph/{config.run_id}")
+        self.latest_links: list[MetricSample] = []
+        self._links_due = False
+
+    def _reject(self, what: str, why: object) -> None:
+        self._rejects.count(what, why)
+        self.result.rejected = self._rejects.total
+        self.stats.rejected = self._rejects.total
+
+    # -- lifecycle -----------------------------------------------------------------------------------------------------
+    async def run(self) -> MonitorResult:
+        k = self.keys
+        # Not inline: the monitor takes in the whole run's traffic, and it must never hold up the transport's receive
+        # thread. Handled inline, a slow moment (a W snapshot at tick 50 of a 64-agent run) let the sim's router block
+        # writing to us while our own publish from that thread blocked writing to the router: the run deadlocked
+        # (seen 3 times in 10 loaded 64-agent runs). On the loop, samples arrive in batches (one wake-up per burst).
+        await self.bus.subscribe(k.everything, self._on_sample)
+        await self.bus.declare_queryable(k.latest_all, self._on_query)
+        token = await self.bus.declare_token(k.alive("monitor"))
+        await self._stop.wait()
+        self._finish()
+        await self._publish_pending(force=True)
+        await token.close()
+        return self.result
+
+    def stop(self, grace: float = 0.0) -> None:
+        """Finish the record now, or after ``grace`` seconds unless the sim's end of run comes first."""
+        if grace <= 0:
+            self._stop.set()
+        elif self._stop_timer is None:
+            self._stop_timer = asyncio.get_running_loop().call_later(grace, self._stop.set)
+
+    # -- dispatch --------------------------------------------------------------------------------------------------------
+    def _on_sample(self, sample: Sample) -> None:
+        """On the loop (the subscription is not inline; replay feeds samples here too)."""
+        if self._done:
+            return
+        try:
+            rel = self.keys.relative(sample.key)
+        except ValueError as exc:
+            self._reject(sample.key, exc)
+            return
+        head = rel[0]
+        kind = head if head != "agent" or len(rel) < 3 else rel[2]
+        self.result.messages[kind] = self.result.messages.get(kind, 0) + 1
+        # a sim-time stamp (virtual time, unfaulted here) means no wall latency: never time.time() - sim seconds
+        self.stats.observe(kind, sample.key, sample.sender, sample.seq, sample.sent_at,
+                           None if sample.sent_at > 1e8 else sample.sent_at)
+        if sample.sender:
+            # wall stamps (paced / up): latency as seen here; sim-time stamps (virtual time) carry no wall latency
+            sent = sample.sent_at
+            self.link_meter.record(sample.key, sample.sender, sample.seq, sent, time.time() if sent > 1e8 else sent)
+        try:
+            if head == "sim" and rel[1:] == ["tick"]:
+                self._on_tick(decode_tick(sample.payload))  # validated, as arrays (schemas/hot.py)
+            elif head == "agent" and len(rel) == 3:
+                if rel[2] == "ack":
+                    self._on_ack(sample.decode(Ack), rel[1])
+                elif rel[2] == "commit":
+                    self._on_commit(sample.decode(Commit), rel[1])
+                elif rel[2] == "state":
+                    self._on_state(sample.decode(AgentState), rel[1])
+            elif head == "events" and len(rel) == 2:
+                self._on_event(sample.decode(Event))
+            elif head == "ctl" and rel[1:] == ["stop"]:
+                sample.decode(Stop)
+                if sample.sender == "sim":
+                    self._stop.set()
+                elif self._stop_timer is None:
+                    # an operator's stop: the sim ends the run and says so; stop anyway if it cannot
+                    self._stop_timer = asyncio.get_running_loop().call_later(STOP_GRACE, self._stop.set)
+        except ValueError as exc:  # DecodeError and bad ids
+            self._reject(sample.key, exc)
+
+    def _row(self, t: int) -> Row | None:
+        if t < self._next_row:
+            return None  # already final (a late duplicate)
+        row = self._rows.get(t)
+        if row is None:
+            row = self._rows[t] = Row(t)
+        return row
+
+    def _on_tick(self, tick: TickArrays) -> None:
+        if tick.n != self.n:
+            raise ValueError(f"tick has {tick.n} robots, this fleet {self.n}")
+        if tick.t <= self._last_tick:
+            return
+        if self._last_tick < 0 and self.recorder is not None and self.recorder.resume_from is not None:
+            self._resume(tick.t)
+        self._last_tick = tick.t
+        if tick.t > 0:
+            prev = self._row(tick.t - 1)
+            if prev is not None:
+                prev.deliveries = tick.deliveries
+        if tick.t < self.config.steps:
+            row = self._row(tick.t)
+            if row is not None:
+                row.sim_time = tick.sim_time
+        if self.recorder is not None:
+            self.recorder.positions(tick.t, *(tick.row(name).tolist() for name in ("x", "y", "heading", "carrying")))
+        # Row t-2 is due once tick t arrives, but its acks (and the link reports of t-1) travel on other paths than
+        # the sim's ticks and may reach the monitor after tick t: a row that still misses an agent's report waits
+        # up to ROW_GRACE_TICKS more ticks (an absent agent's row is then written without it).
+        self._finalize(upto=tick.t - 2, grace=ROW_GRACE_TICKS)
+
+    def _resume(self, first_tick: int) -> None:
+        # A restarted monitor appends to its predecessor's record: rows from the first tick it sees (the first it can
+        # see whole), the cumulative count continued, and the rows in between declared lost (a gap event).
+        last_row, total = self.recorder.resume_from
+        self._total = total
+        self._next_row = max(first_tick, last_row + 1)
+        kind = "monitor.gap" if self._next_row > last_row + 1 else "monitor.resumed"
+        self.recorder.event(Event(kind=kind, source="monitor", t=first_tick, details={
+            "first": last_row + 1, "last": self._next_row - 1, "reason": "monitor restarted"}).model_dump(mode="json"))
+        self.recorder.flush()
+
+    def _check_sender(self, chunk: str, agent: int) -> None:
+        if chunk != str(agent):
+            raise ValueError(f"message of agent {agent} on the key of {chunk}")
+        if not 0 <= agent < self.n:
+            raise ValueError(f"agent id {agent} outside 0..{self.n - 1}")
+
+    def _on_ack(self, ack: Ack, chunk: str) -> None:
+        self._check_sender(chunk, ack.agent)
+        if ack.phase != Phase.TICK:
+            return
+        if ack.t < self.config.steps:
+            row = self._row(ack.t)
+            if row is not None and ack.agent not in row.ackers:
+                row.ackers.add(ack.agent)
+                row.requests += len(ack.requests_sent)
+                if ack.requests_sent:
+                    self.stats.requested(ack.t, ack.agent)
+        if ACK_HAS_LINKS:
+            self._links_from(ack.t, ack.agent, getattr(ack, "links", None) or [], getattr(ack, "eta", None))
+
+    def _links_from(self, t: int, agent: int, links: list[int], eta: float | None) -> None:
+        # Links and η belong to the step whose update produced them: a plastic policy's report at tick t carries the
+        # state after the update for step t−1 (the reference logs it as step t−1); a memoryless one's is of tick t.
+        step = t - self._link_shift
+        if not 0 <= step < self.config.steps:
+            return
+        row = self._row(step)
+        if row is None or agent in row.links:
+            return
+        row.links[agent] = [j for j in links if 0 <= j < self.n]
+        if eta is not None and self._link_shift:
+            row.etas.append(float(eta))
+
+    def _on_commit(self, commit: Commit, chunk: str) -> None:
+        self._check_sender(chunk, commit.picker)
+        row = self._row(commit.t)
+        if row is not None:
+            row.commits += 1
+        self.stats.committed(commit.t, commit.agv)
+
+    def _on_state(self, state: AgentState, chunk: str) -> None:
+        self._check_sender(chunk, state.agent)
+        if len(state.w_row) != self.n:
+            raise ValueError(f"state row of {len(state.w_row)} entries, fleet of {self.n}")
+        prev = self.latest_state.get(state.agent)
+        if prev is None or state.t >= prev.t:
+            self.latest_state[state.agent] = state
+        if not ACK_HAS_LINKS:  # older wire schema: per-tick links come from the state rows
+            self._links_from(state.t, state.agent, np.flatnonzero(state.a_row).tolist(), state.eta)
+        if state.t % self.config.state_every != 0 and state.t < self.config.steps:
+            return  # a per-tick state (links only): not a W sample
+        at = self._states.setdefault(state.t, {})
+        at[state.agent] = state
+        if len(at) == self.n:
+            self._complete_states(state.t)
+
+    def _matrices(self, t: int) -> tuple[np.ndarray, np.ndarray]:
+        W = np.full((self.n, self.n), np.nan)
+        A = np.zeros((self.n, self.n), dtype=bool)
+        for agent, st in self._states.get(t, {}).items():
+            W[agent] = st.w_row
+            A[agent] = st.a_row
+        return W, A
+
+    def _complete_states(self, t: int) -> None:
+        W, A = self._matrices(t)
+        if not np.isnan(W).any():
+            self._block[t] = M.mean_w_by_block(W, self.is_agv)
+        if t % self.config.snapshot_every == 0 or t >= self.config.steps:
+            self.result.snapshots[t] = (W, A)
+            if self.recorder is not None:
+                self.recorder.snapshot(t, W, A)
+        del self._states[t]
+
+    def _on_event(self, event: Event) -> None:
+        if event.kind in QUIET_EVENTS:
+            if event.kind == "ready.probe":
+                self.bus._spawn(self.bus.publish(self.keys.event("monitor"), Event(
+                    kind="ready.ack", source="monitor", details={"round": event.details.get("round", 0)})),
+                    "probe")
+            return
+        if event.kind == "run.finished":
+            self.result.finished = {**(self.result.finished or {}), **event.details}
+            self._stop.set()
+        if self.recorder is not None:
+            self.recorder.event(event.model_dump(mode="json"))
+
+    # -- rows ------------------------------------------------------------------------------------------------------------
+    def _row_complete(self, row: Row) -> bool:
+        return len(row.ackers) >= self.n and (not ACK_HAS_LINKS or len(row.links) >= self.n)
+
+    def _finalize(self, upto: int, grace: int = 0) -> None:
+        while self._next_row <= upto:
+            t = self._next_row
+            pending = self._rows.get(t)
+            if t > upto - grace and (pending is None or not self._row_complete(pending)):
+                break
+            row = self._rows.pop(t, None) or Row(t)
+            self._emit(row)
+            self._next_row += 1
+
+    def _emit(self, row: Row) -> None:
+        A = np.zeros((self.n, self.n), dtype=bool)
+        for agent, links in row.links.items():
+            A[agent, links] = True
+        if row.links != self._graph[0]:
+            # the link graph changes only at structural steps: its count and λ₂ (an eigen-solve) are kept until then
+            self._graph = (row.links, M.undirected_link_count(A), M.algebraic_connectivity(A))
+        _, link_count, lambda2 = self._graph
+        delivered = row.deliveries or 0
+        self._total += delivered
+        block = self._block.pop(row.t, None)
+        values = {
+            "t": row.t, "sim_time": row.sim_time, "deliveries": row.deliveries, "deliveries_total": self._total,
+            "requests": row.requests, "commits": row.commits, "links": link_count,
+            "lambda2": lambda2, "eta": float(np.mean(row.etas)) if row.etas else None,
+            "acks": len(row.ackers),
+            "w_agv_agv": block.agv_agv if block else None, "w_agv_picker": block.agv_picker if block else None,
+            "w_picker_picker": block.picker_picker if block else None,
+        }
+        self.result.deliveries_total = self._total
+        self._last_values = values
+        self._links_sum += values["links"]
+        if self.keep_rows:
+            self.result.rows.append(values)
+        if self.recorder is not None:
+            self.recorder.row(values)
+            self.recorder.links(row.t, A)
+        self._queue_metrics(values)
+
+    def _queue_metrics(self, values: dict) -> None:
+        """Note the row's stream values; build and publish MetricSamples only when a publication is due.
+
+        Streams are decimated to ``max_rate`` updates per second, so building ~15 samples (and the latency quantiles)
+        for every row would be work nobody reads: per stream the newest value since the last publication is kept
+        (a sparse stream, e.g. the W block means every k ticks, is not lost) and turned into a sample when due.
+        ``latest_metric`` (late joiners, Prometheus) is refreshed then, and at the end of the run.
+        """
+        t = values["t"]
+        sim_time = values["sim_time"] or t * self.config.dt
+        for name in STREAMS:
+            v = values.get(name)
+            if v is not None and not (isinstance(v, float) and not math.isfinite(v)):
+                self._fresh[name] = (t, sim_time, float(v))
+        self.stats.row(values)
+        self._unbuilt = True
+        if t % self.config.state_every == 0:
+            # one sample per (counter, key class): kept apart from latest_metric (one value per name), and carried
+            # to the next decimated publish so a k-tick snapshot is never skipped
+            self.latest_links = self.link_meter.metrics(t, sim_time, self.bus.identity)
+            self._links_due = True
+        now = time.monotonic()
+        due = self.max_rate > 0 and now - self._last_publish >= 1.0 / self.max_rate
+        if due or self.max_rate <= 0:
+            self._build_samples(values)
+        if due:
+            self._last_publish = now
+            self.bus._spawn(self._publish_pending(), "metrics")
+
+    def _build_samples(self, values: dict) -> None:
+        """The pending MetricSamples of the rows noted since the last build; ``values`` is the newest row."""
+        self._unbuilt = False
+        samples = [MetricSample(name=name, t=t, sim_time=sim_time, value=v)
+                   for name, (t, sim_time, v) in self._fresh.items()]
+        self._fresh = {}
+        samples += self.stats.samples(values)
+        for s in samples:
+            self.latest_metric[s.name] = s
+        if self._links_due:
+            samples += self.latest_links
+            self._links_due = False
+        # per stream the newest sample since the last publication: a sparse stream (dispatch_delay) is not lost
+        pending = {s.name: s for s in self._pending_publish}
+        pending.update((s.name, s) for s in samples)
+        self._pending_publish = list(pending.values())
+
+    async def _publish_pending(self, force: bool = False) -> None:
+        samples, self._pending_publish = self._pending_publish, []
+        for s in samples:
+            await self.bus.publish(self.keys.metric(s.name), s, droppable=True)
+
+    def _finish(self) -> None:
+        self._done = True
+        if self._stop_timer is not None:
+            self._stop_timer.cancel()
+        # every row up to the last completed step; the final tick (t == steps) only reported that step
+        last = min(self._last_tick - 1, self.config.steps - 1)
+        self._finalize(upto=last)
+        for t in sorted(self._states):
+            self._complete_states(t)
+        if self._unbuilt:  # the last rows' samples: latest_metric ends on the run's final values
+            self._build_samples(self._last_values)
+        summary = {
+            "run_id": self.config.run_id, "steps": self._next_row, "deliveries_total": self._total,
+            "rejected": self.result.rejected, "mean_links": self._links_sum / max(1, self._next_row),
+            "sequence_gaps": self.stats.gaps,  # messages lost on the way to the monitor (per sender and key)
+            "messages": dict(sorted(self.result.messages.items())),
+            "finished": self.result.finished,
+            "final_links": self._last_values.get("links"),
+        }
+        if self.recorder is not None:
+            self.recorder.summary(summary)
+            self.recorder.close()
+
+    # -- late joiners ----------------------------------------------------------------------------------------------------
+    def _on_query(self, query: Query) -> None:
+        metrics, states = list(self.latest_metric.items()), sorted(self.latest_state.items())
+        for name, sample in metrics:
+            key = self.keys.latest("metrics", name)
+            if intersects(key, query.key_expr):
+                query.reply(key, sample)
+        for agent, state in states:
+            key = self.keys.latest("agent", str(agent))
+            if intersects(key, query.key_expr):
+                query.reply(key, state)
+

@@ -1,0 +1,244 @@
+"""The monitor's metric streams: their documented list, the extra per-message statistics, and subscriber helpers.
+
+Every stream is published on ``morph/<run>/metrics/<name>`` as a :class:`~schemas.MetricSample` (a
+versioned wire message carrying the tick ``t`` and the sim time), at most ``--max-rate`` updates per second per stream
+(the monitor's publish path), and answered from the latest value on ``get morph/<run>/state/metrics/<name>``.
+
+:data:`STREAMS` is the one list of names, units and meanings: the README table, the Prometheus exporter and the tests
+all read it. The row streams come from the monitor's per-tick rows (``metrics.csv``); :class:`MessageStats` adds the
+statistics that come from the messages themselves (counts, drops by sequence gaps, latency, dispatch delay).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import bisect
+import math
+import time
+from collections import deque
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from schemas import MetricSample
+
+#: Histogram bucket boundaries (seconds): prometheus_client's defaults, also OTel's for messaging durations.
+LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.075, 0.1, 0.25, 0.5, 0.75, 1.0, 2.5, 5.0, 7.5, 10.0)
+#: Dispatch delay is in sim seconds (one step = Δ, 1 s by default): buckets of a few steps up to minutes.
+DISPATCH_BUCKETS = (0.0, 1.0, 2.0, 3.0, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0, 500.0)
+RATE_WINDOW = 50  # ticks of the sliding window of delivery_rate
+
+
+@dataclass(frozen=True)
+class Stream:
+    name: str
+    unit: str
+    help: str
+
+
+STREAMS: tuple[Stream, ...] = (
+    Stream("deliveries", "deliveries", "shelves delivered in step t"),
+    Stream("deliveries_total", "deliveries", "cumulative deliveries up to step t"),
+    Stream("delivery_rate", "deliveries/s", f"deliveries per sim second over the last {RATE_WINDOW} steps"),
+    Stream("links", "links", "undirected coordination links after the update of step t"),
+    Stream("lambda2", "1", "algebraic connectivity λ₂ of the link graph"),
+    Stream("eta", "1", "mean neuromodulation signal η over the agents (plastic policies)"),
+    Stream("w_agv_agv", "1", "mean W between AGVs (every --state-every ticks)"),
+    Stream("w_agv_picker", "1", "mean W between AGVs and pickers"),
+    Stream("w_picker_picker", "1", "mean W between pickers"),
+    Stream("requests", "messages", "help requests sent in tick t"),
+    Stream("commits", "messages", "picker commitments in tick t"),
+    Stream("acks", "agents", "agents that acknowledged tick t"),
+    Stream("agents_alive", "agents", "agents heard from (acked) in tick t; labels: the missing ids"),
+    Stream("dispatch_delay", "s", "mean sim seconds from an AGV's first help request to a picker's commit, step t"),
+    Stream("messages_total", "messages", "messages seen by the monitor; labels: count per kind"),
+    Stream("drops_total", "messages", "messages lost: sequence gaps per sender and key, plus rejected payloads"),
+    Stream("latency_seconds", "s", "bus latency publish→monitor over the last second: values = [p50, p90, p99]"),
+    # per key class as the monitor received them, every --state-every ticks (issue 5); labels: key, receiver
+    *(Stream(f"link/{c}", "messages", f"cumulative messages {c} per key class (sent: highest sequence number + 1)")
+      for c in ("sent", "delivered", "dropped", "duplicated", "late")),
+    *(Stream(f"link/latency/{q}", "s", f"observed latency per key class: {q} since the start")
+      for q in ("mean", "p50", "p90", "p99", "max")),
+)
+STREAM_NAMES = tuple(s.name for s in STREAMS)
+ROW_STREAMS = ("deliveries", "deliveries_total", "links", "lambda2", "eta", "w_agv_agv", "w_agv_picker",
+               "w_picker_picker", "requests", "commits", "acks")
+
+
+def markdown_table() -> str:
+    lines = ["| stream | unit | meaning |", "|---|---|---|"]
+    lines += [f"| `{s.name}` | {s.unit} | {s.help} |" for s in STREAMS]
+    return "\n".join(lines)
+
+
+class Histogram:
+    """Cumulative bucket counts, sum and count (Prometheus semantics; no I/O)."""
+
+    def __init__(self, bounds: tuple[float, ...]):
+        self.bounds = tuple(bounds)
+        self.counts = [0] * (len(self.bounds) + 1)  # last = +Inf
+        self.sum = 0.0
+        self.count = 0
+
+    def observe(self, value: float) -> None:
+        i = bisect.bisect_left(self.bounds, value)  # np.searchsorted(side="left") without numpy: once per message
+        self.counts[i] += 1
+        self.sum += value
+        self.count += 1
+
+    def cumulative(self) -> list[tuple[str, int]]:
+        out, acc = [], 0
+        for bound, c in zip([*map(str, self.bounds), "+Inf"], self.counts):
+            acc += c
+            out.append((bound, acc))
+        return out
+
+
+class MessageStats:
+    """Statistics of the monitor's incoming messages (pure bookkeeping; the monitor feeds it every sample)."""
+
+    def __init__(self, n_agents: int, dt: float):
+        self.n = n_agents
+        self.dt = dt
+        self.by_kind: dict[str, int] = {}
+        self.total = 0
+        self.gaps = 0
+        self.rejected = 0
+        self._last_seq: dict[tuple[str, str], int] = {}
+        self._latency: deque[tuple[float, float]] = deque()  # (receive time, latency)
+        self.latency = Histogram(LATENCY_BUCKETS)
+        self.dispatch = Histogram(DISPATCH_BUCKETS)
+        self._waiting: dict[int, int] = {}  # AGV -> tick of its first unanswered request
+        self._dispatch_by_tick: dict[int, list[float]] = {}
+        self._deliveries: deque[int] = deque(maxlen=RATE_WINDOW)
+        self._dispatch_row: tuple[int, float, float] | None = None  # (t, sim time, mean delay), not yet published
+
+    def observe(self, kind: str, key: str, sender: str, seq: int, sent_at: float, now: float | None = None) -> None:
+        self.total += 1
+        self.by_kind[kind] = self.by_kind.get(kind, 0) + 1
+        if sender and seq:
+            last = self._last_seq.get((sender, key))
+            if last is not None and seq > last + 1:
+                self.gaps += seq - last - 1
+            if last is None or seq > last:
+                self._last_seq[(sender, key)] = seq
+        if sent_at > 0:
+            now = time.time() if now is None else now
+            lat = max(0.0, now - sent_at)
+            self.latency.observe(lat)
+            self._latency.append((now, lat))
+            while self._latency and self._latency[0][0] < now - 1.0:
+                self._latency.popleft()
+
+    def requested(self, t: int, agv: int) -> None:
+        self._waiting.setdefault(agv, t)
+
+    def committed(self, t: int, agv: int) -> None:
+        first = self._waiting.pop(agv, None)
+        if first is not None:
+            delay = (t - first) * self.dt
+            self.dispatch.observe(delay)
+            self._dispatch_by_tick.setdefault(t, []).append(delay)
+
+    def latency_quantiles(self) -> list[float]:
+        if not self._latency:
+            return [math.nan] * 3
+        lat = np.array([x for _, x in self._latency], dtype=float)
+        return [float(q) for q in np.quantile(lat, (0.5, 0.9, 0.99))]
+
+    def row(self, values: dict) -> None:
+        """Account the row ``values`` just finalised (t, sim_time, deliveries …): every row, in order."""
+        t = values["t"]
+        self._deliveries.append(int(values.get("deliveries") or 0))
+        delays = [d for k in [k for k in self._dispatch_by_tick if k <= t] for d in self._dispatch_by_tick.pop(k)]
+        if delays:  # the newest row with dispatches is what the (decimated) stream shows
+            self._dispatch_row = (t, values.get("sim_time") or t * self.dt, float(np.mean(delays)))
+
+    def samples(self, values: dict) -> list[MetricSample]:
+        """The message streams as of the newest row ``values`` (:meth:`row` has seen it): built when published."""
+        t = values["t"]
+        sim_time = values.get("sim_time") or t * self.dt
+        out = [
+            MetricSample(name="delivery_rate", t=t, sim_time=sim_time, unit="deliveries/s",
+                         value=sum(self._deliveries) / (len(self._deliveries) * self.dt)),
+            MetricSample(name="messages_total", t=t, sim_time=sim_time, unit="messages", value=float(self.total),
+                         labels={k: str(v) for k, v in sorted(self.by_kind.items())}),
+            MetricSample(name="drops_total", t=t, sim_time=sim_time, unit="messages",
+                         value=float(self.gaps + self.rejected),
+                         labels={"sequence_gaps": str(self.gaps), "rejected": str(self.rejected)}),
+            MetricSample(name="agents_alive", t=t, sim_time=sim_time, unit="agents",
+                         value=float(values.get("acks") or 0)),
+        ]
+        if self._dispatch_row is not None:
+            at, at_time, delay = self._dispatch_row
+            self._dispatch_row = None
+            out.append(MetricSample(name="dispatch_delay", t=at, sim_time=at_time, unit="s", value=delay))
+        q = self.latency_quantiles()
+        if all(math.isfinite(x) for x in q):
+            out.append(MetricSample(name="latency_seconds", t=t, sim_time=sim_time, unit="s", values=q,
+                                    labels={"quantiles": "0.5,0.9,0.99"}))
+        return out
+
+
+# -- subscribers --------------------------------------------------------------------------------------------------
+class Decimator:
+    """Per-stream rate limit for a slow subscriber: pass at most ``max_rate`` samples per second per stream name.
+
+    The newest sample of a suppressed burst is kept (``pending``) so the subscriber can flush it: a view never ends
+    on a stale value.
+    """
+
+    def __init__(self, max_rate: float, clock: Callable[[], float] = time.monotonic):
+        if max_rate < 0:
+            raise ValueError(f"max_rate: must be >= 0, got {max_rate}")
+        self.max_rate = max_rate
+        self.clock = clock
+        self._last: dict[str, float] = {}
+        self.pending: dict[str, MetricSample] = {}
+        self.suppressed = 0
+
+    def admit(self, sample: MetricSample) -> bool:
+        if self.max_rate == 0:
+            return True
+        now = self.clock()
+        last = self._last.get(sample.name)
+        if last is not None and now - last < 1.0 / self.max_rate:
+            self.pending[sample.name] = sample
+            self.suppressed += 1
+            return False
+        self._last[sample.name] = now
+        self.pending.pop(sample.name, None)
+        return True
+
+
+async def subscribe_metrics(bus, run_id: str, handler: Callable[[MetricSample], Awaitable[None] | None], *,
+                            names: str = "**", max_rate: float = 0.0):
+    """Subscribe ``handler`` to the run's metric streams, decimated to ``max_rate`` per stream (0 = all)."""
+    from schemas.keys import RunKeys
+
+    keys = RunKeys(run_id)
+    dec = Decimator(max_rate)
+
+    async def on_sample(sample) -> None:
+        try:
+            metric = sample.decode(MetricSample)
+        except ValueError:
+            return
+        if dec.admit(metric):
+            result = handler(metric)
+            if asyncio.iscoroutine(result):
+                await result
+
+    expr = keys.metrics if names == "**" else keys.metric(names)
+    return await bus.subscribe(expr, on_sample)
+
+
+#: The README's subscriber example (tests/test_readme_example.py runs it against a live ``morph-sim up``).
+README_EXAMPLE = '''\
+import time, msgpack, zenoh  # after: morph-sim up --listen tcp/127.0.0.1:7447 --steps 5000
+conf = zenoh.Config.from_json5('{mode: "client", connect: {endpoints: ["tcp/127.0.0.1:7447"]}}')
+with zenoh.open(conf) as session:
+    session.declare_subscriber("morph/*/metrics/**", lambda s: print(s.key_expr, msgpack.unpackb(s.payload.to_bytes())))
+    time.sleep(10)
+'''

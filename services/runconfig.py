@@ -1,0 +1,218 @@
+"""The one configuration model of a run, shared by every service, the supervisor and the compose file.
+
+A :class:`RunConfig` travels three ways, all derived from the field list below so they cannot drift apart:
+
+* CLI flags: ``--scale medium --policy morph --seed 42`` (``add_config_arguments`` / ``from_args``);
+* environment variables with the same names: ``MORPH_SCALE=medium MORPH_POLICY=morph`` (``from_env`` / ``to_env``),
+  what the docker-compose file of issue 7 sets;
+* argv for a child process (``to_argv``), what the supervisor passes to ``morph-sim sim|agent|monitor``.
+
+Invalid values raise ``ValueError`` naming the field (pydantic ``ValidationError`` is one).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from collections.abc import Mapping
+from functools import cached_property
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from schemas.keys import validate_run_id
+
+ENV_PREFIX = "MORPH_"
+POLICIES = ("full", "constant", "tsg", "proximity", "none", "morph")
+PRESETS = ("reference", "paper")
+
+
+def default_run_id() -> str:
+    # Wall-clock based: run ids name directories under runs/, they never enter the simulation.
+    return time.strftime("run-%Y%m%d-%H%M%S", time.gmtime()) + f"-{os.getpid() % 10000:04d}"
+
+
+class RunConfig(BaseModel):
+    """Everything that defines one run. Same config and seed ⇒ same trajectory (faults aside)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+
+    run_id: str = Field(default_factory=default_run_id, description="run id: key prefix morph/<run>/ and record dir")
+    scale: str = Field(default="tiny", description="warehouse size: tiny, small, medium, large, extralarge")
+    agvs: int | None = Field(default=None, ge=1, le=2048, description="number of AGVs (default: the scale's)")
+    pickers: int | None = Field(default=None, ge=1, le=2048, description="number of pickers (default: the scale's)")
+    policy: Literal["full", "constant", "tsg", "proximity", "none", "morph"] = Field(
+        default="morph", description="coordination policy")
+    preset: Literal["reference", "paper"] = Field(default="reference", description="MORPH preset")
+    ablation: str | None = Field(default=None, description="MORPH ablation name (None = full model)")
+    p: float = Field(default=0.25, ge=0.0, le=1.0, description="gate probability of the constant policy")
+    radius: int = Field(default=4, ge=0, description="link radius of the proximity policy")
+    seed: int = Field(default=42, ge=0, lt=2**63, description="seed of the warehouse and of every agent's RNG")
+    steps: int = Field(default=200, ge=1, le=10_000_000, description="ticks to run")
+    dt: float = Field(default=1.0, gt=0.0, le=3600.0, description="Δ: seconds of robot time per step")
+    mode: Literal["lockstep", "paced"] = Field(
+        default="lockstep", description="lockstep: next tick when every agent answered; paced: real period")
+    period: float = Field(default=0.1, gt=0.0, le=60.0, description="paced mode: wall seconds per tick")
+    phase_timeout: float = Field(
+        default=10.0, gt=0.0, le=3600.0,
+        description="lockstep: wall seconds a phase waits before marking silent agents absent")
+    ready_timeout: float = Field(default=120.0, gt=0.0, description="wall seconds to wait for every agent before tick 0")
+    state_every: int = Field(default=10, ge=1, description="k: agents publish their state every k ticks")
+    snapshot_every: int = Field(default=50, ge=1, description="monitor: W/A snapshot every this many ticks")
+    cold_restart: bool = Field(
+        default=False, description="a restarted agent starts from zero instead of the monitor's latest state")
+    fault_schedule: Path | None = Field(
+        default=None, description="TOML schedule of timed faults (docs/faults.md); crash faults go to the supervisor")
+    fault_time: Literal["virtual", "wall"] = Field(
+        default="virtual", description="fault latency and heals in sim seconds at phase boundaries (virtual: "
+        "reproducible) or in real seconds (wall: real sleeps, for paced demos)")
+    endpoint: str | None = Field(
+        default=None, description="Zenoh endpoint to connect to (e.g. tcp/127.0.0.1:7447); None = LocalBus/listen")
+    listen: str | None = Field(default=None, description="Zenoh endpoint the sim listens on (supervisor sets it)")
+    output_dir: Path = Field(default=Path("runs"), description="parent directory of run records")
+
+    @field_validator("run_id")
+    @classmethod
+    def _run_id(cls, value: str) -> str:
+        return validate_run_id(value)
+
+    @field_validator("scale")
+    @classmethod
+    def _scale(cls, value: str) -> str:
+        from services.sim.layout import named_sizes
+
+        if value not in named_sizes():
+            raise ValueError(f"unknown size {value!r}; choose one of {', '.join(named_sizes())}")
+        return value
+
+    @field_validator("endpoint", "listen")
+    @classmethod
+    def _endpoint(cls, value: str | None) -> str | None:
+        if value is None or value == "":
+            return None
+        proto, sep, rest = value.partition("/")
+        if not sep or proto not in ("tcp", "udp", "tls", "quic", "unixsock-stream", "ws") or not rest:
+            raise ValueError(f"{value!r} is not a Zenoh endpoint like tcp/127.0.0.1:7447")
+        return value
+
+    @model_validator(mode="after")
+    def _ablation(self) -> RunConfig:
+        if self.ablation is not None and self.policy == "morph":
+            from services.agent.presets import ABLATIONS
+
+            if self.ablation != "full" and self.ablation not in ABLATIONS:
+                raise ValueError(f"ablation: unknown {self.ablation!r} (known: {', '.join(ABLATIONS)})")
+        return self
+
+    # -- derived ---------------------------------------------------------------------------------------------------
+    # cached: services read these on every message
+    @cached_property
+    def n_agvs(self) -> int:
+        from services.sim.layout import named_sizes
+
+        return self.agvs if self.agvs is not None else named_sizes()[self.scale][1]
+
+    @cached_property
+    def n_pickers(self) -> int:
+        from services.sim.layout import named_sizes
+
+        return self.pickers if self.pickers is not None else named_sizes()[self.scale][2]
+
+    @cached_property
+    def n_agents(self) -> int:
+        return self.n_agvs + self.n_pickers
+
+    @property
+    def record_dir(self) -> Path:
+        return Path(self.output_dir) / self.run_id
+
+    def policy_options(self) -> dict[str, Any]:
+        """Keyword options of :func:`services.agent.policies.make_policy`."""
+        if self.policy == "constant":
+            return {"p": self.p}
+        if self.policy == "proximity":
+            return {"radius": self.radius}
+        if self.policy == "morph":
+            return {"preset": self.preset, "ablation": self.ablation}
+        return {}
+
+    def make_policy(self):
+        from services.agent.policies import make_policy
+
+        return make_policy(self.policy, **self.policy_options())
+
+    def role_of(self, agent: int) -> str:
+        if not 0 <= agent < self.n_agents:
+            raise ValueError(f"agent: id {agent} outside 0..{self.n_agents - 1}")
+        return "agv" if agent < self.n_agvs else "picker"
+
+    # -- transports: CLI flags, environment, argv --------------------------------------------------------------------
+    @staticmethod
+    def flag(name: str) -> str:
+        return "--" + name.replace("_", "-")
+
+    @staticmethod
+    def env_name(name: str) -> str:
+        return ENV_PREFIX + name.upper()
+
+    @classmethod
+    def coerce(cls, values: Mapping[str, Any]) -> RunConfig:
+        """Validate, turning pydantic's error into one ValueError line naming the field."""
+        try:
+            return cls(**{k: v for k, v in values.items() if v is not None})
+        except ValidationError as exc:
+            err = exc.errors(include_url=False)[0]
+            field = ".".join(str(p) for p in err.get("loc", ())) or "config"
+            raise ValueError(f"{field}: {err.get('msg')}") from None
+
+    def to_env(self) -> dict[str, str]:
+        """Environment variables (``MORPH_<FIELD>``) that reproduce this config through :meth:`from_env`."""
+        out = {}
+        for name, value in self.model_dump(mode="json").items():
+            if value is not None:
+                out[self.env_name(name)] = str(value)
+        return out
+
+    @classmethod
+    def from_env(cls, environ: Mapping[str, str] | None = None, **overrides: Any) -> RunConfig:
+        environ = os.environ if environ is None else environ
+        values: dict[str, Any] = {}
+        for name in cls.model_fields:
+            raw = environ.get(cls.env_name(name))
+            if raw not in (None, ""):
+                values[name] = raw
+        values.update({k: v for k, v in overrides.items() if v is not None})
+        return cls.coerce(values)
+
+    def to_argv(self, fields: tuple[str, ...] | None = None) -> list[str]:
+        """``--flag value`` pairs for a child ``morph-sim`` command (only fields that differ from None)."""
+        argv: list[str] = []
+        dumped = self.model_dump(mode="json")
+        for name in fields or tuple(type(self).model_fields):
+            value = dumped[name]
+            if value is None:
+                continue
+            argv += [self.flag(name), str(value)]
+        return argv
+
+
+def add_config_arguments(parser: argparse.ArgumentParser, *, skip: tuple[str, ...] = ()) -> None:
+    """One flag per RunConfig field; every default is None so env variables and model defaults apply."""
+    group = parser.add_argument_group("run configuration (flags override MORPH_* environment variables)")
+    for name, info in RunConfig.model_fields.items():
+        if name in skip:
+            continue
+        default = info.get_default(call_default_factory=False)
+        shown = "generated" if info.default_factory is not None else default
+        group.add_argument(RunConfig.flag(name), dest=f"cfg_{name}", default=None, metavar=name.upper(),
+                           help=f"{info.description} (env {RunConfig.env_name(name)}; default {shown})")
+
+
+def config_from_args(args: argparse.Namespace, environ: Mapping[str, str] | None = None, **overrides: Any
+                     ) -> RunConfig:
+    """Config from flags, falling back to MORPH_* environment variables, then to the model defaults."""
+    flags = {name[4:]: value for name, value in vars(args).items() if name.startswith("cfg_") and value is not None}
+    flags.update({k: v for k, v in overrides.items() if v is not None})
+    return RunConfig.from_env(environ, **flags)

@@ -1,0 +1,9 @@
+"""``python -m services.sim``: this service as its own process (the same as ``morph-sim sim``)."""
+
+import sys
+
+from services.sim import command
+from services.supervisor.process import command_main
+
+if __name__ == "__main__":
+    sys.exit(command_main(command))

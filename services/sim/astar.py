@@ -1,0 +1,205 @@
+"""The rotation-aware A* of TA-RWARE's planner fork, re-implemented exactly, and TA-RWARE's path rules.
+
+Spec: shared/reference/tarware.md §7.2. The search is the fork's (raulsteleac/pyastar2d_TARWARE@ff9257d) greedy
+variant, not textbook A*: 4-connected, Manhattan heuristic, neighbours in the order up, left, right, down
+(direction codes 1, 3, 4, 6), +1 on a change of direction (never on the first move), and +100 added to a cell's
+weight once it is pushed, so a cell is in effect settled when first reached. The open list is a binary heap ordered
+only by priority, and ties are decided by how libstdc++'s ``std::priority_queue`` moves entries, which Python's
+``heapq`` does differently; :class:`_Heap` therefore mirrors libstdc++'s ``push_heap``/``pop_heap`` step by step.
+All costs are small integers, exact in both float32 (the fork) and float64 (here).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from services.sim.layout import Layout
+
+INF = float("inf")
+# Static plans (no other agents as obstacles) depend only on the layout, so planners of one layout share them.
+# Paths are tuples of shared cell tuples (about 8 bytes per cell); the cache is emptied when it reaches this size.
+MAX_CACHED_PLANS = 200_000
+_STATIC_PLANS: dict[object, dict[tuple[int, int, bool], tuple[tuple[int, int], ...]]] = {}
+# Direction codes of the fork's 8-neighbour table that a 4-connected search uses.
+_UP, _LEFT, _RIGHT, _DOWN = 1, 3, 4, 6
+
+
+def neighbour_table(H: int, W: int) -> list[tuple[tuple[int, int, int, int], ...]]:
+    """For each flat cell, its in-grid neighbours as (direction code, flat index, row, col), in the fork's order."""
+    table = []
+    for idx in range(H * W):
+        row, col = divmod(idx, W)
+        nbrs = []
+        if row > 0:
+            nbrs.append((_UP, idx - W, row - 1, col))
+        if col > 0:
+            nbrs.append((_LEFT, idx - 1, row, col - 1))
+        if col + 1 < W:
+            nbrs.append((_RIGHT, idx + 1, row, col + 1))
+        if row + 1 < H:
+            nbrs.append((_DOWN, idx + W, row + 1, col))
+        table.append(tuple(nbrs))
+    return table
+
+
+def astar(weights: list[float], H: int, W: int, start: int, goal: int,
+          nbr_table: list[tuple[tuple[int, int, int, int], ...]] | None = None) -> list[int] | None:
+    """The fork's search on flat ``weights`` (>= 1, ``inf`` = obstacle). ``weights`` is modified (pass a copy).
+
+    Returns the flat cells from start to goal, start included, or None when the goal is unreachable.
+    """
+    if nbr_table is None:
+        nbr_table = neighbour_table(H, W)
+    n = H * W
+    costs = [INF] * n
+    costs[start] = 0.0
+    parents = [-1] * n
+    g_row, g_col = divmod(goal, W)
+    # Heap entries: (priority, cell, direction entered from, path length). Only priority is ever compared.
+    heap: list[tuple[float, int, int, int]] = [(0.0, start, -1, 1)]
+    path_length = -1
+    while heap:
+        top = heap[0]
+        cur = top[1]
+        if cur == goal:  # the fork tests the top before popping
+            path_length = top[3]
+            break
+        # --- pop: libstdc++ pop_heap (move last into the hole left by the top, sift down, then up) ---
+        last = heap.pop()
+        size = len(heap)
+        if size:
+            value = last
+            hole = 0
+            child = 0
+            half = (size - 1) // 2
+            while child < half:
+                child = 2 * (child + 1)
+                if heap[child][0] > heap[child - 1][0]:
+                    child -= 1
+                heap[hole] = heap[child]
+                hole = child
+            if (size & 1) == 0 and child == (size - 2) // 2:
+                child = 2 * (child + 1)
+                heap[hole] = heap[child - 1]
+                hole = child - 1
+            vf = value[0]
+            while hole > 0:
+                parent = (hole - 1) // 2
+                if heap[parent][0] > vf:
+                    heap[hole] = heap[parent]
+                    hole = parent
+                else:
+                    break
+            heap[hole] = value
+        # --- expand ---
+        prev_dir = top[2]
+        base = costs[cur]
+        plen = top[3] + 1
+        for code, nb, r, c in nbr_table[cur]:
+            w = weights[nb]
+            if w == INF:  # an obstacle can never be relaxed (inf < inf is false in the fork too)
+                continue
+            new_cost = base + w
+            if prev_dir > 0 and prev_dir != code and w < 100.0:
+                new_cost += 1.0
+            if new_cost < costs[nb]:
+                entry = (new_cost + (abs(r - g_row) + abs(c - g_col)), nb, code, plen)
+                # --- push: libstdc++ push_heap (sift up while the parent is strictly greater) ---
+                heap.append(entry)
+                hole = len(heap) - 1
+                ef = entry[0]
+                while hole > 0:
+                    parent = (hole - 1) // 2
+                    if heap[parent][0] > ef:
+                        heap[hole] = heap[parent]
+                        hole = parent
+                    else:
+                        break
+                heap[hole] = entry
+                costs[nb] = new_cost
+                parents[nb] = cur
+                weights[nb] = w + 100.0
+    if path_length < 0:
+        return None
+    path = [0] * path_length
+    idx = goal
+    for i in range(path_length - 1, -1, -1):
+        path[i] = idx
+        idx = parents[idx]
+    return path
+
+
+class Planner:
+    """TA-RWARE's ``find_path`` cost-grid rules on top of :func:`astar` (spec §7.2 steps 1-7).
+
+    AGVs plan on an all-free grid; pickers only on highways outside the goal row, plus their target rack cell, and
+    a picker on a rack cell whose target is the other half of the same 2-wide rack must leave through the highway.
+    Plans that ignore other agents depend only on (start, goal, agent kind), so they are cached; plans around
+    other agents always run the exact search.
+    """
+
+    def __init__(self, layout: Layout):
+        self.layout = layout
+        H, W = layout.H, layout.W
+        self.H, self.W = H, W
+        self._nbrs = neighbour_table(H, W)
+        self._agv_base = [1.0] * (H * W)
+        highway = layout.highway.reshape(-1).tolist()
+        self._highway = highway
+        picker = [1.0 if hw else INF for hw in highway]
+        for x in range(W):
+            picker[(H - 1) * W + x] = INF
+        self._picker_base = picker
+        self._cells = [(c % W, c // W) for c in range(H * W)]
+        self._cache = _STATIC_PLANS.setdefault(layout.config, {})
+        self.searches = 0  # exact searches run (cache misses included)
+
+    def find_path(self, start: tuple[int, int], goal: tuple[int, int], picker: bool,
+                  occupied: Iterable[int] | None = None) -> list[tuple[int, int]]:
+        """Cells (x, y) from the cell after ``start`` to ``goal``; [] when there is no path or start == goal.
+
+        ``occupied``: flat indices of cells holding agents (the original's ``care_for_agents=True``), or None.
+        """
+        W = self.W
+        s = start[1] * W + start[0]
+        g = goal[1] * W + goal[0]
+        if occupied is None:
+            key = (s, g, picker)
+            hit = self._cache.get(key)
+            if hit is None:
+                hit = tuple(self._plan(s, g, picker, None))
+                if len(self._cache) >= MAX_CACHED_PLANS:
+                    self._cache.clear()
+                self._cache[key] = hit
+            return list(hit)
+        return self._plan(s, g, picker, occupied)
+
+    def _plan(self, s: int, g: int, picker: bool, occupied: Iterable[int] | None) -> list[tuple[int, int]]:
+        W = self.W
+        weights = list(self._picker_base if picker else self._agv_base)
+        if occupied is not None:
+            for c in occupied:
+                weights[c] = INF
+        if picker:
+            # the goal is free unless it lies in the goal row, which is closed to pickers
+            weights[g] = INF if g >= (self.H - 1) * W else 1.0
+        else:
+            weights[g] = 1.0
+        s_eff = s
+        hw = self._highway
+        if picker and not hw[s] and g // W == s // W and abs(g - s) == 1:
+            if hw[s - 1]:
+                s_eff = s - 1
+            if hw[s + 1]:
+                s_eff = s + 1
+            weights[s] = INF
+        weights[s_eff] = 1.0
+        keep_first = weights[s] == INF  # the original keeps the shifted start as the first path cell
+        self.searches += 1
+        raw = astar(weights, self.H, W, s_eff, g, self._nbrs)
+        if raw is None:
+            return []
+        if not keep_first:
+            raw = raw[1:]
+        cells = self._cells
+        return [cells[c] for c in raw]

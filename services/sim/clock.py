@@ -1,0 +1,605 @@
+"""The sim clock service: the warehouse's single authority, running the two-phase lockstep tick of DESIGN §3.
+
+Per tick ``t``:
+
+1. the CTA controller runs steps 1–2 (:meth:`CTAController.begin_tick`); the observation becomes a ``Tick`` on
+   ``sim/tick``;
+2. every present agent answers with an ``Ack`` listing the pickers it asked (AGVs send their ``HelpRequest``\\ s
+   directly to those pickers);
+3. if anybody asked, the sim publishes ``Resolve`` (per picker, the requesters in mission order); each picker that
+   expects requests answers with a ``Commit`` (or an ``Ack`` of phase RESOLVE if it takes none);
+4. the commits (validated against the resolve) are applied in mission order and the world steps.
+
+After the last step a final ``Tick`` (``t == steps``) reports that step; agents apply their last plasticity update
+and ack; then the sim publishes a ``run.finished`` event and ``ctl/stop``.
+
+Presence: an agent takes part once its liveliness token is visible *and* it has answered a readiness probe
+(declarations propagate asynchronously, zenoh.md §8.6). An agent whose token disappears, or that stays silent past
+the lockstep phase timeout, is absent until it answers a probe again; the sim never waits for an absent agent, and
+its robot gets no new help from it (its requests are simply missing).
+
+The service never raises on bad input: undecodable or out-of-place messages are counted in ``rejected`` and logged.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from schemas import Ack, Commit, Event, Phase, Resolve, Stop, Tick
+from schemas.hot import TickArrays, arrays_from_tick, encode_tick_body
+from schemas.keys import RunKeys
+from services.agent.observation import TickObservation
+from services.bus.base import Bus, LivelinessEvent, Sample
+from services.rejects import Rejects
+from services.runconfig import RunConfig
+from services.sim.cta import CTAController
+from services.sim.registry import mount_registry
+from services.sim.warehouse import Warehouse, WarehouseConfig
+
+log = logging.getLogger("morph_sim.sim")
+
+LEAVE_TIMEOUT = 2.0  # seconds the sim waits, after its stop, for the other participants to leave
+# ... and for the monitor, which may still be working through a backlog (64 agents publishing their state every tick
+# on a loaded machine: several seconds). The sim hosts the endpoint: closing it earlier loses what is still on the way
+# to the monitor, and the record would end before the run did (seen: 51 of 60 rows).
+MONITOR_LEAVE_TIMEOUT = 20.0
+PROBE_INTERVAL = 0.25  # seconds between readiness probes (zenoh.md §8.6)
+MONITOR = "monitor"
+
+
+def tick_from_observation(obs: TickObservation, sim_time: float, extra: dict | None = None) -> Tick:
+    """The wire form of an observation (every field an agent's policy reads)."""
+    return Tick(**tick_fields(obs, sim_time, extra))
+
+
+def tick_fields(obs: TickObservation, sim_time: float, extra: dict | None = None) -> dict:
+    """The Tick's field map as plain Python values. The sim encodes it directly (:func:`encode_tick_body`): the
+    model's validation of the sim's own arrays is the tests' job, not every tick's."""
+    cells = obs.cells
+    return dict(
+        t=int(obs.t), sim_time=float(sim_time),
+        grid_rows=int(obs.grid_shape[0]), grid_cols=int(obs.grid_shape[1]),
+        x=cells[:, 0].tolist(), y=cells[:, 1].tolist(),
+        is_agv=[True] * obs.n_agvs + [False] * obs.n_pickers,
+        mission=obs.mission.tolist(), target_x=obs.target[:, 0].tolist(), target_y=obs.target[:, 1].tolist(),
+        task=obs.task.tolist(), needs_picker=obs.needs_picker.tolist(),
+        mission_order=obs.request_order.tolist(),
+        free_pickers=np.flatnonzero(obs.free_picker).tolist(),
+        has_previous=bool(obs.has_previous),
+        prev_mission=obs.prev_mission.tolist(), prev_target_x=obs.prev_target[:, 0].tolist(),
+        prev_target_y=obs.prev_target[:, 1].tolist(), prev_task=obs.prev_task.tolist(),
+        delivered_by=np.flatnonzero(obs.delivered).tolist(),
+        reward=np.asarray(obs.reward, dtype=float).tolist(), loader=obs.loader.tolist(),
+        handled=np.asarray(obs.handled, dtype=bool).tolist(), final=bool(obs.final),
+        **(extra or {}),
+    )
+
+
+def observation_from_tick(tick: Tick, steps: int | None = None) -> TickObservation:
+    """The policy's observation rebuilt from a Tick message alone (inverse of :func:`tick_from_observation`)."""
+    return observation_from_arrays(arrays_from_tick(tick), steps)
+
+
+def observation_from_arrays(tick: TickArrays, steps: int | None = None) -> TickObservation:
+    """The observation of a decoded tick (:func:`schemas.hot.decode_tick`): views of its two blocks.
+
+    Each agent does this every tick, so it is a handful of slices; the blocks are the agent's own (fresh per tick).
+    """
+    ints, flags = tick.ints, tick.flags
+    n = ints.shape[1]
+    n_agvs = int(np.count_nonzero(flags[0]))
+    free = np.zeros(n, dtype=bool)
+    free[tick.free_pickers] = True
+    delivered = np.zeros(n, dtype=bool)
+    delivered[tick.delivered_by] = True
+    return TickObservation(
+        t=tick.t, n_agvs=n_agvs, n_pickers=n - n_agvs, grid_shape=(tick.grid_rows, tick.grid_cols),
+        cells=ints[0:2].T, mission=ints[6].astype(np.int8), target=ints[2:4].T, task=ints[8],
+        needs_picker=flags[1], free_picker=free, request_order=np.array(tick.mission_order, dtype=np.int64),
+        has_previous=tick.has_previous, prev_mission=ints[7].astype(np.int8), prev_target=ints[4:6].T,
+        prev_task=ints[9], delivered=delivered, reward=tick.reward, loader=ints[10], handled=flags[5],
+        final=tick.final or (steps is not None and tick.t >= steps),
+    )
+
+
+def world_fields(ctl: CTAController, obs: TickObservation) -> dict:
+    """The Tick fields that describe the world beyond the observation (monitor, live views)."""
+    wh = ctl.wh
+    queue = set(wh.queue)
+    partner = [-1] * ctl.n
+    by_cell = {m.cell: p for p, m in ctl.picker_missions.items()}
+    for agv, m in ctl.agv_missions.items():
+        p = by_cell.get(m.cell)
+        if p is not None:
+            partner[agv] = int(p)  # plain ints: the sim packs this map without the model (encode_tick_body)
+            partner[p] = int(agv)
+    loads, unloads = handling_pairs(obs, wh.carrying)
+    return dict(
+        heading=[int(d) for d in wh.dir], busy=[bool(b) for b in wh.busy],
+        carrying=[bool(c) for c in wh.carrying], carrying_requested=[bool(c) and c in queue for c in wh.carrying],
+        partner=partner, request_queue=[int(q) for q in wh.queue], loads=loads, unloads=unloads,
+    )
+
+
+def handling_pairs(obs: TickObservation, carrying) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
+    """(AGV, picker) pairs that loaded / unloaded in step t−1, from the observation's ``handled`` robots.
+
+    A load or unload always has the AGV and one picker on the same cell (cta.py), so the pairs carry ``handled``
+    exactly; an unpaired handled robot would be a controller bug and is logged.
+    """
+    handled = getattr(obs, "handled", None)
+    if handled is None:
+        return [], []
+    cells = obs.cells
+    pickers = {(int(cells[p, 0]), int(cells[p, 1])): p for p in np.flatnonzero(handled[obs.n_agvs:]) + obs.n_agvs}
+    loads, unloads, paired = [], [], set()
+    for agv in np.flatnonzero(handled[: obs.n_agvs]):
+        p = pickers.get((int(cells[agv, 0]), int(cells[agv, 1])))
+        if p is None:
+            continue
+        (loads if carrying[agv] else unloads).append((int(agv), int(p)))
+        paired.update((int(agv), int(p)))
+    missing = set(np.flatnonzero(handled).tolist()) - paired
+    if missing:
+        log.error("sim: handled robots %s have no load/unload partner; agents will not see them", sorted(missing))
+    return loads, unloads
+
+
+class FleetController(CTAController):
+    """The CTA controller with one addition of the distributed run: robots whose agent is absent stay idle."""
+
+    def __init__(self, warehouse: Warehouse) -> None:
+        super().__init__(warehouse)
+        self.idle: set[int] = set()
+
+    def actions(self) -> list[int]:
+        acts = super().actions()
+        for robot in self.idle:
+            acts[robot] = 0  # macro action 0: no target, the robot stays where it is
+        return acts
+
+
+def make_controller(config: RunConfig) -> FleetController:
+    """The world of a run: a warehouse of the configured size and fleet, reset with the run's seed."""
+    wh_cfg = WarehouseConfig.named(config.scale, config.n_agvs, config.n_pickers,
+                                   max_steps=max(config.steps + 1, 500))
+    ctl = FleetController(Warehouse(wh_cfg))
+    ctl.reset(config.seed)
+    return ctl
+
+
+@dataclass
+class SimResult:
+    steps: int = 0
+    deliveries: int = 0
+    per_tick_deliveries: list[int] = field(default_factory=list)
+    commits_applied: int = 0
+    rejected: int = 0
+    absences: int = 0
+    wall_seconds: float = 0.0
+    stopped_early: str | None = None
+    # wall seconds spent per part of the tick (where a distributed tick's time goes)
+    phase_seconds: dict[str, float] = field(default_factory=lambda: {
+        "controller": 0.0, "tick_phase": 0.0, "resolve_phase": 0.0, "step": 0.0})
+
+    @property
+    def ticks_per_s(self) -> float:
+        return self.steps / self.wall_seconds if self.wall_seconds > 0 else 0.0
+
+
+class _Phase:
+    """Who must still answer in the current phase, and a future that resolves when nobody is left.
+
+    Answers arrive on the transport's receive thread (inline handlers) or on the loop; ``lock`` guards ``waiting``
+    and the answers recorded with it, and ``close`` (on the loop, when the phase ends) makes later answers stale.
+    """
+
+    def __init__(self, t: int, phase: int, waiting: set[int]):
+        self.t = t
+        self.phase = phase
+        self.waiting = set(waiting)
+        self.held: set[int] = set()  # answers held by the fault layer (virtual time): accepted if released in time
+        self.lock = threading.Lock()
+        self.closed = False
+        self._loop = asyncio.get_running_loop()
+        self.done = self._loop.create_future()
+        if not self.waiting:
+            self.done.set_result(None)
+
+    def answered(self, agent: int) -> None:
+        """Call with ``lock`` held, from any thread."""
+        if agent in self.waiting:
+            self.waiting.discard(agent)
+            if not self.waiting:
+                self._loop.call_soon_threadsafe(self._finish)
+
+    def _finish(self) -> None:
+        if not self.done.done():
+            self.done.set_result(None)
+
+    def close(self) -> None:
+        with self.lock:
+            self.closed = True
+
+
+class SimClock:
+    """Runs ``config.steps`` ticks over ``bus``. ``await run()`` returns a :class:`SimResult`."""
+
+    def __init__(self, config: RunConfig, bus: Bus, *, wait_for_monitor: bool = True,
+                 on_tick: Callable[[int, TickObservation], None] | None = None, faults=None):
+        self.config = config
+        # issue 5: a FaultRuntime (services.faults.runtime) whose layer sits on this bus; phases then end
+        # when every answer has *arrived* (delivered, held or dropped by the layer) and at each phase boundary the
+        # runtime releases what is due, so a lost or late answer costs that agent its tick, never a hang.
+        self.faults = faults
+        self._rejects = Rejects(log, "sim")
+        self.bus = bus
+        self.keys = RunKeys(config.run_id)
+        self.n = config.n_agents
+        self.wait_for_monitor = wait_for_monitor
+        self.on_tick = on_tick
+        self.ctl = make_controller(config)
+        self.result = SimResult()
+        self.alive: set[int | str] = set()  # liveliness tokens visible
+        self.ready: set[int | str] = set()  # answered a probe since their token appeared
+        self._ready_changed = asyncio.Event()
+        self._stop: str | None = None
+        self._stop_event = asyncio.Event()
+        self._phase: _Phase | None = None
+        self._requests: dict[int, list[int]] = {}  # AGV -> pickers asked, this tick
+        self._commits: dict[int, int] = {}  # picker -> AGV committed, this tick
+        self._expected: dict[int, list[int]] = {}  # picker -> requesters (the resolve)
+        self._probe_round = 0
+        self._running = False  # between tick 0 and the end: only then does a leaving agent count as absent
+
+    # -- presence ----------------------------------------------------------------------------------------------------
+    def present(self) -> set[int]:
+        return {a for a in self.ready if isinstance(a, int) and a in self.alive}
+
+    def _reject(self, what: str, why: object) -> None:
+        self._rejects.count(what, why)
+        self.result.rejected = self._rejects.total
+
+    def _on_alive(self, event: LivelinessEvent) -> None:
+        try:
+            who = self.keys.alive_id(event.key)
+        except ValueError as exc:
+            self._reject(event.key, exc)
+            return
+        if isinstance(who, int) and not 0 <= who < self.n:
+            self._reject(event.key, f"agent id {who} outside 0..{self.n - 1}")
+            return
+        if event.alive:
+            self.alive.add(who)
+        else:
+            self.alive.discard(who)
+            self.ready.discard(who)
+            self._absent(who, "liveliness token gone")
+        self._ready_changed.set()
+
+    def _absent(self, who: int | str, why: str) -> None:
+        if isinstance(who, int) and self._running and self._stop is None:
+            self.result.absences += 1
+            log.info("sim: agent %s absent (%s)", who, why)
+            ph = self._phase
+            if ph is not None:
+                with ph.lock:
+                    ph.answered(who)
+
+    def _on_event(self, sample: Sample) -> None:
+        try:
+            msg = sample.decode(Event)
+        except ValueError as exc:
+            self._reject(sample.key, exc)
+            return
+        if msg.kind != "ready.ack":
+            return
+        who = msg.source
+        if self.keys.sender_of(sample.key) != who:
+            self._reject(sample.key, f"ready ack of {who!r} on the key of another participant")
+            return
+        if who in self.alive and who not in self.ready:
+            self.ready.add(who)
+            self._ready_changed.set()
+
+    def _on_stop(self, sample: Sample) -> None:
+        try:
+            msg = sample.decode(Stop)
+        except ValueError as exc:
+            self._reject(sample.key, exc)
+            return
+        if sample.sender == self.bus.identity:
+            return
+        self.stop(msg.reason or "stop requested")
+
+    def stop(self, reason: str) -> None:
+        """End the run after the current phase (operator stop, SIGTERM)."""
+        if self._stop is None:
+            self._stop = reason
+        self._stop_event.set()
+        if self._phase is not None and not self._phase.done.done():
+            self._phase.done.set_result(None)
+
+    # -- tick traffic ------------------------------------------------------------------------------------------------
+    def _on_arrival(self, sample: Sample, fate: list[float]) -> None:
+        """Fault layer hook: an ack or commit physically arrived. Dropped: the sender has answered (no action this
+        tick). Held: it has answered too, and its answer counts if released by the phase's boundary."""
+        if fate and min(fate) <= 0.0:
+            return  # delivered now: the handler records it
+        ph = self._phase
+        rel = sample.key.rsplit("/", 1)[-1]
+        if ph is None or rel not in ("ack", "commit"):
+            return
+        try:
+            msg = sample.decode(Ack if rel == "ack" else Commit)
+        except ValueError:
+            return  # the handler rejects it if it is ever delivered
+        who = msg.agent if rel == "ack" else msg.picker
+        if msg.t != ph.t or (rel == "ack" and msg.phase != ph.phase) or (rel == "commit" and ph.phase != Phase.RESOLVE):
+            return
+        with ph.lock:
+            if ph.closed or who not in ph.waiting:
+                return
+            if fate:
+                ph.held.add(who)
+            ph.answered(who)
+
+    def _boundary(self, t: int, phase: int) -> None:
+        """Virtual time: reach the boundary that closes ``phase`` of tick ``t`` (releases held answers)."""
+        if self.faults is not None:
+            from services.bus.vtime import boundaries
+
+            self.faults.advance(boundaries(t, self.config.dt)[1 if phase == Phase.TICK else 2])
+
+    def _decode_own(self, sample: Sample, model: type, author: str, what: str):
+        """Decode an answer and check that its author sent it under its own key; a bad one is counted and None."""
+        try:
+            msg = sample.decode(model)
+            self.keys.check_author(sample.key, getattr(msg, author), what)
+        except ValueError as exc:
+            self._reject(sample.key, exc)
+            return None
+        return msg
+
+    def _on_ack(self, sample: Sample) -> None:
+        msg = self._decode_own(sample, Ack, "agent", "ack of agent")
+        if msg is None:
+            return
+        ph = self._phase
+        if ph is None or msg.t != ph.t or msg.phase != ph.phase:
+            return  # stale: the protocol ignores it
+        with ph.lock:
+            if ph.closed or (msg.agent not in ph.waiting and msg.agent not in ph.held):
+                return  # late or duplicate
+            ph.held.discard(msg.agent)
+            if ph.phase == Phase.TICK:
+                asked = [p for p in msg.requests_sent if self.config.n_agvs <= p < self.n]
+                if msg.agent < self.config.n_agvs and asked:
+                    self._requests[msg.agent] = asked[:1]  # one request per AGV per tick
+            ph.answered(msg.agent)
+
+    def _on_commit(self, sample: Sample) -> None:
+        msg = self._decode_own(sample, Commit, "picker", "commit of picker")
+        if msg is None:
+            return
+        ph = self._phase
+        if ph is None or ph.phase != Phase.RESOLVE or msg.t != ph.t:
+            return
+        if msg.agv not in self._expected.get(msg.picker, ()):
+            self._reject(sample.key, f"picker {msg.picker} committed to AGV {msg.agv}, which did not ask it")
+            return
+        with ph.lock:
+            if ph.closed or (msg.picker not in ph.waiting and msg.picker not in ph.held):
+                return
+            ph.held.discard(msg.picker)
+            self._commits[msg.picker] = msg.agv
+            ph.answered(msg.picker)
+
+    # -- main ----------------------------------------------------------------------------------------------------------
+    async def run(self) -> SimResult:
+        k = self.keys
+        bus = self.bus
+        token = await bus.declare_token(k.alive("sim"))
+        if self.faults is not None:
+            layer = next((x for x in self.faults.layers if x is bus._interposer), None) or self.faults.attach(bus)
+            layer.on_fate = self._on_arrival
+            await self.faults.start()
+        # inline: acks and commits are counted on the receive thread; only a phase's end wakes the loop
+        await bus.subscribe(k.acks, self._on_ack, inline=True)
+        await bus.subscribe(k.commits, self._on_commit, inline=True)
+        await bus.subscribe(k.events, self._on_event)
+        await bus.subscribe(k.stop, self._on_stop)
+        await bus.subscribe_liveliness(k.alive_all, self._on_alive, history=True)
+        # agents started without an id claim one here (morph/<run>/registry) before they declare their token
+        self.registry = await mount_registry(bus, k, self.config.n_agvs, self.config.n_pickers)
+        prober = asyncio.get_running_loop().create_task(self._probe_loop())
+        try:
+            await self._wait_ready()
+            if self._stop is None:
+                await self._event("run.started", agents=sorted(self.present()))
+                await self._loop()
+        finally:
+            prober.cancel()
+            try:
+                await prober
+            except (asyncio.CancelledError, Exception):
+                pass
+        r = self.result
+        await self._event("run.finished", steps=r.steps, deliveries=r.deliveries,
+                          stopped_early=r.stopped_early, rejected=r.rejected, absences=r.absences,
+                          wall_seconds=round(r.wall_seconds, 3),
+                          phase_seconds={k: round(v, 3) for k, v in r.phase_seconds.items()})
+        await bus.publish(k.stop, Stop(reason="finished" if r.stopped_early is None else r.stopped_early))
+        # The sim hosts the endpoint: let the others leave first (their tokens go), so nobody loses the stop and
+        # closing the router session does not have to tear down live connections.
+        started = time.monotonic()
+        while True:
+            waited = time.monotonic() - started
+            if waited >= MONITOR_LEAVE_TIMEOUT or not (self.alive - {"sim"}):
+                break
+            if waited >= LEAVE_TIMEOUT and MONITOR not in self.alive:
+                break  # agents that linger do not hold up the end; only the monitor's record does
+            self._ready_changed.clear()
+            try:
+                await asyncio.wait_for(self._ready_changed.wait(), 0.1)
+            except asyncio.TimeoutError:
+                pass
+        await self.registry.close()
+        await token.close()
+        return r
+
+    def _wire_tick(self, obs: TickObservation) -> bytes:
+        """The encoded Tick of ``obs``: observation and world, stamped with its sim time."""
+        return encode_tick_body(tick_fields(obs, obs.t * self.config.dt, world_fields(self.ctl, obs)))
+
+    async def _event(self, kind: str, **details) -> None:
+        t = self.ctl.t
+        await self.bus.publish(self.keys.event("sim"), Event(
+            kind=kind, source="sim", t=t, sim_time=t * self.config.dt, wall_time=time.time(), details=details))
+
+    async def _probe_loop(self) -> None:
+        while True:
+            if any(a not in self.ready and (isinstance(a, int) or a == MONITOR) for a in self.alive):
+                self._probe_round += 1
+                await self.bus.publish(self.keys.event("sim"), Event(
+                    kind="ready.probe", source="sim", details={"round": self._probe_round}))
+            await asyncio.sleep(PROBE_INTERVAL)
+
+    def _everyone_ready(self) -> bool:
+        need_monitor = self.wait_for_monitor and MONITOR not in self.ready
+        return len(self.present()) >= self.n and not need_monitor
+
+    async def _wait_ready(self) -> None:
+        deadline = time.monotonic() + self.config.ready_timeout
+        while not self._everyone_ready():
+            if self._stop is not None:
+                return
+            left = deadline - time.monotonic()
+            if left <= 0:
+                missing = sorted(set(range(self.n)) - self.present())
+                raise TimeoutError(
+                    f"ready_timeout: {len(missing)} of {self.n} agents not ready after "
+                    f"{self.config.ready_timeout:.0f} s (missing: {missing[:20]})"
+                    + ("" if MONITOR in self.ready or not self.wait_for_monitor else "; monitor not ready"))
+            self._ready_changed.clear()
+            try:
+                await asyncio.wait_for(self._ready_changed.wait(), min(left, PROBE_INTERVAL))
+            except asyncio.TimeoutError:
+                pass
+
+    def _deadline(self, started: float, phase: int) -> float:
+        if self.config.mode == "paced":
+            # a phase gets a share of the period; a late answer means no action this tick
+            share = 0.45 if phase == Phase.TICK else 0.9
+            return started + share * self.config.period
+        return time.monotonic() + self.config.phase_timeout
+
+    async def _collect(self, ph: _Phase, deadline: float) -> None:
+        self._phase = ph
+        if self._stop is not None:  # the run is ending: take what is already in, wait for nobody
+            deadline = min(deadline, time.monotonic() + 0.2)
+        left = deadline - time.monotonic()
+        try:
+            if left > 0:
+                await asyncio.wait_for(asyncio.shield(ph.done), left)
+        except asyncio.TimeoutError:
+            pass
+        finally:
+            self._boundary(ph.t, ph.phase)
+            ph.close()
+            self._phase = None
+        if ph.waiting and self.config.mode == "lockstep" and self._stop is None:
+            for who in sorted(ph.waiting):
+                self.ready.discard(who)  # silent past the timeout: absent until it answers a probe again
+                self._absent(who, f"no answer in phase {ph.phase} of tick {ph.t} within {self.config.phase_timeout} s")
+
+    async def _loop(self) -> None:
+        self._running = True
+        try:
+            await self._ticks()
+        finally:
+            self._running = False
+
+    async def _ticks(self) -> None:
+        cfg = self.config
+        k = self.keys
+        t0 = time.monotonic()
+        next_start = t0
+        for _ in range(cfg.steps):
+            if self._stop is not None:
+                self.result.stopped_early = self._stop
+                break
+            if cfg.mode == "paced":
+                delay = next_start - time.monotonic()
+                if delay > 0:
+                    try:
+                        await asyncio.wait_for(self._stop_event.wait(), delay)
+                        continue
+                    except asyncio.TimeoutError:
+                        pass
+                next_start += cfg.period
+            started = time.monotonic()
+            spent = self.result.phase_seconds
+            obs = self.ctl.begin_tick()
+            t = obs.t
+            if self.on_tick is not None:
+                self.on_tick(t, obs)
+            if self.faults is not None:
+                self.faults.advance(t * cfg.dt)  # tick start: schedule, heals, what is due
+            self._requests = {}
+            self._commits = {}
+            self._expected = {}
+            ph = _Phase(t, Phase.TICK, self.present())
+            tick = self._wire_tick(obs)
+            t1 = time.monotonic()
+            spent["controller"] += t1 - started
+            self._phase = ph  # before the tick goes out: inline acks may arrive before _collect starts
+            await self.bus.publish(k.tick, tick)
+            await self._collect(ph, self._deadline(started, Phase.TICK))
+            t2 = time.monotonic()
+            spent["tick_phase"] += t2 - t1
+            commits: list[tuple[int, int]] = []
+            if self._requests:
+                order = [int(a) for a in obs.request_order if int(a) in self._requests]
+                expected: dict[int, list[int]] = {}
+                for agv in order:
+                    for picker in self._requests[agv]:
+                        expected.setdefault(picker, []).append(agv)
+                self._expected = expected
+                pickers = sorted(expected)
+                ph = _Phase(t, Phase.RESOLVE, {p for p in pickers if p in self.present()})
+                self._phase = ph
+                await self.bus.publish(k.resolve, Resolve(t=t, pickers=pickers,
+                                                          requesters=[expected[p] for p in pickers]))
+                await self._collect(ph, self._deadline(started, Phase.RESOLVE))
+                rank = {agv: i for i, agv in enumerate(order)}
+                commits = sorted(((p, a) for p, a in self._commits.items()), key=lambda pa: rank[pa[1]])
+            t3 = time.monotonic()
+            spent["resolve_phase"] += t3 - t2
+            applied = self.ctl.commit(commits)
+            self.ctl.idle = set(range(self.n)) - self.present()  # an absent agent's robot does not move
+            self.result.commits_applied += len(applied)
+            before = self.ctl.deliveries
+            self.ctl.finish_tick()
+            self.result.steps += 1
+            self.result.deliveries = self.ctl.deliveries
+            self.result.per_tick_deliveries.append(self.ctl.deliveries - before)
+            spent["step"] += time.monotonic() - t3
+            self.result.wall_seconds = time.monotonic() - t0
+        # the final tick: agents apply the update of the last step, nobody dispatches
+        obs = self.ctl.final_observation()
+        if self.faults is not None:
+            self.faults.advance(obs.t * cfg.dt)  # its boundary, as every tick: stamps and releases like the others
+        ph = _Phase(obs.t, Phase.TICK, self.present())
+        self._phase = ph
+        await self.bus.publish(k.tick, self._wire_tick(obs))
+        wait = 0.5 if self._stop is not None else cfg.phase_timeout if cfg.mode == "lockstep" else cfg.period
+        await self._collect(ph, time.monotonic() + wait)
+        self.result.wall_seconds = time.monotonic() - t0

@@ -1,0 +1,50 @@
+"""``morph-sim sim`` / ``python -m services.sim``: the warehouse clock service as its own process (it hosts the
+Zenoh endpoint by default)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+NAME = "sim"
+HELP = "run the sim clock service (warehouse + tick protocol) over Zenoh"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from services.envconfig import apply_env_defaults
+    from services.runconfig import add_config_arguments
+
+    parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
+    parser.add_argument("--no-wait-monitor", action="store_true", help="start without a monitor")
+    add_config_arguments(parser)
+    apply_env_defaults(parser)  # per-command flags follow MORPH_LOG_LEVEL … like the RunConfig flags
+
+
+
+def run(args: argparse.Namespace) -> int:
+    from services.sim.clock import SimClock
+    from services.supervisor.process import exit_now, run_or_exit, serve, service_config, setup_logging
+
+    config = service_config(args)
+    if not config.listen and not config.endpoint:
+        raise ValueError("listen: the sim needs --listen ENDPOINT (host the run) or --endpoint ENDPOINT (router)")
+    setup_logging(args.log_level, "sim")
+    result = run_or_exit(NAME, serve(
+        "sim", lambda bus: SimClock(config, bus, wait_for_monitor=not args.no_wait_monitor, faults=_faults(config)),
+        lambda svc: svc.run(), lambda svc, why: svc.stop(why), listen=config.listen, connect=config.endpoint))
+    print(json.dumps({"steps": result.steps, "deliveries": result.deliveries, "rejected": result.rejected,
+                      "absences": result.absences, "ticks_per_s": round(result.ticks_per_s, 1),
+                      "stopped_early": result.stopped_early}))
+    exit_now(0)  # a run ended by a stop request is a clean end; errors exit non-zero with a traceback
+    return 1  # not reached
+
+
+def _faults(config):
+    """The sim's fault runtime (issue 5): ``morph-sim faults set|list|reset`` reaches it on ctl/faults; in the run's
+    fault time (``--fault-time``, virtual by default: every agent process runs its own clock, docs/faults.md)."""
+    from services.faults.crash import CrashPlanner
+    from services.faults.runtime import FaultRuntime
+
+    # Crash faults are carried out by the supervisor; the sim only validates them (agent id in the fleet) so that
+    # `faults set` gets one verdict from both and the run record gets the fault.crash event with its sim time.
+    return FaultRuntime.for_service(config, "sim", on_crash=CrashPlanner(config.n_agents, config.seed).add)

@@ -1,0 +1,77 @@
+"""The process graph of a distributed run, as data.
+
+``process_graph(config, endpoint)`` lists every OS process of a run (sim, one agent per robot, monitor): its name, the
+``morph-sim`` command line with real flags, the environment it needs and its restart policy. The supervisor starts
+exactly these; issue 7's docker-compose file is tested against them.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass, field
+from typing import Literal
+
+from services.runconfig import RunConfig
+
+PROGRAM = "morph-sim"
+
+# Zenoh's measured best settings for the lock-step loop (reference zenoh.md §7): one app worker thread with every
+# other runtime handed over to it; one BLAS thread per process (many processes share 2 cores).
+ZENOH_RUNTIME = (
+    "(rx: (handover: app), tx: (handover: app), acc: (handover: app), net: (handover: app), "
+    "app: (worker_threads: 1))"
+)
+CHILD_ENV = {
+    "ZENOH_RUNTIME": ZENOH_RUNTIME,
+    "OPENBLAS_NUM_THREADS": "1",
+    "OMP_NUM_THREADS": "1",
+    "PYTHONUNBUFFERED": "1",
+}
+
+# Config fields every child receives as flags (the endpoint fields are set per role below).
+_SHARED_FIELDS = tuple(name for name in RunConfig.model_fields if name not in ("endpoint", "listen"))
+
+
+@dataclass(frozen=True)
+class ProcessSpec:
+    """One process of the run."""
+
+    name: str  # "sim", "monitor", "agent-3"
+    role: Literal["sim", "agent", "monitor"]
+    argv: tuple[str, ...]  # starts with PROGRAM ("morph-sim")
+    env: dict[str, str] = field(default_factory=dict)  # added to the parent's environment
+    restart: Literal["never", "on-failure"] = "never"
+    agent: int | None = None
+
+    def command(self) -> list[str]:
+        """The argv to exec here: ``morph-sim`` runs as ``python -m morph_sim.cli`` of this interpreter."""
+        assert self.argv[0] == PROGRAM
+        return [sys.executable, "-m", "morph_sim.cli", *self.argv[1:]]
+
+    def environment(self, base: dict[str, str] | None = None) -> dict[str, str]:
+        env = dict(os.environ if base is None else base)
+        if env.get("ZENOH_RUNTIME") == "":  # an empty value makes zenoh panic (zenoh.md §8.9)
+            del env["ZENOH_RUNTIME"]
+        env.update(self.env)
+        return env
+
+
+def process_graph(config: RunConfig, endpoint: str) -> list[ProcessSpec]:
+    """Every process of a distributed run of ``config`` whose Zenoh endpoint is ``endpoint``.
+
+    Without ``config.endpoint`` the sim hosts the endpoint (it listens on ``endpoint``; no router process, which
+    zenoh.md §4a measured 25–45 % slower); with it every process, the sim included, connects to that router.
+    """
+    shared = config.to_argv(_SHARED_FIELDS)
+    external = config.endpoint is not None
+    sim_where = ["--endpoint", endpoint] if external else ["--listen", endpoint]
+    specs = [ProcessSpec("sim", "sim", (PROGRAM, "sim", *shared, *sim_where), dict(CHILD_ENV), "never")]
+    for agent in range(config.n_agents):
+        specs.append(ProcessSpec(
+            f"agent-{agent}", "agent", (PROGRAM, "agent", "--id", str(agent), *shared, "--endpoint", endpoint),
+            dict(CHILD_ENV), "on-failure", agent))
+    # on-failure: a restarted monitor appends to the same run record and declares the rows it missed (issue 6)
+    specs.append(ProcessSpec("monitor", "monitor", (PROGRAM, "monitor", *shared, "--endpoint", endpoint),
+                             dict(CHILD_ENV), "on-failure"))
+    return specs

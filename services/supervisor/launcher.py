@@ -1,0 +1,436 @@
+"""The local supervisor of ``morph-sim up``: starts the process graph, watches it, restarts agents, ends it.
+
+Process hygiene, because a distributed run must never leave processes behind:
+
+* every child gets its own process group (``start_new_session``), so a terminal Ctrl-C reaches only the supervisor,
+  which then ends the children in order; and the kernel sends each child SIGTERM if the supervisor dies
+  (``PR_SET_PDEATHSIG``), so even a SIGKILLed supervisor leaves no orphans;
+* shutdown is SIGTERM to every group, then SIGKILL by pid to whatever is left after ``TERM_GRACE`` seconds, and a
+  final reap: all children are gone within ``SHUTDOWN_BOUND`` (5 s);
+* each child's stdout and stderr go to ``<record>/logs/<name>.log``; a child that fails before the run is ready
+  makes ``up`` exit non-zero with the tail of that log.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ctypes
+import logging
+import os
+import signal
+import subprocess
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from services.runconfig import RunConfig
+from services.supervisor.graph import ProcessSpec, process_graph
+
+log = logging.getLogger("morph_sim.supervisor")
+
+TERM_GRACE = 3.0  # seconds between SIGTERM and SIGKILL
+SHUTDOWN_BOUND = 5.0
+# A crash loop is a failure, not something to retry forever: at most MAX_RESTARTS unplanned restarts of one child
+# within RESTART_WINDOW wall seconds. Kills the supervisor carries out itself (crash faults, issue 5) do not count, so
+# "kill agent k every 100 ticks" runs for any number of steps.
+MAX_RESTARTS = 5
+RESTART_WINDOW = 60.0
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    except Exception:
+        pass
+
+
+class StartError(RuntimeError):
+    """A process of the run could not start (message names it and shows its log tail)."""
+
+
+class RunStalled(StartError):
+    """The run stopped advancing: no new tick for ``stall_timeout`` seconds although every phase has a deadline.
+
+    A stall inside Zenoh — a router blocked on a full socket while forwarding (zenoh 1.10.2, lowlatency transport;
+    cf. eclipse-zenoh/zenoh#1876; we met it when the monitor handled samples on its receive thread, docs/services.md)
+    — is out of reach of every phase deadline of ours. A user gets a clear failure and a record up to the stall
+    instead of a silent hang."""
+
+
+@dataclass
+class Child:
+    spec: ProcessSpec
+    log_path: Path
+    proc: subprocess.Popen | None = None
+    restarts: int = 0
+    exit_codes: list[int] = field(default_factory=list)
+    pids: list[int] = field(default_factory=list)  # every pid this child ever had (tests check they are gone)
+    reaped: set[int] = field(default_factory=set)  # pids whose exit was handled
+    failures: list[float] = field(default_factory=list)  # monotonic times of unplanned restarts (crash-loop budget)
+    planned: dict[int, bool] = field(default_factory=dict)  # pid killed by a crash fault -> restart it cold?
+
+    @property
+    def pid(self) -> int | None:
+        return None if self.proc is None else self.proc.pid
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def restart_allowed(self, now: float) -> bool:
+        self.failures = [x for x in self.failures if now - x < RESTART_WINDOW]
+        return len(self.failures) < MAX_RESTARTS
+
+    def start(self, extra: tuple[str, ...] = ()) -> None:
+        """``extra`` flags go after the spec's (argparse: the last one wins), e.g. ``--cold-restart True``."""
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        with open(self.log_path, "ab") as out:
+            out.write(f"--- start {' '.join(self.spec.argv + extra)} at {time.time():.3f}\n".encode())
+            out.flush()
+            self.proc = subprocess.Popen(
+                self.spec.command() + list(extra), env=self.spec.environment(), stdin=subprocess.DEVNULL, stdout=out,
+                stderr=subprocess.STDOUT, start_new_session=True, preexec_fn=_die_with_parent, close_fds=True)
+        self.pids.append(self.proc.pid)
+
+    def log_tail(self, lines: int = 15) -> str:
+        try:
+            text = self.log_path.read_text(errors="replace").splitlines()
+        except OSError:
+            return "(no log)"
+        return "\n".join(text[-lines:])
+
+    def signal_group(self, sig: int) -> None:
+        if self.proc is None or self.proc.poll() is not None:
+            return
+        try:
+            os.killpg(self.proc.pid, sig)  # its own group: pgid == pid
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            self.proc.send_signal(sig)
+
+
+@dataclass
+class Progress:
+    """What the live line shows; fed from the run's metric stream."""
+
+    t: int = -1
+    deliveries: float = 0.0
+    links: float = 0.0
+    ticks_per_s: float = 0.0
+    started: float | None = None
+    first_t: int = 0
+    finished: bool = False
+
+    def update(self, name: str, t: int, value: float) -> None:
+        now = time.monotonic()
+        if self.started is None:
+            self.started, self.first_t = now, t
+        if t > self.t:
+            self.t = t
+            if now > self.started:
+                self.ticks_per_s = (t - self.first_t) / (now - self.started)
+        if name == "deliveries_total":
+            self.deliveries = value
+        elif name == "links":
+            self.links = value
+
+
+class Supervisor:
+    """Runs one distributed run of ``config`` to completion or interruption."""
+
+    def __init__(self, config: RunConfig, *, endpoint: str | None = None,
+                 on_progress: Callable[[Progress, str], None] | None = None, ready_timeout: float | None = None,
+                 stall_timeout: float | None = None):
+        from services.bus.zenoh_bus import endpoint as make_endpoint, free_port
+
+        self.config = config
+        self.external = config.endpoint is not None
+        self.endpoint = config.endpoint or endpoint or config.listen or make_endpoint(free_port())
+        self.specs = process_graph(config, self.endpoint)
+        logs = config.record_dir / "logs"
+        self.children = {spec.name: Child(spec, logs / f"{spec.name}.log") for spec in self.specs}
+        self.progress = Progress()
+        self.on_progress = on_progress
+        self.ready_timeout = config.ready_timeout if ready_timeout is None else ready_timeout
+        # a tick may legitimately take a phase deadline per phase (or a paced period): give three times that
+        self.stall_timeout = (max(30.0, 3 * 2 * config.phase_timeout, 3 * config.period) if stall_timeout is None
+                              else stall_timeout)
+        self.stop_requested: str | None = None
+        self.events: list[tuple[float, str, str]] = []
+        # Crash faults (issue 5): specs from the schedule file or `morph-sim faults set` land in the planner (the
+        # ctl/faults controller's on_crash hook); each tick the due actions are carried out on the agents' pids.
+        from services.faults.crash import CrashPlanner, ProcessFaulter
+        from services.faults.schedule import load_schedule
+
+        self.schedule = load_schedule(config.fault_schedule) if config.fault_schedule else None  # bad file: fail now
+        self.planner = CrashPlanner(config.n_agents, config.seed)
+        # pause_for is in sim seconds: paced runs map it through the period, lock-step runs at 1 wall s per sim s
+        self.faulter = ProcessFaulter(self._agent_pid,
+                                      time_scale=config.period / config.dt if config.mode == "paced" else 1.0)
+        self._crash_t = -1  # last tick whose crash actions were carried out
+
+    # -- bookkeeping -------------------------------------------------------------------------------------------------
+    @property
+    def all_pids(self) -> list[int]:
+        return [pid for child in self.children.values() for pid in child.pids]
+
+    def _agent_pid(self, agent: int) -> int | None:
+        child = self.children.get(f"agent-{agent}")
+        return child.pid if child is not None and child.alive() else None
+
+    async def _crashes(self, bus, keys, controller) -> None:
+        """Carry out the crash actions of every tick reached since the last call (the metric stream may skip)."""
+        while self._crash_t < self.progress.t:
+            self._crash_t += 1
+            t = self._crash_t
+            controller.advance(t * self.config.dt)  # scheduled commands of this tick (crash specs reach the planner)
+            for action in self.planner.due(t):
+                child = self.children.get(f"agent-{action.agent}")
+                pid = self.faulter.execute(action)
+                if pid is not None and child is not None and action.signal == "kill":
+                    child.planned[pid] = action.cold_restart or self.config.cold_restart
+                self._event("crash", f"{action.signal} agent {action.agent} (pid {pid}) at tick {t}")
+                await self._publish_event(bus, keys, "agent.crash", agent=action.agent, signal=action.signal,
+                                          pid=pid, fault_id=action.fault_id, tick=t, at_tick=t)
+
+    def _event(self, kind: str, what: str) -> None:
+        self.events.append((time.time(), kind, what))
+        log.info("%s: %s", kind, what)
+
+    def request_stop(self, reason: str) -> None:
+        if self.stop_requested is None:
+            self.stop_requested = reason
+
+    # -- main ----------------------------------------------------------------------------------------------------------
+    async def run(self) -> int:
+        """0 when the run completed, 130/143 when interrupted; raises StartError if a process cannot start."""
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                loop.add_signal_handler(sig, self.request_stop, signal.Signals(sig).name)
+            except (NotImplementedError, RuntimeError):  # not the main thread (tests drive it from a thread)
+                pass
+        try:
+            return await self._run()
+        finally:
+            await self.shutdown()
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                try:
+                    loop.remove_signal_handler(sig)
+                except (NotImplementedError, RuntimeError):
+                    pass
+
+    async def _tcp_reachable(self, timeout: float) -> bool:
+        proto, _, addr = self.endpoint.partition("/")
+        host, _, port = addr.rpartition(":")
+        if proto != "tcp" or not port.isdigit():
+            return True  # only TCP endpoints are probed; others are left to Zenoh
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                _, writer = await asyncio.wait_for(asyncio.open_connection(host.strip("[]"), int(port)), 0.5)
+                writer.close()
+                return True
+            except (OSError, asyncio.TimeoutError):
+                if time.monotonic() >= deadline:
+                    return False
+                await asyncio.sleep(0.1)
+
+    async def _run(self) -> int:
+        if self.external and not await self._tcp_reachable(3.0):
+            raise StartError(f"nothing listens on the Zenoh endpoint {self.endpoint} (--endpoint): start the router "
+                             "first, or leave --endpoint out to host the endpoint in the sim")
+        sim = self.children["sim"]
+        sim.start()
+        self._event("start", f"sim pid {sim.pid} ({'connects to' if self.external else 'listens on'} {self.endpoint})")
+        # The sim must have opened its endpoint before anyone connects; a short wait for the port is enough.
+        await self._wait_endpoint(sim)
+        for name, child in self.children.items():
+            if name != "sim":
+                child.start()
+        self._event("start", f"{len(self.children) - 1} agent and monitor processes")
+        try:
+            bus = await self._open_bus()
+        except ConnectionError as exc:
+            await asyncio.sleep(0.5)  # let a failing sim write its reason
+            raise StartError(f"cannot reach the run's Zenoh endpoint {self.endpoint}: {exc}\nsim log:\n"
+                             f"{sim.log_tail()}") from None
+        try:
+            return await self._watch(bus)
+        finally:
+            await bus.close()
+
+    async def _wait_endpoint(self, sim: Child) -> None:
+        if self.external:
+            return
+        host, _, port = self.endpoint.partition("/")[2].rpartition(":")
+        deadline = time.monotonic() + self.ready_timeout
+        while time.monotonic() < deadline:
+            if not sim.alive():
+                raise StartError(f"sim exited with status {sim.proc.returncode} before opening {self.endpoint}:\n"
+                                 f"{sim.log_tail()}")
+            try:
+                reader, writer = await asyncio.wait_for(asyncio.open_connection(host, int(port)), 0.5)
+                writer.close()
+                try:
+                    await writer.wait_closed()
+                except Exception:
+                    pass
+                return
+            except (OSError, asyncio.TimeoutError):
+                await asyncio.sleep(0.05)
+            if self.stop_requested:
+                return
+        raise StartError(f"sim did not open {self.endpoint} within {self.ready_timeout:.0f} s:\n{sim.log_tail()}")
+
+    async def _open_bus(self):
+        from services.bus.zenoh_bus import ZenohBus
+
+        return await ZenohBus.open("supervisor", connect=self.endpoint)
+
+    async def _watch(self, bus) -> int:
+        from schemas import MetricSample, Stop
+        from schemas.hot import decode_tick
+        from schemas.keys import RunKeys
+
+        keys = RunKeys(self.config.run_id)
+
+        def on_metric(sample) -> None:
+            try:
+                msg = sample.decode(MetricSample)
+            except ValueError:
+                return
+            if msg.value is not None:
+                self.progress.update(msg.name, msg.t, msg.value)
+
+        await bus.subscribe(keys.metrics, on_metric)
+
+        def on_tick(sample) -> None:  # every tick (the metric stream is decimated): crash faults hit their tick
+            try:
+                t = decode_tick(sample.payload).t  # validated, without building the model (0.6-0.9 ms a tick)
+            except ValueError:
+                return
+            if self.progress.t < t < self.config.steps:  # (a final Tick t = steps closes the run)
+                self.progress.update("tick", t, float("nan"))
+
+        await bus.subscribe(keys.tick, on_tick)
+        from services.faults.controller import FaultController
+
+        controller = FaultController(  # no fault layers here: the supervisor only carries out crash faults
+            bus, self.config.run_id, [], clock=lambda: max(self.progress.t, 0) * self.config.dt, dt=self.config.dt,
+            on_crash=self.planner.add, schedule=self.schedule)
+        await controller.start()
+        ready_deadline = time.monotonic() + self.ready_timeout
+        last_shown = 0.0
+        last_tick, last_tick_at = self.progress.t, time.monotonic()
+        while True:
+            if self.stop_requested:
+                self._event("stop", self.stop_requested)
+                try:
+                    await bus.publish(keys.stop, Stop(reason=self.stop_requested))
+                except Exception:
+                    pass
+                return 143 if self.stop_requested == "SIGTERM" else 130
+            sim = self.children["sim"]
+            if not sim.alive():
+                code = sim.proc.returncode
+                if code != 0:
+                    raise StartError(f"sim exited with status {code}:\n{sim.log_tail()}")
+                self.progress.finished = True
+                self._show(force=True)
+                await self._wait_exit([c for c in self.children.values() if c.spec.role == "monitor"], 10.0)
+                return 0
+            running = self.progress.t >= 0
+            if running:
+                await self._crashes(bus, keys, controller)
+            for child in self.children.values():
+                if child.spec.role == "sim" or child.alive() or child.pid in child.reaped:
+                    continue
+                child.reaped.add(child.pid)
+                code = child.proc.returncode
+                child.exit_codes.append(code)
+                if not running and code != 0:
+                    raise StartError(f"{child.spec.name} exited with status {code} before the run started:\n"
+                                     f"{child.log_tail()}")
+                planned = child.pid in child.planned
+                if child.spec.restart == "on-failure" and code != 0 and (
+                        planned or child.restart_allowed(time.monotonic())):
+                    old_pid = child.pid
+                    cold = child.planned.pop(old_pid, False)
+                    if not planned:
+                        child.failures.append(time.monotonic())
+                    child.restarts += 1
+                    child.start(("--cold-restart", "True") if cold else ())
+                    self._event("restart", f"{child.spec.name} exited with {code}; restarted as pid {child.pid}")
+                    await self._publish_event(bus, keys, "agent.restart", agent=child.spec.agent, exit_code=code,
+                                              old_pid=old_pid, pid=child.pid, restarts=child.restarts,
+                                              planned=planned, cold=cold)
+                elif child.spec.role == "monitor" and code != 0:
+                    raise StartError(f"monitor exited with status {code}:\n{child.log_tail()}")
+                # otherwise it finished for good (after the run's stop): nothing to do
+            if self.progress.t != last_tick:
+                last_tick, last_tick_at = self.progress.t, time.monotonic()
+            elif (running and self.progress.t < self.config.steps - 1
+                  and time.monotonic() - last_tick_at > self.stall_timeout):  # (after the last tick: the sim ends)
+                self._event("stalled", f"no tick after tick {last_tick} for {self.stall_timeout:.0f} s")
+                raise RunStalled(f"the run stalled: no tick after tick {last_tick} for {self.stall_timeout:.0f} s "
+                                 f"(phase deadlines included); the record holds the ticks up to the stall; sim log:\n"
+                                 f"{sim.log_tail()}")
+            if not running and time.monotonic() > ready_deadline:
+                raise StartError(f"the run did not start within {self.ready_timeout:.0f} s; sim log:\n"
+                                 f"{sim.log_tail()}")
+            now = time.monotonic()
+            if now - last_shown >= 0.25:
+                last_shown = now
+                self._show()
+            await asyncio.sleep(0.05)
+
+    async def _publish_event(self, bus, keys, kind: str, *, at_tick: int | None = None, **details) -> None:
+        """Supervisor events (crashes, restarts) go into the run record through the monitor, with their tick and sim
+        time: a crash at the tick it was due (the live tick may be a little further on), a restart at the live tick."""
+        from schemas import Event
+
+        t = max(self.progress.t, 0) if at_tick is None else at_tick
+        try:
+            await bus.publish(keys.event("supervisor"), Event(
+                kind=kind, source="supervisor", t=t, sim_time=t * self.config.dt, wall_time=time.time(),
+                details=details))
+        except Exception:
+            log.warning("could not publish %s event", kind, exc_info=True)
+
+    def _show(self, force: bool = False) -> None:
+        if self.on_progress is None:
+            return
+        p = self.progress
+        if p.t < 0:
+            line = f"waiting for {self.config.n_agents} agents to join {self.endpoint} …"
+        else:
+            line = (f"tick {p.t + 1}/{self.config.steps}  deliveries {p.deliveries:.0f}  links {p.links:.0f}  "
+                    f"{p.ticks_per_s:.0f} ticks/s")
+        self.on_progress(p, line)
+
+    async def _wait_exit(self, children: list[Child], timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and any(c.alive() for c in children):
+            await asyncio.sleep(0.05)
+
+    async def shutdown(self) -> None:
+        """Every child gone within SHUTDOWN_BOUND: a moment to exit on its own, SIGTERM, then SIGKILL."""
+        children = list(self.children.values())
+        await self._wait_exit(children, 1.0)
+        for child in children:
+            child.signal_group(signal.SIGTERM)
+        await self._wait_exit(children, TERM_GRACE)
+        for child in children:
+            if child.alive():
+                self._event("kill", f"{child.spec.name} pid {child.pid} ignored SIGTERM")
+                child.signal_group(signal.SIGKILL)
+        for child in children:
+            if child.proc is not None:
+                try:
+                    child.proc.wait(timeout=0.5)
+                except subprocess.TimeoutExpired:
+                    pass

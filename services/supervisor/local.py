@@ -1,0 +1,70 @@
+"""``morph-sim run``: the sim, every agent and the monitor as tasks of one event loop over a LocalBus.
+
+Same service code as the distributed run; LocalBus delivers in a fixed order, so the run is deterministic and fast.
+The lab and most tests use it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from services.agent.service import AgentCounters, AgentService
+from services.bus.base import Bus
+from services.bus.local import LocalNetwork
+from services.monitor.service import MonitorResult, MonitorService
+from services.runconfig import RunConfig
+from services.sim.clock import SimClock, SimResult
+
+
+@dataclass
+class LocalRun:
+    sim: SimResult
+    monitor: MonitorResult
+    agents: list[AgentCounters]
+
+
+async def run_local(config: RunConfig, *, record: bool = True, network: LocalNetwork | None = None,
+                    on_bus: Callable[[str, Bus], None] | None = None, faults=None) -> LocalRun:
+    """Run ``config`` in this loop. ``on_bus(name, bus)`` sees every session (tests install fault layers there).
+
+    ``faults``: a FaultRuntime (issue 5) for the sim's session (default: one when ``config.fault_schedule`` is set);
+    every agent session then gets its own runtime like it (``FaultRuntime.like``: same seed, Δ, fault time and
+    schedule), as each agent process of ``morph-sim up`` has, and the monitor stamps the sim's clock."""
+    if faults is None and config.fault_schedule:
+        from services.faults.runtime import FaultRuntime
+
+        faults = FaultRuntime.for_service(config, "sim")
+    net = network or LocalNetwork()
+    buses: list[Bus] = []
+
+    def session(name: str) -> Bus:
+        bus = net.session(name)
+        buses.append(bus)
+        if faults is not None and faults.vtime is not None:
+            bus.set_clock(faults.now)
+        if on_bus is not None:
+            on_bus(name, bus)
+        return bus
+
+    monitor = MonitorService(config, session("monitor"), record=record)
+    agents = [AgentService(config, session(f"agent-{i}"), i, faults=None if faults is None else faults.like())
+              for i in range(config.n_agents)]
+    sim = SimClock(config, session("sim"), faults=faults)
+    tasks = [asyncio.create_task(monitor.run(), name="monitor")]
+    tasks += [asyncio.create_task(a.run(), name=f"agent-{a.id}") for a in agents]
+    try:
+        sim_result = await sim.run()
+        done, pending = await asyncio.wait(tasks, timeout=max(5.0, config.phase_timeout))
+        for task in done:
+            task.result()  # surface a crashed service
+        if pending:
+            raise RuntimeError(f"services did not stop after the run: {sorted(t.get_name() for t in pending)}")
+        return LocalRun(sim_result, tasks[0].result(), [t.result() for t in tasks[1:]])
+    finally:
+        for task in tasks:
+            if not task.done():
+                task.cancel()
+        for bus in buses:
+            await bus.close()
