@@ -81,7 +81,7 @@ class RunConfig(BaseModel):
     @field_validator("scale")
     @classmethod
     def _scale(cls, value: str) -> str:
-        from services.sim.layout import named_sizes
+        from services.sim.world.layout import named_sizes
 
         if value not in named_sizes():
             raise ValueError(f"unknown size {value!r}; choose one of {', '.join(named_sizes())}")
@@ -110,13 +110,13 @@ class RunConfig(BaseModel):
     # cached: services read these on every message
     @cached_property
     def n_agvs(self) -> int:
-        from services.sim.layout import named_sizes
+        from services.sim.world.layout import named_sizes
 
         return self.agvs if self.agvs is not None else named_sizes()[self.scale][1]
 
     @cached_property
     def n_pickers(self) -> int:
-        from services.sim.layout import named_sizes
+        from services.sim.world.layout import named_sizes
 
         return self.pickers if self.pickers is not None else named_sizes()[self.scale][2]
 

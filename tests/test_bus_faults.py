@@ -10,7 +10,7 @@ import pytest
 from schemas import Duplicate, FaultSpec, Latency, Loss, Partition, RunKeys, Scope
 from schemas.faults import Crash, Reorder
 from services.bus import LocalNetwork
-from services.bus.faults import FaultLayer, latency_quantile, pareto_params
+from services.faults.layer import FaultLayer, latency_quantile, pareto_params
 
 K = RunKeys("f1")
 

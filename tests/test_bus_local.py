@@ -390,7 +390,7 @@ async def test_inline_handlers_are_serialized_and_ordered(env) -> None:
 
 async def test_inline_subscription_with_delaying_fault_layer(env) -> None:
     from schemas import FaultSpec, Latency
-    from services.bus.faults import FaultLayer
+    from services.faults.layer import FaultLayer
 
     a, b = await env.open("a"), await env.open("b")
     layer = FaultLayer("t1", loop=asyncio.get_running_loop())

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from services.agent.observation import NEEDS_PICKER, NO_CELL, MissionType
-from services.sim.cta import CTAController, resolve_requests
-from services.sim.warehouse import Warehouse, WarehouseConfig
+from services.sim.world.cta import CTAController, resolve_requests
+from services.sim.world.warehouse import Warehouse, WarehouseConfig
 
 
 def _controller(scale="tiny", seed=42):

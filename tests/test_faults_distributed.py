@@ -18,8 +18,8 @@ import time
 from pathlib import Path
 
 from schemas import FaultSpec, Latency, Loss, RunKeys, Scope
-from services.bus.faults import FaultLayer
-from services.bus.vtime import VirtualTime
+from services.faults.layer import FaultLayer
+from services.faults.vtime import VirtualTime
 from services.faults.runtime import FaultRuntime
 from services.monitor.recorder import read_metrics
 from services.runconfig import RunConfig

@@ -10,7 +10,7 @@ import time
 
 from schemas import FaultCommand, FaultSpec, Latency, Loss, RunKeys, Scope
 from services.bus import LocalNetwork
-from services.bus.vtime import boundaries
+from services.faults.vtime import boundaries
 from services.faults.runtime import FaultRuntime
 
 RUN = "ls"

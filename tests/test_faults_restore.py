@@ -10,8 +10,8 @@ from services.agent.service import AgentService
 from services.bus import LocalNetwork
 from services.faults.restore import restore_brains
 from services.runconfig import RunConfig
-from services.sim.clock import make_controller
-from services.sim.cta import resolve_requests
+from services.sim.service import make_controller
+from services.sim.world.cta import resolve_requests
 
 
 def trained_agents(config: RunConfig, net: LocalNetwork):

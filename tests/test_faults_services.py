@@ -45,7 +45,7 @@ async def test_agent_killed_every_100_ticks_rejoins_with_its_state_and_no_tick_i
     from services.agent.service import AgentService
     from services.bus import LocalNetwork
     from services.monitor.service import MonitorService
-    from services.sim.clock import SimClock
+    from services.sim.service import SimService
 
     config = RunConfig(run_id="kill", scale="tiny", policy="morph", preset="paper", seed=5, steps=320,
                        phase_timeout=2.0, state_every=10)
@@ -72,7 +72,7 @@ async def test_agent_killed_every_100_ticks_rejoins_with_its_state_and_no_tick_i
         if t > 0 and t % 100 == 0:
             pending.append(asyncio.get_running_loop().create_task(kill_and_restart(t)))
 
-    sim = SimClock(config, net.session("sim"), on_tick=on_tick)
+    sim = SimService(config, net.session("sim"), on_tick=on_tick)
     try:
         result = await asyncio.wait_for(sim.run(), 120)
         await asyncio.wait_for(asyncio.gather(*tasks.values(), mon_task, *pending), 10)

@@ -130,10 +130,10 @@ async def test_the_monitor_publishes_per_link_counters_every_k_ticks() -> None:
     from schemas import FaultSpec, Loss, MetricSample, Scope
     from services.agent.service import AgentService
     from services.bus import LocalNetwork
-    from services.bus.faults import FaultLayer, install
+    from services.faults.layer import FaultLayer, install
     from services.monitor.service import MonitorService
     from services.runconfig import RunConfig
-    from services.sim.clock import SimClock
+    from services.sim.service import SimService
 
     config = RunConfig(run_id="links", scale="tiny", policy="full", seed=3, steps=200, state_every=20)
     net = LocalNetwork()
@@ -148,7 +148,7 @@ async def test_the_monitor_publishes_per_link_counters_every_k_ticks() -> None:
     agents = [AgentService(config, net.session(f"agent-{i}"), i) for i in range(config.n_agents)]
     tasks = [asyncio.create_task(a.run()) for a in agents] + [asyncio.create_task(monitor.run())]
     try:
-        result = await asyncio.wait_for(SimClock(config, net.session("sim")).run(), 60)
+        result = await asyncio.wait_for(SimService(config, net.session("sim")).run(), 60)
         await asyncio.wait_for(asyncio.gather(*tasks), 10)
     finally:
         for task in tasks:

@@ -12,9 +12,9 @@ import pytest
 from schemas import FaultSpec, Latency, Loss, RunKeys
 from schemas.faults import Duplicate
 from services.bus import LocalNetwork
-from services.bus.faults import FaultLayer, install
-from services.bus.linkstats import LinkMeter, key_class
-from services.bus.vtime import VirtualTime, boundaries, release_boundary
+from services.faults.layer import FaultLayer, install
+from services.faults.linkstats import LinkMeter, key_class
+from services.faults.vtime import VirtualTime, boundaries, release_boundary
 
 K = RunKeys("vt")
 

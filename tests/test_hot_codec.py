@@ -16,7 +16,7 @@ import pytest
 from schemas import Ack, Commit, DecodeError, HelpReply, HelpRequest, Phase, Tick, decode
 from schemas.codec import encode_fields
 from schemas.hot import FLAG_ROWS, INT_ROWS, TickArrays, arrays_from_tick, decode_tick, encode_tick_body
-from services.sim.clock import (make_controller, observation_from_arrays, observation_from_tick, tick_fields,
+from services.sim.service import (make_controller, observation_from_arrays, observation_from_tick, tick_fields,
                                           tick_from_observation, world_fields)
 from services.runconfig import RunConfig
 

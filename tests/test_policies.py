@@ -17,8 +17,8 @@ from services.agent.policies import (
 )
 from services.agent.presets import load_preset
 from morph_sim.lab.runner import EpisodeSpec, run_episode
-from services.sim.cta import CTAController
-from services.sim.warehouse import Warehouse, WarehouseConfig
+from services.sim.world.cta import CTAController
+from services.sim.world.warehouse import Warehouse, WarehouseConfig
 
 
 def _observations(scale="tiny", seed=42, ticks=60):

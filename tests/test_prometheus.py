@@ -28,7 +28,7 @@ def _value(text: str, name: str, labels: str = 'run="prom"') -> float:
 
 async def test_scrape_during_and_after_a_run(tmp_path):
     from services.agent.service import AgentService
-    from services.sim.clock import SimClock
+    from services.sim.service import SimService
 
     config = RunConfig(run_id="prom", scale="tiny", steps=120, policy="morph", output_dir=tmp_path)
     net = LocalNetwork()
@@ -37,7 +37,7 @@ async def test_scrape_during_and_after_a_run(tmp_path):
     try:
         agents = [AgentService(config, net.session(f"agent-{i}"), i) for i in range(config.n_agents)]
         tasks = [asyncio.create_task(monitor.run())] + [asyncio.create_task(a.run()) for a in agents]
-        sim = asyncio.create_task(SimClock(config, net.session("sim")).run())
+        sim = asyncio.create_task(SimService(config, net.session("sim")).run())
         mid = None
         while not sim.done():
             await asyncio.sleep(0.05)

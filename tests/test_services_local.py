@@ -15,7 +15,7 @@ from services.bus.local import LocalNetwork
 from morph_sim.lab.runner import EpisodeSpec, run_episode
 from services.monitor.recorder import COLUMNS, read_metrics, read_snapshots
 from services.runconfig import RunConfig, add_config_arguments, config_from_args
-from services.sim.clock import make_controller, observation_from_tick, tick_from_observation, world_fields
+from services.sim.service import make_controller, observation_from_tick, tick_from_observation, world_fields
 from services.supervisor.graph import PROGRAM, process_graph
 from services.supervisor.local import run_local
 
@@ -118,12 +118,12 @@ async def test_absent_agent_does_not_stall_the_run(tmp_path):
     net = LocalNetwork()
     from services.agent.service import AgentService
     from services.monitor.service import MonitorService
-    from services.sim.clock import SimClock
+    from services.sim.service import SimService
 
     monitor = MonitorService(config, net.session("monitor"), record=False)
     agents = [AgentService(config, net.session(f"agent-{i}"), i) for i in range(config.n_agents)]
     ticks_seen = []
-    sim = SimClock(config, net.session("sim"), on_tick=lambda t, obs: ticks_seen.append(t))
+    sim = SimService(config, net.session("sim"), on_tick=lambda t, obs: ticks_seen.append(t))
     tasks = [asyncio.create_task(s.run()) for s in (monitor, *agents)]
 
     async def leave():

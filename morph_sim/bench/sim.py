@@ -45,8 +45,8 @@ def measure(scale: str, steps: int, seed: int) -> dict:
     import resource
     import time
 
-    from services.sim.heuristic import run_episode
-    from services.sim.warehouse import WarehouseConfig
+    from services.sim.world.heuristic import run_episode
+    from services.sim.world.warehouse import WarehouseConfig
 
     config = WarehouseConfig.named(scale, max_steps=steps)
     cpu0 = time.process_time()

@@ -116,7 +116,7 @@ def _trend(y: np.ndarray) -> float:
 
 
 def _n_agvs(spec: EpisodeSpec) -> int:
-    from services.sim.warehouse import WarehouseConfig
+    from services.sim.world.warehouse import WarehouseConfig
 
     return WarehouseConfig.named(spec.scale).agvs
 

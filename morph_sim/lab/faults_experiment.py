@@ -32,10 +32,10 @@ import numpy as np
 from schemas.faults import FaultSpec, Latency, Loss
 from schemas.keys import RunKeys
 from services.agent.policies import Fleet
-from services.bus.faults import FaultLayer
+from services.faults.layer import FaultLayer
 from morph_sim.lab.runner import REFERENCE_SEEDS, _gate, make_condition_policy
-from services.sim.cta import CTAController, resolve_requests
-from services.sim.warehouse import Warehouse, WarehouseConfig
+from services.sim.world.cta import CTAController, resolve_requests
+from services.sim.world.warehouse import Warehouse, WarehouseConfig
 
 RUN = "faults-lab"
 K = RunKeys(RUN)

@@ -3,7 +3,7 @@
 One episode is ``T`` ticks of the DESIGN §3 protocol driven directly on the pure core:
 
 1. the controller runs steps 1-2 and produces the tick's observation;
-2. every agent applies its plasticity update for the previous step (``Brains.learn``);
+2. every agent applies its plasticity update for the previous step (``Coordinator.learn``);
 3. AGVs that need a picker pick a candidate and draw their gate; pickers resolve the requests;
 4. the controller applies the commitments, releases pickers and steps the warehouse.
 
@@ -28,7 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from services.agent.observation import TickObservation
 from services.agent.policies import (
-    Brains,
+    Coordinator,
     ConstantPolicy,
     CoordinationPolicy,
     Fleet,
@@ -39,8 +39,8 @@ from services.agent.policies import (
     TSGPolicy,
 )
 from services.monitor import metrics
-from services.sim.cta import CTAController, resolve_requests
-from services.sim.warehouse import Warehouse, WarehouseConfig
+from services.sim.world.cta import CTAController, resolve_requests
+from services.sim.world.warehouse import Warehouse, WarehouseConfig
 
 SCALES = ("tiny", "small", "medium", "large")
 REFERENCE_SEEDS = (42, 7, 123, 999, 2024)
@@ -146,7 +146,7 @@ class DispatchStats:
     lost_messages: int = 0  # resolved requests whose Resolve/Commit was lost (message-loss runs)
 
 
-def _gate(brains: Brains, agv: int, picker: int, obs: TickObservation, u: float | None) -> tuple[bool, float]:
+def _gate(brains: Coordinator, agv: int, picker: int, obs: TickObservation, u: float | None) -> tuple[bool, float]:
     p = brains.probability(agv, picker, obs)
     if not brains.draws:
         return p >= 1.0, p
@@ -155,7 +155,7 @@ def _gate(brains: Brains, agv: int, picker: int, obs: TickObservation, u: float 
 
 def dispatch_tick(
     obs: TickObservation,
-    brains: Brains,
+    brains: Coordinator,
     mode: str,
     shared_rng: np.random.RandomState | None,
     stats: DispatchStats,
@@ -213,7 +213,7 @@ def dispatch_tick(
     return commits
 
 
-def _lossy_dispatch(obs: TickObservation, brains: Brains, layer, stats: DispatchStats) -> list[tuple[int, int]]:
+def _lossy_dispatch(obs: TickObservation, brains: Coordinator, layer, stats: DispatchStats) -> list[tuple[int, int]]:
     """Concurrent dispatch whose messages go through the fault layer's decision (lab/faults_experiment.py)."""
     from morph_sim.lab import faults_experiment as fx
 
@@ -247,7 +247,7 @@ def _dedupe_cells(obs: TickObservation, commits) -> set[tuple[int, int]]:
     return out
 
 
-def _count(stats: DispatchStats, ok: bool, p: float, brains: Brains) -> None:
+def _count(stats: DispatchStats, ok: bool, p: float, brains: Coordinator) -> None:
     stats.decisions += 1
     stats.dispatched += int(ok)
     stats.p_sum += p
@@ -320,7 +320,7 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
     if spec.loss_percent > 0:
         if spec.dispatch != "concurrent" or spec.shared_stream:
             raise ValueError("loss_percent: message loss is modelled for concurrent dispatch with per-agent draws")
-        from services.bus.faults import FaultLayer
+        from services.faults.layer import FaultLayer
         from morph_sim.lab import faults_experiment as fx
 
         layer = FaultLayer(fx.RUN, base_seed=spec.seed)

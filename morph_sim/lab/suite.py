@@ -62,7 +62,7 @@ class SuiteConfig(BaseModel):
     @field_validator("scales")
     @classmethod
     def _scales(cls, v):
-        from services.sim.layout import named_sizes
+        from services.sim.world.layout import named_sizes
 
         check_choices(v, named_sizes(), "scale")
         return check_nonempty(v, "scale")

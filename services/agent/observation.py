@@ -2,7 +2,7 @@
 
 An agent's brain learns only from a sequence of :class:`TickObservation` objects and decides dispatch
 requests from the latest one; it never reads the warehouse or another agent's memory. The sim's
-controller (``services.sim.cta``) produces one observation per tick, and the distributed
+controller (``services.sim.world.cta``) produces one observation per tick, and the distributed
 services carry exactly these fields.
 
 Timing (DESIGN §3): the observation for tick ``t`` is taken *after* the controller has assigned items

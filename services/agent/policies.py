@@ -3,8 +3,8 @@
 One small interface, used unchanged by the in-process lab and by the per-agent services:
 
 * a :class:`CoordinationPolicy` is a stateless description (``full``, ``constant``, ``tsg``,
-  ``proximity``, ``none``, ``morph``) that builds :class:`Brains`;
-* :class:`Brains` hold the coordination state of a set of *owned* agents (one agent in a service
+  ``proximity``, ``none``, ``morph``) that builds :class:`Coordinator`;
+* :class:`Coordinator` hold the coordination state of a set of *owned* agents (one agent in a service
   process, all agents in the lab, where the updates are vectorised across them). Each owned agent has
   its own state slice and its own seeded :class:`numpy.random.Generator` for gate draws; nothing is
   read across agents. An agent learns only from :class:`~.observation.TickObservation` objects.
@@ -48,8 +48,9 @@ def agent_rng(seed: int, agent: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence(entropy=seed, spawn_key=(agent,)))
 
 
-class Brains(ABC):
-    """Coordination state of the agents in ``owners`` (indices into the fleet)."""
+class Coordinator(ABC):
+    """Coordination state and decisions of the agents in ``owners`` (indices into the fleet): one robot in an agent
+    service, the whole team in the lab."""
 
     #: whether the gate consumes a uniform draw per request
     draws: ClassVar[bool] = True
@@ -124,7 +125,7 @@ class CoordinationPolicy(ABC):
     name: str = ""
 
     @abstractmethod
-    def brains(self, fleet: Fleet, owners, seed: int) -> Brains: ...
+    def brains(self, fleet: Fleet, owners, seed: int) -> Coordinator: ...
 
     def describe(self) -> dict:
         return {"name": self.name}
@@ -134,7 +135,7 @@ class CoordinationPolicy(ABC):
 # memoryless policies
 
 
-class _FullBrains(Brains):
+class _FullBrains(Coordinator):
     draws = False
 
     def probability(self, agv, picker, obs):
@@ -146,7 +147,7 @@ class _FullBrains(Brains):
         return rows
 
 
-class _NoneBrains(Brains):
+class _NoneBrains(Coordinator):
     draws = False
 
     def probability(self, agv, picker, obs):
@@ -156,7 +157,7 @@ class _NoneBrains(Brains):
         return np.zeros((len(self.owners), self.fleet.n))
 
 
-class _ConstantBrains(Brains):
+class _ConstantBrains(Coordinator):
     def __init__(self, fleet, owners, seed, p: float) -> None:
         super().__init__(fleet, owners, seed)
         self.p = p
@@ -168,7 +169,7 @@ class _ConstantBrains(Brains):
         return np.zeros((len(self.owners), self.fleet.n))
 
 
-class _TopologyBrains(Brains):
+class _TopologyBrains(Coordinator):
     """Gate 0.25 + 0.75·A[agv, picker] with A recomputed from the current tick."""
 
     def __init__(self, fleet, owners, seed) -> None:
@@ -213,7 +214,7 @@ class _SimplePolicy(CoordinationPolicy):
     """A policy whose brains are ``BRAINS(fleet, owners, seed, *parameters)``; ``PARAMS`` names the parameter
     fields, each checked on creation (:meth:`_problem`) and shown by :meth:`describe`."""
 
-    BRAINS: ClassVar[type[Brains]]
+    BRAINS: ClassVar[type[Coordinator]]
     PARAMS: ClassVar[tuple[str, ...]] = ()
 
     def __post_init__(self):
@@ -236,20 +237,20 @@ class _SimplePolicy(CoordinationPolicy):
 @dataclass(frozen=True)
 class FullPolicy(_SimplePolicy):
     name: str = "full"
-    BRAINS: ClassVar[type[Brains]] = _FullBrains
+    BRAINS: ClassVar[type[Coordinator]] = _FullBrains
 
 
 @dataclass(frozen=True)
 class NonePolicy(_SimplePolicy):
     name: str = "none"
-    BRAINS: ClassVar[type[Brains]] = _NoneBrains
+    BRAINS: ClassVar[type[Coordinator]] = _NoneBrains
 
 
 @dataclass(frozen=True)
 class ConstantPolicy(_SimplePolicy):
     p: float = 0.25
     name: str = "constant"
-    BRAINS: ClassVar[type[Brains]] = _ConstantBrains
+    BRAINS: ClassVar[type[Coordinator]] = _ConstantBrains
     PARAMS: ClassVar[tuple[str, ...]] = ("p",)
 
     def _problem(self, value):
@@ -259,14 +260,14 @@ class ConstantPolicy(_SimplePolicy):
 @dataclass(frozen=True)
 class TSGPolicy(_SimplePolicy):
     name: str = "tsg"
-    BRAINS: ClassVar[type[Brains]] = _TSGBrains
+    BRAINS: ClassVar[type[Coordinator]] = _TSGBrains
 
 
 @dataclass(frozen=True)
 class ProximityPolicy(_SimplePolicy):
     radius: int = 4
     name: str = "proximity"
-    BRAINS: ClassVar[type[Brains]] = _ProximityBrains
+    BRAINS: ClassVar[type[Coordinator]] = _ProximityBrains
     PARAMS: ClassVar[tuple[str, ...]] = ("radius",)
 
     def _problem(self, value):
@@ -347,7 +348,7 @@ def paper_step_reward(obs: TickObservation) -> np.ndarray:
     return r
 
 
-class MorphBrains(Brains):
+class MorphBrains(Coordinator):
     memoryless = False
 
     def __init__(self, fleet, owners, seed, preset: str, params: MorphParams, share_replicas: bool = True) -> None:

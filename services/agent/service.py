@@ -1,6 +1,6 @@
 """The agent service: one robot's coordination brain, learning and deciding from messages only.
 
-It owns that robot's :class:`~services.agent.policies.Brains` (its plasticity state and its own seeded
+It owns that robot's :class:`~services.agent.policies.Coordinator` (its plasticity state and its own seeded
 RNG) and nothing else. Per tick ``t`` (DESIGN §3):
 
 * on ``Tick`` it rebuilds the observation from the message alone, applies the plasticity update of step t−1,
@@ -31,7 +31,7 @@ from services.agent.policies import Fleet, MorphBrains
 from services.bus.base import Bus, Sample
 from services.rejects import Rejects
 from services.runconfig import RunConfig
-from services.sim.clock import observation_from_arrays
+from services.sim.service import observation_from_arrays
 
 log = logging.getLogger("morph_sim.agent")
 

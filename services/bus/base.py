@@ -18,7 +18,7 @@ hook runs on the receive thread, so a fault layer schedules delayed copies with 
   handler sees it; ``receiver`` is this bus's identity, so a fault layer knows the link and can keep a seeded RNG per
   link, drop, delay (``loop.call_later`` in wall time, or until a virtual-time boundary), duplicate or reorder.
 
-Install one with :meth:`Bus.set_interposer` (``services.bus.faults.FaultLayer`` implements it). Without
+Install one with :meth:`Bus.set_interposer` (``services.faults.layer.FaultLayer`` implements it). Without
 one, samples go straight through. The same seam exists on both buses, so a fault configuration behaves the same
 in-process and over Zenoh. Queries, replies and liveliness do not pass the seam (they are control-plane traffic).
 """

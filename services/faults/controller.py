@@ -30,7 +30,7 @@ from schemas.faults import FaultSpec
 from schemas.keys import RunKeys
 from schemas.messages import Event, FaultCommand, FaultReply
 from services.bus.base import Bus, Query, Sample
-from services.bus.faults import ActiveFault, FaultLayer
+from services.faults.layer import ActiveFault, FaultLayer
 from services.faults.schedule import FaultSchedule
 
 log = logging.getLogger("morph_sim.faults")

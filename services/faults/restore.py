@@ -20,7 +20,7 @@ import numpy as np
 
 from schemas.keys import RunKeys
 from schemas.messages import AgentState
-from services.agent.policies import Brains, MorphBrains
+from services.agent.policies import Coordinator, MorphBrains
 from services.bus.base import Bus
 
 
@@ -42,7 +42,7 @@ async def fetch_states(bus: Bus, run: str, *, timeout: float = 2.0) -> dict[int,
     return out
 
 
-def restore_brains(brains: Brains, agent_id: int, states: dict[int, AgentState]) -> int | None:
+def restore_brains(brains: Coordinator, agent_id: int, states: dict[int, AgentState]) -> int | None:
     """Load ``states`` into the brain of ``agent_id``; returns the tick restored, None without an own state."""
     own = states.get(agent_id)
     if own is None:

@@ -232,8 +232,8 @@ def figures(recs: list[Record], out: Path) -> dict[str, Path]:
 
 def warehouse_gif(rec: Record, path: Path, *, max_frames: int = 200, cell_px: int = 12) -> int | None:
     """GIF of the robots with their coordination links, from ``positions.csv`` and ``links.csv``; None if absent."""
-    from services.sim.layout import layout_for, named_sizes
-    from services.sim.render import Frame, link_statuses, write_gif
+    from services.sim.world.layout import layout_for, named_sizes
+    from services.sim.world.render import Frame, link_statuses, write_gif
 
     positions, links = rec.positions(), rec.links()
     ticks = sorted(set(positions) & set(links))

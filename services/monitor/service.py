@@ -106,7 +106,7 @@ class MonitorService:
         self.stats = MessageStats(self.n, config.dt)  # message streams (counts, drops, latency, dispatch)
         # issue 5 (F3): per key class sent / delivered / dropped / duplicated / late and latency, from the samples'
         # own headers, published as link/* metrics every k (state_every) ticks
-        from services.bus.linkstats import LinkMeter
+        from services.faults.linkstats import LinkMeter
 
         self.link_meter = LinkMeter(f"morph/{config.run_id}")
         self.latest_links: list[MetricSample] = []

@@ -22,7 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from services.sim.clock import SimClock
+    from services.sim.service import SimService
     from services.supervisor.process import exit_now, run_or_exit, serve, service_config, setup_logging
 
     config = service_config(args)
@@ -30,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("listen: the sim needs --listen ENDPOINT (host the run) or --endpoint ENDPOINT (router)")
     setup_logging(args.log_level, "sim")
     result = run_or_exit(NAME, serve(
-        "sim", lambda bus: SimClock(config, bus, wait_for_monitor=not args.no_wait_monitor, faults=_faults(config)),
+        "sim", lambda bus: SimService(config, bus, wait_for_monitor=not args.no_wait_monitor, faults=_faults(config)),
         lambda svc: svc.run(), lambda svc, why: svc.stop(why), listen=config.listen, connect=config.endpoint))
     print(json.dumps({"steps": result.steps, "deliveries": result.deliveries, "rejected": result.rejected,
                       "absences": result.absences, "ticks_per_s": round(result.ticks_per_s, 1),

@@ -15,7 +15,7 @@ from services.bus.base import Bus
 from services.bus.local import LocalNetwork
 from services.monitor.service import MonitorResult, MonitorService
 from services.runconfig import RunConfig
-from services.sim.clock import SimClock, SimResult
+from services.sim.service import SimService, SimResult
 
 
 @dataclass
@@ -51,7 +51,7 @@ async def run_local(config: RunConfig, *, record: bool = True, network: LocalNet
     monitor = MonitorService(config, session("monitor"), record=record)
     agents = [AgentService(config, session(f"agent-{i}"), i, faults=None if faults is None else faults.like())
               for i in range(config.n_agents)]
-    sim = SimClock(config, session("sim"), faults=faults)
+    sim = SimService(config, session("sim"), faults=faults)
     tasks = [asyncio.create_task(monitor.run(), name="monitor")]
     tasks += [asyncio.create_task(a.run(), name=f"agent-{a.id}") for a in agents]
     try:

@@ -39,9 +39,9 @@ from services.agent.observation import TickObservation
 from services.bus.base import Bus, LivelinessEvent, Sample
 from services.rejects import Rejects
 from services.runconfig import RunConfig
-from services.sim.cta import CTAController
+from services.sim.world.cta import CTAController
 from services.sim.registry import mount_registry
-from services.sim.warehouse import Warehouse, WarehouseConfig
+from services.sim.world.warehouse import Warehouse, WarehouseConfig
 
 log = logging.getLogger("morph_sim.sim")
 
@@ -229,7 +229,7 @@ class _Phase:
             self.closed = True
 
 
-class SimClock:
+class SimService:
     """Runs ``config.steps`` ticks over ``bus``. ``await run()`` returns a :class:`SimResult`."""
 
     def __init__(self, config: RunConfig, bus: Bus, *, wait_for_monitor: bool = True,
@@ -354,7 +354,7 @@ class SimClock:
     def _boundary(self, t: int, phase: int) -> None:
         """Virtual time: reach the boundary that closes ``phase`` of tick ``t`` (releases held answers)."""
         if self.faults is not None:
-            from services.bus.vtime import boundaries
+            from services.faults.vtime import boundaries
 
             self.faults.advance(boundaries(t, self.config.dt)[1 if phase == Phase.TICK else 2])
 

@@ -38,8 +38,8 @@ from schemas.faults import FaultSpec, Latency, Loss
 from schemas.messages import FaultCommand, FaultReply
 from schemas.keys import RunKeys, matches, parse_agent_id
 from services.bus.base import Bus, Sample
-from services.bus.linkstats import LinkMeter
-from services.bus.vtime import EPS as _VT_EPS, VirtualTime
+from services.faults.linkstats import LinkMeter
+from services.faults.vtime import EPS as _VT_EPS, VirtualTime
 
 _STD_NORMAL = NormalDist()
 _EPS = 1e-12

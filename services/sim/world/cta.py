@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.agent.observation import NEEDS_PICKER, NO_CELL, MissionType, TickObservation
-from services.sim.warehouse import StepResult, Warehouse
+from services.sim.world.warehouse import StepResult, Warehouse
 
 PICKING, DELIVERING, RETURNING = MissionType.PICKING, MissionType.DELIVERING, MissionType.RETURNING
 
