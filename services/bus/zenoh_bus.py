@@ -60,6 +60,7 @@ from services.bus.base import (  # noqa: E402
 log = logging.getLogger("morph_sim.bus.zenoh")
 
 CLOSE_TIMEOUT = 3.0
+DRAIN_BATCH = 256  # inbox items delivered per loop turn (see ZenohBus._drain)
 DEFAULT_PORT = 7447
 
 
@@ -244,14 +245,26 @@ class ZenohBus(Bus):
                 pass
 
     def _drain(self) -> None:
-        self._drain_pending = False
+        """Deliver what is in the inbox now, at most ``DRAIN_BATCH`` items, then give the loop a turn.
+
+        Samples keep arriving while we deliver: a drain that ran until the inbox was empty never returned under a
+        steady stream (the monitor takes in every message of the run), so nothing else on the loop ran — no task,
+        no timer, no query answer — and the monitor's metric publications waited for the end of the run.
+        """
         inbox = self._inbox
-        while inbox:
+        for _ in range(min(len(inbox), DRAIN_BATCH)):
             fn, args = inbox.popleft()
             try:
                 fn(*args)
             except Exception:
                 log.exception("bus %s: delivery failed", self.identity)
+        if inbox:
+            self._loop.call_soon(self._drain)  # behind whatever became ready meanwhile; stays pending
+        else:
+            self._drain_pending = False
+            if inbox:  # appended between the check and the flag: nobody else will schedule it
+                self._drain_pending = True
+                self._loop.call_soon(self._drain)
 
     # -- transport hooks -------------------------------------------------------------------------------------------
     def _publisher(self, key: str, droppable: bool) -> Any:

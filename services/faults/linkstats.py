@@ -9,7 +9,8 @@ time (bus.base). So a receiver knows, per (publisher, key):
 * delivered  = deliveries, duplicates included; unique = distinct sequence numbers; duplicated = delivered − unique;
 * dropped    = sent − unique;
 * late       = deliveries the caller flagged as after their deadline (virtual time: :meth:`VirtualTime.is_late`);
-* latency    = receive time − send time, in the unit of the clocks (sim seconds in virtual time).
+* latency    = receive time − send time, in the unit of the clocks (sim seconds in virtual time): mean and max
+               since the start, quantiles over the last LATENCY_WINDOW messages of the key class.
 
 :class:`LinkMeter` is pure (no I/O, no clock): the caller passes the receive time. Counts are grouped by key class:
 the key relative to ``morph/<run>/`` with robot ids replaced by ``*`` (``agent/*/ack``), so a report has a handful
@@ -19,6 +20,8 @@ of rows whatever the fleet size. :meth:`LinkMeter.metrics` turns the report into
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,14 +36,52 @@ def key_class(rel_chunks: list[str]) -> str:
     return "/".join("*" if c.isdigit() else c for c in rel_chunks)
 
 
+#: sequence numbers remembered per stream below the highest one (duplicate detection), and latencies kept per key
+#: class for the quantiles: a meter's memory stays bounded over any run length.
+SEQ_WINDOW = 4096
+LATENCY_WINDOW = 4096
+
+
 @dataclass
 class _Stream:
-    """One (publisher, key) stream."""
+    """One (publisher, key) stream. ``seen`` holds the sequence numbers within SEQ_WINDOW of the highest: a number
+    below that window is counted as a new message (a duplicate or reordering that far back is not told apart)."""
 
     max_seq: int = -1
     seen: set[int] = field(default_factory=set)
+    unique: int = 0
     delivered: int = 0
     late: int = 0
+
+    def add(self, seq: int) -> None:
+        self.delivered += 1
+        if seq in self.seen:
+            return
+        self.unique += 1
+        if seq > self.max_seq:
+            self.max_seq = seq
+        if seq > self.max_seq - SEQ_WINDOW:
+            self.seen.add(seq)
+            if len(self.seen) > 2 * SEQ_WINDOW:
+                floor = self.max_seq - SEQ_WINDOW
+                self.seen = {x for x in self.seen if x > floor}
+
+
+@dataclass
+class _Latency:
+    """Latencies of one key class: count, mean and max since the start; the last LATENCY_WINDOW for quantiles."""
+
+    recent: deque = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
+    count: int = 0
+    total: float = 0.0
+    max: float = -math.inf
+
+    def add(self, value: float) -> None:
+        self.recent.append(value)
+        self.count += 1
+        self.total += value
+        if value > self.max:
+            self.max = value
 
 
 @dataclass(frozen=True)
@@ -65,24 +106,29 @@ class LinkMeter:
     def __init__(self, run_prefix: str = ""):
         self._prefix = run_prefix.rstrip("/") + "/" if run_prefix else ""
         self._streams: dict[tuple[str, str], _Stream] = {}
-        self._latency: dict[str, list[float]] = {}
+        self._latency: dict[str, _Latency] = {}
+        self._classes: dict[str, str] = {}  # key -> key class (a run has a bounded set of keys)
 
     def _class(self, key: str) -> str:
-        rel = key[len(self._prefix):] if self._prefix and key.startswith(self._prefix) else key
-        return key_class(rel.split("/"))
+        cls = self._classes.get(key)
+        if cls is None:
+            rel = key[len(self._prefix):] if self._prefix and key.startswith(self._prefix) else key
+            cls = self._classes[key] = key_class(rel.split("/"))
+        return cls
 
     def record(self, key: str, sender: str, seq: int, sent_at: float, received_at: float, *,
                late: bool = False) -> None:
         stream = self._streams.get((key, sender))
         if stream is None:
             stream = self._streams[(key, sender)] = _Stream()
-        stream.delivered += 1
-        stream.seen.add(seq)
-        if seq > stream.max_seq:
-            stream.max_seq = seq
+        stream.add(seq)
         if late:
             stream.late += 1
-        self._latency.setdefault(self._class(key), []).append(received_at - sent_at)
+        cls = self._class(key)
+        lat = self._latency.get(cls)
+        if lat is None:
+            lat = self._latency[cls] = _Latency()
+        lat.add(received_at - sent_at)
 
     def report(self) -> dict[str, KeyReport]:
         """Per key class, sorted by key."""
@@ -91,17 +137,18 @@ class LinkMeter:
             row = acc.setdefault(self._class(key), [0, 0, 0, 0])
             row[0] += s.max_seq + 1
             row[1] += s.delivered
-            row[2] += len(s.seen)
+            row[2] += s.unique
             row[3] += s.late
         out: dict[str, KeyReport] = {}
         for cls in sorted(acc):
             sent, delivered, unique, late = acc[cls]
-            lat = np.asarray(self._latency.get(cls, ()), dtype=float)
+            lat = self._latency.get(cls)
             stats: dict[str, float] = {}
-            if lat.size:
-                stats = {"mean": float(lat.mean()), "max": float(lat.max())}
-                for q in QUANTILES:
-                    stats[f"p{round(q * 100)}"] = float(np.quantile(lat, q))
+            if lat is not None and lat.count:
+                stats = {"mean": lat.total / lat.count, "max": float(lat.max)}
+                qs = np.quantile(np.fromiter(lat.recent, dtype=float, count=len(lat.recent)), QUANTILES)
+                for q, v in zip(QUANTILES, qs):
+                    stats[f"p{round(q * 100)}"] = float(v)
             out[cls] = KeyReport(cls, sent, delivered, unique, sent - unique, delivered - unique, late, stats)
         return out
 

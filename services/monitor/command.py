@@ -5,12 +5,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 NAME = "monitor"
 HELP = "run the monitor service (metrics, streams, run record) over Zenoh"
 # On SIGTERM the sim ends the run within a second (final tick, run.finished); the monitor waits that long for it so
 # the record says how the run ended, and still exits well within the supervisor's 3 s before SIGKILL.
 SIGNAL_GRACE = 1.5
+# Exit status of a monitor whose run record cannot be written (EX_IOERR): the supervisor does not restart it (a new
+# monitor would fail on the same disk) but stops the run and reports the cause.
+RECORD_FAILED = 74
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -54,9 +58,18 @@ def run(args: argparse.Namespace) -> int:
             PrometheusExporter(svc, port, args.prometheus_host)  # daemon thread; lives as long as the process
         return svc
 
-    result = run_or_exit(NAME, serve(
-        "monitor", make,
-        lambda svc: svc.run(), lambda svc, why: svc.stop(grace=SIGNAL_GRACE), connect=config.endpoint))
+    try:
+        result = run_or_exit(NAME, serve(
+            "monitor", make,
+            lambda svc: svc.run(), lambda svc, why: svc.stop(grace=SIGNAL_GRACE), connect=config.endpoint))
+    except OSError as exc:  # the record's directory cannot be created or opened
+        where = exc.filename or config.record_dir
+        print(f"morph-sim monitor: error: cannot write the run record {where}: {exc.strerror or exc}",
+              file=sys.stderr)
+        exit_now(RECORD_FAILED)
+    if result.failure is not None:
+        print(f"morph-sim monitor: error: {result.failure}", file=sys.stderr)
+        exit_now(RECORD_FAILED)
     print(json.dumps({"record": str(config.record_dir), "deliveries": result.deliveries_total,
                       "rejected": result.rejected}))
     exit_now(0)

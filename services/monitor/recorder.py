@@ -23,6 +23,7 @@ import platform
 import subprocess
 import sys
 import time
+from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -202,4 +203,83 @@ def read_snapshots(directory: Path) -> dict[int, dict[str, np.ndarray]]:
             continue
         with np.load(path) as z:
             out[int(z["t"])] = {"W": z["W"], "A": z["A"]}
+    return out
+
+
+@dataclass
+class RecordCheck:
+    """What a finished run record says about itself (:func:`check_record`): ``problems`` empty means complete."""
+
+    rows: int = 0
+    deliveries: int | None = None  # the last row's deliveries_total
+    final_links: int | None = None
+    steps: int | None = None  # ticks the sim ran (its run.finished event)
+    stopped_early: str | None = None  # why the sim ended before its steps (run.finished), if it did
+    gaps: list[tuple[int, int]] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def complete(self) -> bool:
+        return not self.problems
+
+
+def check_record(directory: Path, steps: int) -> RecordCheck:
+    """Check a run record against itself and the sim's own account of the run (``run.finished``): every row of the
+    steps the sim ran, once and in order, a summary whose totals equal the rows, and the sim's deliveries."""
+    directory = Path(directory)
+    out = RecordCheck()
+    try:
+        rows = read_metrics(directory)
+    except (OSError, csv.Error, UnicodeDecodeError) as exc:
+        out.problems.append(f"metrics.csv cannot be read ({exc})")
+        return out
+    finished: dict[str, Any] | None = None
+    try:
+        with open(directory / "events.jsonl", encoding="utf-8") as f:
+            for line in f:
+                try:
+                    event = json.loads(line)
+                except ValueError:
+                    continue
+                if event.get("kind") == "run.finished" and event.get("source") == "sim":
+                    finished = event.get("details") or {}
+                elif event.get("kind") == "monitor.gap":
+                    d = event.get("details") or {}
+                    out.gaps.append((int(d.get("first", -1)), int(d.get("last", -1))))
+    except OSError:
+        pass
+    out.rows = len(rows)
+    if rows:
+        last = rows[-1]
+        out.deliveries = int(last["deliveries_total"] or 0)
+        out.final_links = int(last["links"] or 0)
+    if finished is None:
+        out.problems.append("the record has no run.finished event of the sim")
+        expected = steps
+    else:
+        out.steps = int(finished.get("steps", 0))
+        out.stopped_early = finished.get("stopped_early")
+        expected = out.steps
+        if out.deliveries is not None and finished.get("deliveries") is not None \
+                and int(finished["deliveries"]) != out.deliveries:
+            out.problems.append(f"the rows end at {out.deliveries} deliveries, the sim counted "
+                                f"{finished['deliveries']}")
+    ts = [int(r["t"]) for r in rows]
+    if ts != list(range(expected)):
+        missing = sorted(set(range(expected)) - set(ts))
+        if missing:
+            declared = " (declared lost: monitor restarted)" if out.gaps else ""
+            out.problems.append(f"{len(missing)} of {expected} rows missing, first {missing[0]}{declared}")
+        else:
+            out.problems.append(f"{len(ts)} rows for {expected} steps (duplicate or extra rows)")
+    try:
+        summary = json.loads((directory / "summary.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        out.problems.append("no summary.json")
+        return out
+    if summary.get("steps") != out.rows:
+        out.problems.append(f"summary.json says {summary.get('steps')} steps, the record has {out.rows} rows")
+    if out.deliveries is not None and summary.get("deliveries_total") != out.deliveries:
+        out.problems.append(f"summary.json says {summary.get('deliveries_total')} deliveries, the rows "
+                            f"{out.deliveries}")
     return out

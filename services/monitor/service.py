@@ -32,7 +32,7 @@ from schemas.hot import TickArrays, decode_tick
 from schemas.keys import RunKeys, intersects
 from services.bus.base import Bus, Query, Sample
 from services.monitor import metrics as M
-from services.monitor.recorder import Recorder
+from services.monitor.recorder import Recorder, read_metrics
 from services.monitor.streams import MessageStats
 from services.rejects import Rejects
 from services.runconfig import RunConfig
@@ -44,7 +44,18 @@ STREAMS = ("deliveries", "deliveries_total", "requests", "commits", "links", "la
            "w_agv_agv", "w_agv_picker", "w_picker_picker")
 ACK_HAS_LINKS = "links" in Ack.model_fields  # the wire schema's per-tick link report (else: state rows)
 STOP_GRACE = 3.0  # seconds the monitor waits for the sim's end of run after someone else's stop
-QUIET_EVENTS = ("ready.probe", "ready.ack")
+QUIET_EVENTS = ("ready.probe", "ready.ack", "record.progress")
+#: every this many rows the monitor says how far its record is (event ``record.progress``, t = rows written): the
+#: lockstep sim keeps at most its window of ticks ahead of it (services/sim/service.py, MONITOR_WINDOW)
+PROGRESS_EVERY = 50
+
+
+def summary_of_rows(rows: list[dict[str, str]]) -> dict:
+    """The summary's totals computed from the record's rows (strings, as read back from metrics.csv)."""
+    links = [int(r["links"] or 0) for r in rows]
+    return {"steps": len(rows), "deliveries_total": int(rows[-1]["deliveries_total"] or 0) if rows else 0,
+            "mean_links": sum(links) / max(1, len(links)), "final_links": links[-1] if links else None,
+            "rows_missing": (int(rows[-1]["t"]) + 1 - len(rows)) if rows else 0}
 
 
 @dataclass
@@ -67,6 +78,7 @@ class MonitorResult:
     rejected: int = 0
     messages: dict[str, int] = field(default_factory=dict)
     finished: dict | None = None
+    failure: str | None = None  # why the record could not be written, if it could not
 
 
 class MonitorService:
@@ -128,7 +140,11 @@ class MonitorService:
         await self.bus.declare_queryable(k.latest_all, self._on_query)
         token = await self.bus.declare_token(k.alive("monitor"))
         await self._stop.wait()
-        self._finish()
+        if self.result.failure is None:
+            try:
+                self._finish()
+            except OSError as exc:
+                self._record_failed(exc)
         await self._publish_pending(force=True)
         await token.close()
         return self.result
@@ -141,10 +157,26 @@ class MonitorService:
             self._stop_timer = asyncio.get_running_loop().call_later(grace, self._stop.set)
 
     # -- dispatch --------------------------------------------------------------------------------------------------------
+    def _record_failed(self, exc: OSError) -> None:
+        """The record cannot be written (disk full, file too large, permissions): nothing this monitor records from
+        now on would be true, so it stops and says why (the supervisor stops the run)."""
+        if self.result.failure is None:
+            where = getattr(exc, "filename", None) or (self.recorder.dir if self.recorder is not None else "?")
+            self.result.failure = f"cannot write the run record {where}: {exc.strerror or exc}"
+            log.error("%s", self.result.failure)
+        self._done = True
+        self._stop.set()
+
     def _on_sample(self, sample: Sample) -> None:
         """On the loop (the subscription is not inline; replay feeds samples here too)."""
         if self._done:
             return
+        try:
+            self._handle(sample)
+        except OSError as exc:
+            self._record_failed(exc)
+
+    def _handle(self, sample: Sample) -> None:
         try:
             rel = self.keys.relative(sample.key)
         except ValueError as exc:
@@ -275,6 +307,8 @@ class MonitorService:
             self._links_from(state.t, state.agent, np.flatnonzero(state.a_row).tolist(), state.eta)
         if state.t % self.config.state_every != 0 and state.t < self.config.steps:
             return  # a per-tick state (links only): not a W sample
+        if state.t < self._next_row - ROW_GRACE_TICKS:
+            return  # its sample was written already (complete, or as it was when its row became final)
         at = self._states.setdefault(state.t, {})
         at[state.agent] = state
         if len(at) == self.n:
@@ -293,7 +327,8 @@ class MonitorService:
         if not np.isnan(W).any():
             self._block[t] = M.mean_w_by_block(W, self.is_agv)
         if t % self.config.snapshot_every == 0 or t >= self.config.steps:
-            self.result.snapshots[t] = (W, A)
+            if self.keep_rows:  # in memory only for in-process callers; the record has them on disk
+                self.result.snapshots[t] = (W, A)
             if self.recorder is not None:
                 self.recorder.snapshot(t, W, A)
         del self._states[t]
@@ -324,6 +359,10 @@ class MonitorService:
             row = self._rows.pop(t, None) or Row(t)
             self._emit(row)
             self._next_row += 1
+        # A state sample that never completes (an agent was absent at that tick) is written as it is once its row is
+        # final, so that the monitor's memory does not grow with the length of a run that lost an agent.
+        while self._states and min(self._states) < self._next_row - ROW_GRACE_TICKS:
+            self._complete_states(min(self._states))
 
     def _emit(self, row: Row) -> None:
         A = np.zeros((self.n, self.n), dtype=bool)
@@ -353,6 +392,12 @@ class MonitorService:
             self.recorder.row(values)
             self.recorder.links(row.t, A)
         self._queue_metrics(values)
+        if (row.t + 1) % PROGRESS_EVERY == 0:
+            self._progress(row.t + 1)
+
+    def _progress(self, rows: int) -> None:
+        """Tell the sim that rows ``< rows`` are written (never dropped: the sim may be waiting for it)."""
+        self.bus.put(self.keys.event("monitor"), Event(kind="record.progress", source="monitor", t=rows))
 
     def _queue_metrics(self, values: dict) -> None:
         """Note the row's stream values; build and publish MetricSamples only when a publication is due.
@@ -425,6 +470,10 @@ class MonitorService:
             "final_links": self._last_values.get("links"),
         }
         if self.recorder is not None:
+            self.recorder.flush()
+            if self.recorder.resume_from is not None:
+                # a restarted monitor saw only part of the run: the totals are those of the record's rows
+                summary.update(summary_of_rows(read_metrics(self.recorder.dir)))
             self.recorder.summary(summary)
             self.recorder.close()
 

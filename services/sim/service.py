@@ -52,6 +52,11 @@ LEAVE_TIMEOUT = 2.0  # seconds the sim waits, after its stop, for the other part
 MONITOR_LEAVE_TIMEOUT = 20.0
 PROBE_INTERVAL = 0.25  # seconds between readiness probes (zenoh.md §8.6)
 MONITOR = "monitor"
+# Lockstep: the sim runs at most this many ticks ahead of the rows the monitor has written (it reports them every
+# PROGRESS_EVERY rows). The monitor takes in every message of the run and is not part of the tick's barrier; without
+# this bound a monitor slower than the run builds an unbounded backlog (memory, a record that ends long after the
+# run, live streams that lag by minutes). Larger than PROGRESS_EVERY plus the rows a monitor may hold back.
+MONITOR_WINDOW = 200
 
 
 def tick_from_observation(obs: TickObservation, sim_time: float, extra: dict | None = None) -> Tick:
@@ -258,6 +263,8 @@ class SimService:
         self._expected: dict[int, list[int]] = {}  # picker -> requesters (the resolve)
         self._probe_round = 0
         self._running = False  # between tick 0 and the end: only then does a leaving agent count as absent
+        self._monitor_rows: int | None = None  # rows the monitor reported written (None: not heard since it joined)
+        self._monitor_progress = asyncio.Event()
 
     # -- presence ----------------------------------------------------------------------------------------------------
     def present(self) -> set[int]:
@@ -280,6 +287,9 @@ class SimService:
             self.alive.add(who)
         else:
             self.alive.discard(who)
+            if who == MONITOR:
+                self._monitor_rows = None  # a restarted monitor starts at the live tick: nothing to wait for
+                self._monitor_progress.set()
             self.ready.discard(who)
             self._absent(who, "liveliness token gone")
         self._ready_changed.set()
@@ -298,6 +308,13 @@ class SimService:
             msg = sample.decode(Event)
         except ValueError as exc:
             self._reject(sample.key, exc)
+            return
+        if msg.kind == "record.progress":
+            if self.keys.sender_of(sample.key) != MONITOR or msg.t is None:
+                self._reject(sample.key, "record progress from another participant than the monitor")
+                return
+            self._monitor_rows = max(self._monitor_rows or 0, msg.t)
+            self._monitor_progress.set()
             return
         if msg.kind != "ready.ack":
             return
@@ -520,6 +537,29 @@ class SimService:
                 self.ready.discard(who)  # silent past the timeout: absent until it answers a probe again
                 self._absent(who, f"no answer in phase {ph.phase} of tick {ph.t} within {self.config.phase_timeout} s")
 
+    async def _keep_monitor_window(self, t: int) -> None:
+        """Before tick ``t``: wait while the monitor's record is more than MONITOR_WINDOW ticks behind. A monitor that
+        makes no progress for a phase timeout is not waited for any more (until it reports again): the record then
+        says what it lost, and the run goes on."""
+        rows = self._monitor_rows
+        if rows is None or t - rows <= MONITOR_WINDOW:
+            return
+        started = progressed = time.monotonic()
+        while self._stop is None and self._monitor_rows is not None and t - self._monitor_rows > MONITOR_WINDOW:
+            if self._monitor_rows > rows:
+                rows, progressed = self._monitor_rows, time.monotonic()
+            elif time.monotonic() - progressed > self.config.phase_timeout:
+                log.warning("sim: the monitor's record is stuck at row %d (tick %d); not waiting for it", rows, t)
+                self._monitor_rows = None
+                break
+            self._monitor_progress.clear()
+            try:
+                await asyncio.wait_for(self._monitor_progress.wait(), 0.5)
+            except asyncio.TimeoutError:
+                pass
+        self.result.phase_seconds["monitor_wait"] = (
+            self.result.phase_seconds.get("monitor_wait", 0.0) + time.monotonic() - started)
+
     async def _loop(self) -> None:
         self._running = True
         try:
@@ -545,6 +585,8 @@ class SimService:
                     except asyncio.TimeoutError:
                         pass
                 next_start += cfg.period
+            if cfg.mode == "lockstep" and self.wait_for_monitor:
+                await self._keep_monitor_window(self.result.steps)
             started = time.monotonic()
             spent = self.result.phase_seconds
             obs = self.ctl.begin_tick()

@@ -37,6 +37,9 @@ SHUTDOWN_BOUND = 5.0
 MAX_RESTARTS = 5
 RESTART_WINDOW = 60.0
 _PR_SET_PDEATHSIG = 1
+MONITOR_END_TIMEOUT = 30.0  # seconds the monitor may take after the sim's end to finish the record
+STOPPED_FROM_OUTSIDE = 3  # exit status of `up` when someone else's stop ended the run before its steps
+RECORD_FAILED = 74  # a monitor's exit status when the record cannot be written (services/monitor/command.py)
 
 
 def _die_with_parent() -> None:  # runs in the child between fork and exec
@@ -49,6 +52,17 @@ def _die_with_parent() -> None:  # runs in the child between fork and exec
 
 class StartError(RuntimeError):
     """A process of the run could not start (message names it and shows its log tail)."""
+
+
+class RunFailed(StartError):
+    """The run ended but its record is not the truth (incomplete, or the monitor failed): the message says why."""
+
+
+def _last_error(child: "Child") -> str:
+    """The child's last error line (``morph-sim <cmd>: error: …``), else the last line of its log."""
+    lines = [ln for ln in child.log_tail(40).splitlines() if ln.strip() and not ln.startswith("--- start")]
+    errors = [f"{child.spec.role}: " + ln.split(": error: ", 1)[1] for ln in lines if ": error: " in ln]
+    return (errors or lines or [f"{child.spec.name} left no log"])[-1].strip()
 
 
 class RunStalled(StartError):
@@ -159,6 +173,8 @@ class Supervisor:
         self.stall_timeout = (max(30.0, 3 * 2 * config.phase_timeout, 3 * config.period) if stall_timeout is None
                               else stall_timeout)
         self.stop_requested: str | None = None
+        self.outcome = "interrupted"  # how the run ended, for the final line
+        self.check = None  # the record's check at the end of the run (services.monitor.recorder.RecordCheck)
         self.events: list[tuple[float, str, str]] = []
         # Crash faults (issue 5): specs from the schedule file or `morph-sim faults set` land in the planner (the
         # ctl/faults controller's on_crash hook); each tick the due actions are carried out on the agents' pids.
@@ -339,10 +355,7 @@ class Supervisor:
                 code = sim.proc.returncode
                 if code != 0:
                     raise StartError(f"sim exited with status {code}:\n{sim.log_tail()}")
-                self.progress.finished = True
-                self._show(force=True)
-                await self._wait_exit([c for c in self.children.values() if c.spec.role == "monitor"], 10.0)
-                return 0
+                return await self._end_of_run()
             running = self.progress.t >= 0
             if running:
                 await self._crashes(bus, keys, controller)
@@ -355,6 +368,13 @@ class Supervisor:
                 if not running and code != 0:
                     raise StartError(f"{child.spec.name} exited with status {code} before the run started:\n"
                                      f"{child.log_tail()}")
+                if child.spec.role == "monitor" and code == RECORD_FAILED:
+                    self._event("record", "the monitor cannot write the run record")
+                    try:
+                        await bus.publish(keys.stop, Stop(reason="the run record cannot be written"))
+                    except Exception:
+                        pass
+                    raise RunFailed(f"{_last_error(child)}; the run was stopped")
                 planned = child.pid in child.planned
                 if child.spec.restart == "on-failure" and code != 0 and (
                         planned or child.restart_allowed(time.monotonic())):
@@ -387,6 +407,40 @@ class Supervisor:
                 last_shown = now
                 self._show()
             await asyncio.sleep(0.05)
+
+    async def _end_of_run(self) -> int:
+        """The sim has ended the run: wait for the monitor to finish the record, then check the record against the
+        sim's own account. 0 only when the steps, the rows and the summary agree; the final line shows the
+        record's numbers (never a stale live value)."""
+        from services.monitor.recorder import check_record
+
+        monitors = [c for c in self.children.values() if c.spec.role == "monitor"]
+        await self._wait_exit(monitors, MONITOR_END_TIMEOUT)
+        for monitor in monitors:
+            if monitor.alive():
+                raise RunFailed(f"the monitor did not finish the run record within {MONITOR_END_TIMEOUT:.0f} s of "
+                                f"the run's end; the record is incomplete")
+            code = monitor.proc.returncode
+            if code != 0:
+                raise RunFailed(f"the monitor failed (status {code}): {_last_error(monitor)}; the record is "
+                                "incomplete")
+        self.check = check = check_record(self.config.record_dir, self.config.steps)
+        p = self.progress
+        p.finished = True
+        if check.rows:
+            p.t = check.rows - 1 if not check.gaps else max(p.t, check.rows - 1)
+        if check.deliveries is not None:
+            p.deliveries = float(check.deliveries)
+        if check.final_links is not None:
+            p.links = float(check.final_links)
+        self._show(force=True)
+        if check.problems:
+            raise RunFailed("the run record is incomplete: " + "; ".join(check.problems))
+        if check.stopped_early is not None:
+            self.outcome = f"stopped from outside at tick {check.steps} ({check.stopped_early})"
+            return STOPPED_FROM_OUTSIDE
+        self.outcome = "completed"
+        return 0
 
     async def _publish_event(self, bus, keys, kind: str, *, at_tick: int | None = None, **details) -> None:
         """Supervisor events (crashes, restarts) go into the run record through the monitor, with their tick and sim
