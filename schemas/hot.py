@@ -57,6 +57,7 @@ class TickArrays:
     unloads: list[tuple[int, int]]
     has_previous: bool
     final: bool
+    deliveries_total: int | None = None
 
     @property
     def n(self) -> int:
@@ -103,6 +104,9 @@ def _cheap(body: dict[str, Any]) -> TickArrays | None:
         return None
     t, sim_time, rows, cols = body["t"], body["sim_time"], body["grid_rows"], body["grid_cols"]
     has_previous, final = body["has_previous"], body.get("final", False)
+    total = body.get("deliveries_total")
+    if not (total is None or (type(total) is int and 0 <= total < _TASK)):
+        return None
     if not (type(t) is int and t >= 0 and type(sim_time) is float and math.isfinite(sim_time) and sim_time >= 0.0
             and type(rows) is int and 1 <= rows < _COORD and type(cols) is int and 1 <= cols < _COORD
             and type(has_previous) is bool and type(final) is bool):
@@ -135,7 +139,7 @@ def _cheap(body: dict[str, Any]) -> TickArrays | None:
     pairs = [[(a, b) for a, b in loads], [(a, b) for a, b in unloads]]
     split = len(INT_ROWS)
     return TickArrays(t, sim_time, rows, cols, block[:split], block[split:] != 0, reward, *lists,
-                      body["request_queue"], *pairs, has_previous, final)
+                      body["request_queue"], *pairs, has_previous, final, total)
 
 
 def arrays_from_tick(tick: Tick) -> TickArrays:
@@ -154,7 +158,7 @@ def arrays_from_tick(tick: Tick) -> TickArrays:
         np.array([d[name] for name in FLAG_ROWS], dtype=bool).reshape(len(FLAG_ROWS), tick.n),
         np.array(tick.reward, dtype=float), list(tick.mission_order), list(tick.free_pickers),
         list(tick.delivered_by), list(tick.request_queue), [tuple(p) for p in tick.loads],
-        [tuple(p) for p in tick.unloads], bool(tick.has_previous), bool(tick.final))
+        [tuple(p) for p in tick.unloads], bool(tick.has_previous), bool(tick.final), tick.deliveries_total)
 
 
 def decode_tick(data: bytes | bytearray | memoryview) -> TickArrays:

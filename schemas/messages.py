@@ -120,6 +120,9 @@ class Tick(Message):
                                                  "the delivered shelf, else -1")
     loads: list[tuple[RobotId, RobotId]] = Field(description="(AGV, picker) co-located at a load in step t−1")
     unloads: list[tuple[RobotId, RobotId]] = Field(description="(AGV, picker) co-located at an unload in step t−1")
+    deliveries_total: Annotated[int, Field(ge=0, lt=2**63)] | None = Field(
+        default=None, description="cumulative deliveries up to step t−1 (a monitor that joins late continues the "
+                                  "cumulative count from it); None = not given")
     handled: list[bool] = Field(description="robots that took part in a load or unload in step t−1")
     final: bool = Field(default=False, description="the report after the last step: agents learn, nobody asks")
 

@@ -81,7 +81,7 @@ def test_the_sims_tick_bytes_decode_to_the_model_and_back_to_the_observation():
 
 def world_fields_of(fields: dict) -> dict:
     return {k: fields[k] for k in ("heading", "busy", "carrying", "carrying_requested", "partner", "request_queue",
-                                   "loads", "unloads")}
+                                   "loads", "unloads", "deliveries_total")}
 
 
 def _variants(body: dict) -> list[dict]:
@@ -122,7 +122,8 @@ def _variants(body: dict) -> list[dict]:
             change(**{name: value})
     for name, values in (("t", (-1, True, 1.0, None)), ("sim_time", (0, -1.0, math.inf, "1")),
                          ("grid_rows", (0, 65536, 3.0)), ("grid_cols", (0, True)), ("has_previous", (1, 0, None)),
-                         ("final", (1, "yes")), ("v", (2, 0, True))):
+                         ("final", (1, "yes")), ("v", (2, 0, True)),
+                         ("deliveries_total", (-1, 1.0, True, "3", 2**63, None, 0))):
         for value in values:
             change(**{name: value})
     b = copy.deepcopy(body)

@@ -108,11 +108,10 @@ class Recorder:
         #: (last row t, its deliveries_total) of the record a restarted monitor continues, else None
         self.resume_from: tuple[int, int] | None = None
         if not fresh:
+            _check_same_run(mpath, config)
             for name in ("metrics.csv", "events.jsonl", "positions.csv", "links.csv"):
                 _trim_partial_line(self.dir / name)  # a killed monitor may have left half a line
-            rows = read_metrics(self.dir)
-            last = rows[-1] if rows else None
-            self.resume_from = (int(last["t"]), int(last["deliveries_total"] or 0)) if last else (-1, 0)
+            self.resume_from = _align_tables(self.dir)
         self._metrics_file = open(metrics, "a", newline="", encoding="utf-8")
         self._csv = csv.writer(self._metrics_file)
         if fresh:
@@ -178,6 +177,60 @@ class Recorder:
         self._events_file.close()
         self._positions_file.close()
         self._links_file.close()
+
+
+#: config fields that may differ between a run's monitor and its restarted successor (where it connects)
+_PLACE_FIELDS = ("endpoint", "listen", "output_dir")
+
+
+def _check_same_run(manifest_path: Path, config: RunConfig) -> None:
+    """A record is continued only by a monitor of the same run: same id and same configuration (else ValueError)."""
+    try:
+        recorded = json.loads(manifest_path.read_text(encoding="utf-8")).get("config", {})
+    except (OSError, ValueError):
+        return  # no readable manifest: nothing to compare with (a monitor killed while starting)
+    mine = config.model_dump(mode="json")
+    differ = sorted(k for k in mine if k not in _PLACE_FIELDS and k in recorded and recorded[k] != mine[k])
+    if differ:
+        name = differ[0]
+        raise ValueError(f"run_id: {manifest_path.parent} holds the record of another run with this id ({name} "
+                         f"{recorded[name]!r} there, {mine[name]!r} here); choose another run id")
+
+
+def _table_ts(path: Path) -> list[int]:
+    if not path.exists():
+        return []
+    with open(path, encoding="utf-8") as f:
+        return [int(line.split(",", 1)[0]) for line in f if line[:1].isdigit()]
+
+
+def _keep_upto(path: Path, last: int) -> None:
+    """Drop the lines of a per-tick table whose tick is beyond ``last`` (the header, if any, stays)."""
+    if not path.exists():
+        return
+    with open(path, encoding="utf-8") as f:
+        lines = f.readlines()
+    kept = [ln for ln in lines if not ln[:1].isdigit() or int(ln.split(",", 1)[0]) <= last]
+    if len(kept) != len(lines):
+        tmp = path.with_suffix(path.suffix + ".tmp")
+        tmp.write_text("".join(kept), encoding="utf-8")
+        os.replace(tmp, path)
+
+
+def _align_tables(directory: Path) -> tuple[int, int]:
+    """Before a restarted monitor appends: cut metrics, links and positions back to the last tick all three hold
+    (each was flushed at its own moment before the kill), so that the declared gap is the same for every table.
+    Returns (last row t, its deliveries_total); (-1, 0) for a record without rows."""
+    rows = read_metrics(directory)
+    if not rows:
+        return (-1, 0)
+    last = int(rows[-1]["t"])
+    links, positions = _table_ts(directory / "links.csv"), _table_ts(directory / "positions.csv")
+    last = min([last] + ([links[-1]] if links else [-1]) + ([positions[-1]] if positions else [-1]))
+    for name in ("metrics.csv", "links.csv", "positions.csv"):
+        _keep_upto(directory / name, last)
+    rows = [r for r in rows if int(r["t"]) <= last]
+    return (last, int(rows[-1]["deliveries_total"] or 0)) if rows else (-1, 0)
 
 
 def _trim_partial_line(path: Path) -> None:

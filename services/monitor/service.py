@@ -228,7 +228,9 @@ class MonitorService:
         if tick.t <= self._last_tick:
             return
         if self._last_tick < 0 and self.recorder is not None and self.recorder.resume_from is not None:
-            self._resume(tick.t)
+            self._resume(tick)
+            if self._done:
+                return
         self._last_tick = tick.t
         if tick.t > 0:
             prev = self._row(tick.t - 1)
@@ -245,12 +247,23 @@ class MonitorService:
         # up to ROW_GRACE_TICKS more ticks (an absent agent's row is then written without it).
         self._finalize(upto=tick.t - 2, grace=ROW_GRACE_TICKS)
 
-    def _resume(self, first_tick: int) -> None:
+    def _resume(self, tick: TickArrays) -> None:
         # A restarted monitor appends to its predecessor's record: rows from the first tick it sees (the first it can
-        # see whole), the cumulative count continued, and the rows in between declared lost (a gap event).
+        # see whole), the cumulative count continued from the sim's own (the gap's deliveries included), and the
+        # rows in between declared lost (a gap event).
+        first_tick = tick.t
         last_row, total = self.recorder.resume_from
-        self._total = total
+        if first_tick <= last_row:
+            # the run's ticks are behind the record's rows: not this run's record but another run's with the same id
+            self.result.failure = (f"run_id: {self.recorder.dir} holds rows up to tick {last_row} and this run is at "
+                                   f"tick {first_tick}: another run was recorded under this id; choose another")
+            log.error("%s", self.result.failure)
+            self._done = True
+            self._stop.set()
+            return
         self._next_row = max(first_tick, last_row + 1)
+        self._total = tick.deliveries_total if tick.deliveries_total is not None and \
+            self._next_row == first_tick else total
         kind = "monitor.gap" if self._next_row > last_row + 1 else "monitor.resumed"
         self.recorder.event(Event(kind=kind, source="monitor", t=first_tick, details={
             "first": last_row + 1, "last": self._next_row - 1, "reason": "monitor restarted"}).model_dump(mode="json"))

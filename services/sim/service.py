@@ -130,6 +130,7 @@ def world_fields(ctl: CTAController, obs: TickObservation) -> dict:
         heading=[int(d) for d in wh.dir], busy=[bool(b) for b in wh.busy],
         carrying=[bool(c) for c in wh.carrying], carrying_requested=[bool(c) and c in queue for c in wh.carrying],
         partner=partner, request_queue=[int(q) for q in wh.queue], loads=loads, unloads=unloads,
+        deliveries_total=int(ctl.deliveries),
     )
 
 
