@@ -16,6 +16,7 @@ HELP = "live terminal view of an ongoing run: progress, deliveries, links, agent
 SPARK = "▁▂▃▄▅▆▇█"
 MISSIONS = {0: "-", 1: "picking", 2: "delivering", 3: "returning"}
 HISTORY = 120  # points of the deliveries sparkline
+FINAL_WAIT = 30.0  # seconds to wait, after the sim's end of run, for the monitor's final numbers
 
 
 def sparkline(values: list[float], width: int = 60) -> str:
@@ -156,12 +157,28 @@ async def watch(bus, run_id: str | None, *, steps: int | None = None, duration: 
             await bus.subscribe(keys.events, handler(Event, state.on_event))]
     if follow_ticks:
         subs.append(await bus.subscribe(keys.tick, handler(Tick, state.on_tick)))
+    # The sim's run.finished comes before the monitor's last rows and final publication: the view ends when the
+    # monitor has left (its token goes after its last publication), so that it ends on the record's numbers.
+    monitor_here = asyncio.Event()
+    monitor_gone = asyncio.Event()
+
+    def on_monitor(change) -> None:
+        (monitor_here if change.alive else monitor_gone).set()
+
+    subs.append(await bus.subscribe_liveliness(keys.alive("monitor"), on_monitor))
     start = time.monotonic()
+    finished_at = None
     try:
         with Live(state.renderable(), console=console, refresh_per_second=refresh, transient=False) as live:
-            while not state.finished and (duration is None or time.monotonic() - start < duration):
+            while duration is None or time.monotonic() - start < duration:
+                if state.finished:
+                    finished_at = finished_at or time.monotonic()
+                    if monitor_gone.is_set() or not monitor_here.is_set() \
+                            or time.monotonic() - finished_at > FINAL_WAIT:
+                        break
                 await asyncio.sleep(1.0 / refresh)
                 live.update(state.renderable())
+            await asyncio.sleep(0.2)  # what the monitor published just before leaving
             live.update(state.renderable())
     finally:
         for sub in subs:
@@ -207,6 +224,10 @@ def run(args: argparse.Namespace) -> int:
             await bus.close()
 
     state = asyncio.run(main())
+    import sys
+
+    if not sys.stdout.isatty():
+        print()  # the view's last frame ends without a newline when it is not drawn on a terminal
     print(f"run {state.run_id}: tick {state.last_t + 1}, deliveries {state.value('deliveries_total')}"
           f"{' (finished)' if state.finished else ''}")
     return 0
