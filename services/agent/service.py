@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,6 +37,7 @@ from services.sim.service import observation_from_arrays
 log = logging.getLogger("morph_sim.agent")
 
 STOP_GRACE = 3.0  # seconds an agent waits for the sim's end of run after someone else's stop
+RESTORE_TIMEOUT = 5.0  # seconds a (re)starting agent waits for the monitor's latest states
 
 def _ack_fields() -> set[str]:
     return set(Ack.model_fields)
@@ -103,7 +105,7 @@ class AgentService:
             layer.on_fate = self._on_arrival
             self._layer = layer
             await self.faults.start()  # ctl/faults, and the schedule from time 0
-        restored = await self._restore() if self.restore else None
+        restored = await self._restore()
         # inline: the lock-step hot path skips the hop to the loop (3-4x the tick rate over Zenoh, zenoh.md §4c)
         await bus.subscribe(k.tick, self._on_tick, inline=True)
         await bus.subscribe(k.event("sim"), self._on_probe)
@@ -125,18 +127,37 @@ class AgentService:
         return self.counters
 
     async def _restore(self) -> Event | None:
-        """Load the monitor's latest states into the brain; the ``agent.restored`` event to publish, if any."""
+        """Load the monitor's latest states into the brain; the event to publish: ``agent.restored`` (with the tick),
+        or ``agent.cold_start`` (with the reason) when the run is under way and this agent starts from zero."""
         from services.faults.restore import fetch_states, restore_brains
 
+        def cold(reason: str) -> Event:
+            log.warning("agent %d: starts cold: %s", self.id, reason)
+            return Event(kind="agent.cold_start", source=self.id, details={"reason": reason})
+
+        started = time.monotonic()
         try:
-            states = await fetch_states(self.bus, self.config.run_id, timeout=1.0)
+            # the monitor answers at once (its queries do not queue behind its samples); the timeout only matters
+            # when no monitor is there
+            states = await fetch_states(self.bus, self.config.run_id, timeout=RESTORE_TIMEOUT)
+        except Exception as exc:
+            self._reject("state/agent", f"restore failed: {exc}")
+            return cold(f"restore failed: {exc}")
+        under_way = bool(states)  # the monitor holds states: the run has started, this is a restart
+        if not self.restore:
+            return cold("cold restart requested") if under_way else None
+        if not states:
+            if time.monotonic() - started >= RESTORE_TIMEOUT:
+                return cold(f"no answer from the monitor's state within {RESTORE_TIMEOUT:.0f} s")
+            return None  # a first start: nothing recorded yet
+        try:
             restored = restore_brains(self.brains, self.id, states)
             self.restored_from = states.get(self.id)
         except Exception as exc:  # a failed restore is a cold start, never a crash
             self._reject("state/agent", f"restore failed: {exc}")
-            return None
+            return cold(f"restore failed: {exc}")
         if restored is None:
-            return None
+            return cold("the monitor holds no state of this agent")
         log.info("agent %d: restored state of tick %d", self.id, restored)
         return Event(
             kind="agent.restored", source=self.id, t=restored,

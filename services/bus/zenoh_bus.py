@@ -321,7 +321,12 @@ class ZenohBus(Bus):
     def _declare_queryable(self, key_expr: str, handler: Callable[[Query], Awaitable[None] | None]
                            ) -> Callable[[], None]:
         def on_query(zquery: Any) -> None:  # Zenoh thread
-            self._post(self._start_query, handler, zquery)
+            # straight to the loop, not behind the inbox: a querier (a restarting agent restoring its state) waits for
+            # the answer, which must not queue behind the samples of a busy subscription (the monitor's)
+            try:
+                self._loop.call_soon_threadsafe(self._start_query, handler, zquery)
+            except RuntimeError:  # loop closed: the process is shutting down
+                pass
 
         zq = self.session.declare_queryable(key_expr, on_query)
         return zq.undeclare
