@@ -70,6 +70,10 @@ def claim_record_dir(directory) -> None:
     directory = Path(directory)
     try:
         directory.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        reason = "not a directory" if isinstance(exc, FileExistsError) else exc.strerror or exc
+        raise ValueError(f"output_dir: cannot create {directory.parent}: {reason}") from None
+    try:
         directory.mkdir()
     except FileExistsError:
         raise ValueError(f"run_id: {directory} exists (a run with this id was recorded there); choose another "
