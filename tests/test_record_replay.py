@@ -64,10 +64,12 @@ def test_record_and_replay_commands_against_a_live_up_run(tmp_path):
         import time
 
         wait_for_port(port, up, time.monotonic() + 60, 0.1)
-        rec = subprocess.run([sys.executable, "-m", "morph_sim.cli", "record", *flags, "--endpoint",
+        # no run flags: the recorder learns the run's configuration from the run
+        rec = subprocess.run([sys.executable, "-m", "morph_sim.cli", "record", "--run-id", "recup", "--endpoint",
                               f"tcp/127.0.0.1:{port}", "--out", str(tmp_path / "up.mbr"), "--timeout", "90"],
                              capture_output=True, text=True, timeout=120)
         assert rec.returncode == 0, rec.stderr[-2000:]
+        assert rec.stderr.startswith("recording run recup (tiny, 150 steps)"), rec.stderr
         assert up.wait(timeout=60) == 0
     finally:
         if up.poll() is None:
@@ -82,3 +84,6 @@ def test_record_and_replay_commands_against_a_live_up_run(tmp_path):
     # and link report is in (a grace of a few ticks), so every column, links included, must agree.
     cols = ("t", "sim_time", "deliveries", "deliveries_total", "requests", "commits", "acks", "links", "lambda2", "eta")
     assert [[r[c] for c in cols] for r in replayed] == [[r[c] for c in cols] for r in live]
+    for name in ("metrics.csv", "links.csv", "positions.csv"):  # byte for byte
+        assert (tmp_path / "replayed" / "recup" / name).read_bytes() == (tmp_path / "live" / "recup" / name
+                                                                          ).read_bytes(), name

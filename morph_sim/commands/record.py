@@ -1,45 +1,113 @@
-"""``morph-sim record``: record all bus traffic of a run (``morph/<run>/**``) to a file, for ``morph-sim replay``."""
+"""``morph-sim record``: record all bus traffic of a run (``morph/<run>/**``) to a file, for ``morph-sim replay``.
+
+The run's configuration (fleet, steps, policy …), which a replay needs to recompute the record, comes from the run
+itself: its monitor answers ``get morph/<run>/state/config``. No run flags to repeat, none to get wrong.
+"""
 
 from __future__ import annotations
 
 import argparse
+import sys
 
 NAME = "record"
 HELP = "record every message of a run to a file (msgpack frames with receive time) until the run ends"
+CONFIG_WAIT = 10.0  # seconds to wait for the run's monitor to give the run's configuration
+PROGRESS_EVERY = 2.0  # seconds between progress lines
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from services.runconfig import add_config_arguments
-
     parser.add_argument("--out", required=True, help="file to write (appended if it exists), e.g. runs/r1.mbr")
+    parser.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="Zenoh endpoint of the run")
+    parser.add_argument("--run-id", dest="run", default=None,
+                        help="run id (default: the run whose monitor is alive on the endpoint)")
     parser.add_argument("--timeout", type=float, default=None, help="stop after this many seconds")
-    add_config_arguments(parser, skip=("listen",))
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+async def run_config(bus, run_id: str, timeout: float = CONFIG_WAIT):
+    """The RunConfig of the live run ``run_id``, from its monitor; ValueError if no monitor answers in time."""
+    import asyncio
+    import time
+
+    from schemas import Event
+    from schemas.keys import RunKeys
+    from services.runconfig import RunConfig
+
+    key = RunKeys(run_id).latest("config")
+    deadline = time.monotonic() + timeout
+    while True:
+        for reply in await bus.get(key, timeout=min(2.0, timeout)):
+            if not reply.ok:
+                continue
+            try:
+                event = reply.decode(Event)
+                return RunConfig.coerce(event.details["config"])
+            except (ValueError, KeyError, TypeError) as exc:
+                raise ValueError(f"run: the monitor of {run_id!r} gave an unreadable configuration: {exc}") from None
+        if time.monotonic() > deadline:
+            raise ValueError(f"run: no monitor of run {run_id!r} answered within {timeout:.0f} s (is the run up?)")
+        await asyncio.sleep(0.2)
 
 
 def run(args: argparse.Namespace) -> int:
     import asyncio
     import signal
+    import time
     from pathlib import Path
 
+    from morph_sim.commands.watch import check_run, find_run
+    from schemas.keys import RunKeys, validate_run_id
     from services.monitor.replay import BusRecorder
-    from services.runconfig import config_from_args
+    from services.runconfig import RunConfig
     from services.supervisor.process import open_bus
 
-    config = config_from_args(args)
-    if not config.endpoint:
-        raise ValueError("endpoint: record needs --endpoint ENDPOINT of the run (e.g. tcp/127.0.0.1:7447)")
+    if args.run is not None:
+        validate_run_id(args.run)
+    RunConfig(endpoint=args.endpoint)  # validates the endpoint, naming the field
+    if args.timeout is not None and args.timeout <= 0:
+        raise ValueError(f"timeout: must be > 0, got {args.timeout}")
 
-    async def main() -> int:
-        bus = await open_bus("recorder", connect=config.endpoint)
+    def say(line: str) -> None:
+        if not args.quiet:
+            print(line, file=sys.stderr, flush=True)
+
+    async def main() -> tuple[int, str]:
+        bus = await open_bus("recorder", connect=args.endpoint)
         try:
+            run_id = args.run
+            if run_id is None:
+                run_id = await find_run(bus)
+            else:
+                await check_run(bus, run_id)
+            # subscribe before asking for the configuration, so that nothing sent meanwhile is missed
+            early: list = []
+            sink = [early.append]
+            sub = await bus.subscribe(RunKeys(run_id).everything, lambda sample: sink[0](sample))
+            config = await run_config(bus, run_id)
             rec = BusRecorder(bus, config, Path(args.out))
+            for sample in early:
+                rec.on_sample(sample)
+            sink[0] = rec.on_sample
             loop = asyncio.get_running_loop()
             for sig in (signal.SIGTERM, signal.SIGINT):
                 loop.add_signal_handler(sig, rec.stop)
-            return await rec.run(args.timeout)
+            say(f"recording run {run_id} ({config.scale}, {config.steps} steps) to {args.out}")
+
+            async def progress() -> None:
+                while True:
+                    await asyncio.sleep(PROGRESS_EVERY)
+                    say(f"recording run {run_id}: {rec.frames} messages, tick {rec.ticks}/{config.steps}")
+
+            reporter = asyncio.get_running_loop().create_task(progress())
+            try:
+                frames = await rec.run(args.timeout, subscription=sub)
+            finally:
+                reporter.cancel()
+            return frames, run_id
         finally:
             await bus.close()
 
-    frames = asyncio.run(main())
-    print(f"recorded {frames} messages of run {config.run_id} to {args.out}")
+    started = time.monotonic()
+    frames, run_id = asyncio.run(main())
+    print(f"recorded {frames} messages of run {run_id} to {args.out} in {time.monotonic() - started:.0f} s")
     return 0

@@ -130,6 +130,8 @@ async def watch(bus, run_id: str | None, *, steps: int | None = None, duration: 
 
     if run_id is None:
         run_id = await find_run(bus)
+    else:
+        await check_run(bus, run_id)
     keys = RunKeys(run_id)
     state = WatchState(run_id, steps)
     # join late: the latest values first
@@ -197,6 +199,19 @@ async def find_run(bus, timeout: float = 5.0) -> str:
             raise ValueError(f"run: several runs on this endpoint ({', '.join(runs)}); pass --run ID")
         if time.monotonic() > deadline:
             raise ValueError("run: no monitor is alive on this endpoint; pass --run ID of a running run")
+        await asyncio.sleep(0.2)
+
+
+async def check_run(bus, run_id: str, timeout: float = 5.0) -> None:
+    """ValueError unless a process of run ``run_id`` (its sim or monitor) is alive on this bus."""
+    deadline = time.monotonic() + timeout
+    while True:
+        if await bus.alive(f"morph/{run_id}/alive/*", timeout=1.0):
+            return
+        if time.monotonic() > deadline:
+            runs = sorted({key.split("/")[1] for key in await bus.alive("morph/*/alive/monitor", timeout=1.0)})
+            here = f"runs here: {', '.join(runs)}" if runs else "no run is alive on this endpoint"
+            raise ValueError(f"run: no process of run {run_id!r} is alive on this endpoint ({here})")
         await asyncio.sleep(0.2)
 
 

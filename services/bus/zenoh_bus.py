@@ -229,6 +229,9 @@ class ZenohBus(Bus):
         if not finished:
             raise ConnectionError(f"zenoh session did not open within {connect_timeout + 5.0:.0f} s ({where})")
         if error is not None:
+            if connect is not None and "Unable to connect" in str(error):
+                raise ConnectionError(f"cannot reach the Zenoh endpoint {', '.join(_as_list(connect))}: nothing "
+                                      f"answered within {connect_timeout:.0f} s (is the run up?)") from None
             raise ConnectionError(f"cannot open zenoh session ({where}): {error}") from None
         lowlatency_on = json.loads(cfg.get_json("transport/unicast/lowlatency")) is True
         return cls(identity, session, loop, express=not lowlatency_on)

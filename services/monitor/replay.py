@@ -45,12 +45,16 @@ class BusRecorder:
                                                 "config": config.model_dump(mode="json"), "started_at": time.time()}))
         self._last_flush = time.monotonic()
         self.frames = 0
+        self.ticks = 0  # sim ticks recorded (progress)
+        self._tick_key = self.keys.tick
         self._end = asyncio.Event()
 
     def on_sample(self, sample: Sample) -> None:
         self._file.write(self._packer.pack([time.time(), sample.key, bytes(sample.payload), sample.sender,
                                             sample.seq, sample.sent_at]))
         self.frames += 1
+        if sample.key == self._tick_key:
+            self.ticks += 1
         now = time.monotonic()
         if now - self._last_flush >= FLUSH_SECONDS:
             self._file.flush()
@@ -60,9 +64,10 @@ class BusRecorder:
                                                                     bytes(sample.payload)):
             self._end.set()
 
-    async def run(self, timeout: float | None = None) -> int:
-        """Record until the run ends (plus a short grace) or ``timeout`` seconds; returns the frames written."""
-        sub = await self.bus.subscribe(self.keys.everything, self.on_sample)
+    async def run(self, timeout: float | None = None, subscription=None) -> int:
+        """Record until the run ends (plus a short grace) or ``timeout`` seconds; returns the frames written.
+        ``subscription``: one already feeding :meth:`on_sample` (closed at the end), else one is declared here."""
+        sub = subscription or await self.bus.subscribe(self.keys.everything, self.on_sample)
         try:
             try:
                 await asyncio.wait_for(self._end.wait(), timeout)

@@ -492,6 +492,10 @@ class MonitorService:
 
     # -- late joiners ----------------------------------------------------------------------------------------------------
     def _on_query(self, query: Query) -> None:
+        key = self.keys.latest("config")
+        if intersects(key, query.key_expr):  # the run's configuration, for a recorder that joins (replay needs it)
+            query.reply(key, Event(kind="run.config", source="monitor", t=max(self._last_tick, 0),
+                                   details={"config": self.config.model_dump(mode="json")}))
         metrics, states = list(self.latest_metric.items()), sorted(self.latest_state.items())
         for name, sample in metrics:
             key = self.keys.latest("metrics", name)
