@@ -66,3 +66,42 @@ async def test_scrape_during_and_after_a_run(tmp_path):
 def test_the_monitor_command_has_the_flag_and_its_variable():
     variables = {v.flag: v for v in command_variables("monitor")}
     assert variables["--prometheus-port"].env == "MORPH_PROMETHEUS_PORT"
+
+
+def test_up_serves_prometheus_through_the_run_and_a_grace_after_it(tmp_path):
+    import json
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    port = free_port()
+    argv = [sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", "tiny", "--steps", "150",
+            "--run-id", "prom", "--output-dir", str(tmp_path), "--prometheus-port", str(port),
+            "--prometheus-grace", "6"]
+    # a busy port is named in one line before anything starts
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", port))
+        taken.listen()
+        busy = subprocess.run(argv, capture_output=True, text=True, timeout=60)
+    assert busy.returncode == 2 and busy.stderr.strip().splitlines() == [
+        f"morph-sim up: error: prometheus_port: 127.0.0.1:{port} is not available (Address already in use)"]
+    assert not (tmp_path / "prom").exists()
+
+    up = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        summary = tmp_path / "prom" / "summary.json"
+        deadline = time.monotonic() + 120
+        while not summary.exists():  # the run is over, its record written
+            assert up.poll() is None and time.monotonic() < deadline, up.communicate(timeout=10)
+            time.sleep(0.05)
+        time.sleep(1.0)  # well inside the grace: a scrape after the run still gets its final values
+        text = _scrape(port)
+        out, err = up.communicate(timeout=60)
+    finally:
+        if up.poll() is None:
+            up.kill()
+            up.communicate(timeout=10)
+    assert up.returncode == 0, err[-2000:]
+    assert _value(text, "morph_deliveries_total") == json.loads(summary.read_text())["deliveries_total"]
+    assert _value(text, "morph_tick") == 149

@@ -17,6 +17,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from services.runconfig import add_config_arguments
 
     parser.add_argument("--quiet", action="store_true", help="no live progress line")
+    parser.add_argument("--max-rate", type=float, default=10.0,
+                        help="metric stream updates per second at most (monitor; 0 = every row)")
+    parser.add_argument("--prometheus-port", type=int, default=None,
+                        help="the monitor serves Prometheus /metrics on PORT (env MORPH_PROMETHEUS_PORT; default off)")
+    parser.add_argument("--prometheus-host", default="127.0.0.1", help="address of /metrics (default 127.0.0.1)")
+    parser.add_argument("--prometheus-grace", type=float, default=15.0,
+                        help="seconds /metrics keeps serving the final values after the run (default 15)")
     add_config_arguments(parser)
 
 
@@ -27,6 +34,7 @@ def run(args: argparse.Namespace) -> int:
     from services.supervisor.launcher import StartError, Supervisor
 
     config = config_from_args(args)
+    monitor_args, grace = monitor_flags(args)
     claim_record_dir(config.record_dir)
     console = Console(stderr=True)
     status = None
@@ -40,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
         if progress.finished:
             console.print(line)
 
-    supervisor = Supervisor(config, on_progress=show)
+    supervisor = Supervisor(config, on_progress=show, monitor_args=monitor_args, end_grace=grace)
     try:
         code = asyncio.run(supervisor.run())
     except StartError as exc:
@@ -57,6 +65,38 @@ def run(args: argparse.Namespace) -> int:
     print(f"run {config.run_id}: {supervisor.outcome}; {numbers}{len(supervisor.children)} processes, "
           f"{restarts} restarts; record: {config.record_dir}")
     return code
+
+
+def monitor_flags(args: argparse.Namespace) -> tuple[tuple[str, ...], float]:
+    """The monitor's own flags from up's, checked before any process starts (a busy port is named now, not in a
+    child's log); and the seconds the monitor keeps serving after the run."""
+    import os
+    import socket
+
+    if args.max_rate < 0:
+        raise ValueError(f"max_rate: must be >= 0, got {args.max_rate}")
+    if args.prometheus_grace < 0:
+        raise ValueError(f"prometheus_grace: must be >= 0, got {args.prometheus_grace}")
+    flags: list[str] = ["--max-rate", repr(float(args.max_rate))]
+    port = args.prometheus_port
+    if port is None and os.environ.get("MORPH_PROMETHEUS_PORT"):
+        try:
+            port = int(os.environ["MORPH_PROMETHEUS_PORT"])
+        except ValueError:
+            raise ValueError(f"MORPH_PROMETHEUS_PORT: not a port: {os.environ['MORPH_PROMETHEUS_PORT']!r}") from None
+    if port is None:
+        return tuple(flags), 0.0
+    if not 0 < port < 65536:
+        raise ValueError(f"prometheus_port: {port} is not a TCP port (1-65535)")
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        try:
+            probe.bind((args.prometheus_host, port))
+        except OSError as exc:
+            raise ValueError(f"prometheus_port: {args.prometheus_host}:{port} is not available "
+                             f"({exc.strerror or exc})") from None
+    flags += ["--prometheus-port", str(port), "--prometheus-host", args.prometheus_host,
+              "--prometheus-grace", repr(float(args.prometheus_grace))]
+    return tuple(flags), float(args.prometheus_grace)
 
 
 def claim_record_dir(directory) -> None:

@@ -38,7 +38,7 @@ def key_class(rel_chunks: list[str]) -> str:
 
 #: sequence numbers remembered per stream below the highest one (duplicate detection), and latencies kept per key
 #: class for the quantiles: a meter's memory stays bounded over any run length.
-SEQ_WINDOW = 4096
+SEQ_WINDOW = 1024
 LATENCY_WINDOW = 4096
 
 

@@ -27,6 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="serve Prometheus /metrics on 127.0.0.1:PORT (compose uses 9464; default: off)")
     parser.add_argument("--prometheus-host", default="127.0.0.1",
                         help="address of the /metrics endpoint (0.0.0.0 inside a container)")
+    parser.add_argument("--prometheus-grace", type=float, default=15.0,
+                        help="seconds /metrics keeps serving the final values after the run (default 15: one "
+                             "scrape interval, so that a short run is not missed)")
     add_config_arguments(parser, skip=("listen",))
     from services.envconfig import apply_env_defaults
 
@@ -42,6 +45,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("endpoint: the monitor needs --endpoint ENDPOINT (e.g. tcp/127.0.0.1:7447)")
     if args.max_rate < 0:
         raise ValueError(f"max_rate: must be >= 0, got {args.max_rate}")
+    if args.prometheus_grace < 0:
+        raise ValueError(f"prometheus_grace: must be >= 0, got {args.prometheus_grace}")
     setup_logging(args.log_level, "monitor")
     port = None if args.prometheus_port in (None, "") else int(args.prometheus_port)
 
@@ -55,13 +60,19 @@ def run(args: argparse.Namespace) -> int:
         if port is not None:
             from services.monitor.prometheus import PrometheusExporter
 
-            PrometheusExporter(svc, port, args.prometheus_host)  # daemon thread; lives as long as the process
+            try:  # daemon thread; lives as long as the process
+                PrometheusExporter(svc, port, args.prometheus_host)
+            except OSError as exc:
+                raise ValueError(f"prometheus_port: cannot serve /metrics on {args.prometheus_host}:{port}: "
+                                 f"{exc.strerror or exc}") from None
         return svc
 
+    signalled: list[str] = []
     try:
         result = run_or_exit(NAME, serve(
             "monitor", make,
-            lambda svc: svc.run(), lambda svc, why: svc.stop(grace=SIGNAL_GRACE), connect=config.endpoint))
+            lambda svc: svc.run(), lambda svc, why: (signalled.append(why), svc.stop(grace=SIGNAL_GRACE)),
+            connect=config.endpoint))
     except OSError as exc:  # the record's directory cannot be created or opened
         where = exc.filename or config.record_dir
         print(f"morph-sim monitor: error: cannot write the run record {where}: {exc.strerror or exc}",
@@ -70,6 +81,13 @@ def run(args: argparse.Namespace) -> int:
     if result.failure is not None:
         print(f"morph-sim monitor: error: {result.failure}", file=sys.stderr)
         exit_now(RECORD_FAILED)
+    if port is not None and args.prometheus_grace > 0 and not signalled:
+        import signal
+        import time
+
+        for sig in (signal.SIGTERM, signal.SIGINT):  # a stop during the grace ends it at once
+            signal.signal(sig, lambda *_: exit_now(0))
+        time.sleep(args.prometheus_grace)  # the record is complete; /metrics serves the final values meanwhile
     print(json.dumps({"record": str(config.record_dir), "deliveries": result.deliveries_total,
                       "rejected": result.rejected}))
     exit_now(0)

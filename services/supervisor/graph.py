@@ -57,7 +57,7 @@ class ProcessSpec:
         return env
 
 
-def process_graph(config: RunConfig, endpoint: str) -> list[ProcessSpec]:
+def process_graph(config: RunConfig, endpoint: str, monitor_args: tuple[str, ...] = ()) -> list[ProcessSpec]:
     """Every process of a distributed run of ``config`` whose Zenoh endpoint is ``endpoint``.
 
     Without ``config.endpoint`` the sim hosts the endpoint (it listens on ``endpoint``; no router process, which
@@ -72,6 +72,7 @@ def process_graph(config: RunConfig, endpoint: str) -> list[ProcessSpec]:
             f"agent-{agent}", "agent", (PROGRAM, "agent", "--id", str(agent), *shared, "--endpoint", endpoint),
             dict(CHILD_ENV), "on-failure", agent))
     # on-failure: a restarted monitor appends to the same run record and declares the rows it missed (issue 6)
-    specs.append(ProcessSpec("monitor", "monitor", (PROGRAM, "monitor", *shared, "--endpoint", endpoint),
+    # monitor_args: the monitor's own flags (`up --max-rate/--prometheus-*`)
+    specs.append(ProcessSpec("monitor", "monitor", (PROGRAM, "monitor", *shared, "--endpoint", endpoint, *monitor_args),
                              dict(CHILD_ENV), "on-failure"))
     return specs

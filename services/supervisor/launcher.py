@@ -157,13 +157,14 @@ class Supervisor:
 
     def __init__(self, config: RunConfig, *, endpoint: str | None = None,
                  on_progress: Callable[[Progress, str], None] | None = None, ready_timeout: float | None = None,
-                 stall_timeout: float | None = None):
+                 stall_timeout: float | None = None, monitor_args: tuple[str, ...] = (), end_grace: float = 0.0):
         from services.bus.zenoh_bus import endpoint as make_endpoint, free_port
 
         self.config = config
         self.external = config.endpoint is not None
         self.endpoint = config.endpoint or endpoint or config.listen or make_endpoint(free_port())
-        self.specs = process_graph(config, self.endpoint)
+        self.specs = process_graph(config, self.endpoint, monitor_args)
+        self.end_grace = end_grace  # seconds the monitor keeps serving after the run (Prometheus), waited for too
         logs = config.record_dir / "logs"
         self.children = {spec.name: Child(spec, logs / f"{spec.name}.log") for spec in self.specs}
         self.progress = Progress()
@@ -415,7 +416,9 @@ class Supervisor:
         from services.monitor.recorder import check_record
 
         monitors = [c for c in self.children.values() if c.spec.role == "monitor"]
-        await self._wait_exit(monitors, MONITOR_END_TIMEOUT)
+        if self.end_grace > 0 and self.on_progress is not None:
+            self.on_progress(self.progress, f"run ended; the monitor serves its last values for {self.end_grace:.0f} s")
+        await self._wait_exit(monitors, MONITOR_END_TIMEOUT + self.end_grace)
         for monitor in monitors:
             if monitor.alive():
                 raise RunFailed(f"the monitor did not finish the run record within {MONITOR_END_TIMEOUT:.0f} s of "
