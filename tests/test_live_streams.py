@@ -41,6 +41,8 @@ def on_metric(s):
         m = msgpack.unpackb(s.payload.to_bytes())
         if m["t"] >= last.get("t", -1):
             last.update(t=m["t"], value=m["value"])
+    elif name == "latency_seconds":
+        last["latency_labels"] = msgpack.unpackb(s.payload.to_bytes())["labels"]
 def on_tick(s):
     ticks[int(time.monotonic() - t0)] += 1
 def on_event(s):
@@ -109,6 +111,7 @@ def test_streams_flow_every_second_and_live_views_end_on_the_record(tmp_path, st
     missing = {sec: sorted(EVERY_SECOND - seconds.get(sec, set())) for sec in windows}
     assert not any(missing.values()), {sec: m for sec, m in missing.items() if m}
     assert got["last"]["value"] == final and got["last"]["t"] == steps - 1
+    assert got["last"]["latency_labels"]["clock"] == "sim"  # a virtual-time run: the latency says its clock
 
     # the up's final progress line and its last line: the record's numbers
     progress = [ln for ln in err.splitlines() if ln.startswith(f"tick {steps}/{steps}")]

@@ -58,6 +58,7 @@ async def test_scrape_during_and_after_a_run(tmp_path):
     assert _value(text, "morph_bus_latency_seconds_bucket", 'le="0.005",run="prom"') >= 0
     inf = _value(text, "morph_bus_latency_seconds_bucket", 'le="+Inf",run="prom"')
     assert inf == _value(text, "morph_bus_latency_seconds_count") > 0
+    assert _value(text, "morph_bus_latency_seconds_sum") > 0  # wall stamps here: a real, non-zero wall latency
     assert _value(text, "morph_dispatch_delay_seconds_count") > 0
     assert _value(text, "morph_messages_total", 'kind="ack",run="prom"') >= config.n_agents * config.steps
     assert _value(text, "morph_dropped_messages_total", 'reason="sequence_gap",run="prom"') == 0

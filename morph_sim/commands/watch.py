@@ -93,8 +93,10 @@ class WatchState:
         head.add_row("deliveries", self.value("deliveries_total"), "rate", self.value("delivery_rate", "{:.3f}/s"))
         head.add_row("links", self.value("links"), "λ₂", self.value("lambda2", "{:.3f}"))
         head.add_row("η", self.value("eta", "{:.3f}"), "agents alive", self.value("agents_alive"))
-        head.add_row("dispatch delay", self.value("dispatch_delay", "{:.1f} s"), "latency p50/p90/p99",
-                     self.value("latency_seconds"))
+        clock = (self.metrics["latency_seconds"].labels.get("clock", "wall") if "latency_seconds" in self.metrics
+                 else "wall")
+        head.add_row("dispatch delay", self.value("dispatch_delay", "{:.1f} s"),
+                     f"latency p50/p90/p99 ({clock} time)", self.value("latency_seconds"))
         curve = Panel(sparkline(self.deliveries) or "(waiting for metrics)", title="cumulative deliveries")
         counters = Table(title="counters", show_header=True)
         counters.add_column("what")

@@ -57,7 +57,10 @@ class MonitorCollector:
         drops.add_metric([run, "sequence_gap"], stats.gaps)
         drops.add_metric([run, "rejected"], stats.rejected)
         yield drops
-        for hist, name, doc in ((stats.latency, "morph_bus_latency_seconds", "Publish to monitor latency"),
+        # the latency's clock is in the name: wall seconds, or sim seconds in a virtual-time run
+        latency = (("morph_bus_latency_seconds", "Publish to monitor latency, wall seconds") if stats.clock == "wall"
+                   else ("morph_bus_latency_sim_seconds", "Publish to monitor latency, sim seconds (virtual time)"))
+        for hist, name, doc in ((stats.latency, *latency),
                                 (stats.dispatch, "morph_dispatch_delay_seconds",
                                  "Sim seconds from an AGV's first help request to a picker's commit")):
             family = HistogramMetricFamily(name, doc, labels=["run"])

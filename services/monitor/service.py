@@ -185,9 +185,12 @@ class MonitorService:
         head = rel[0]
         kind = head if head != "agent" or len(rel) < 3 else rel[2]
         self.result.messages[kind] = self.result.messages.get(kind, 0) + 1
-        # a sim-time stamp (virtual time, unfaulted here) means no wall latency: never time.time() - sim seconds
+        # Latency in the clock of the stamp: a wall stamp (wall fault time) against our wall clock; a sim-time stamp
+        # (virtual time) against our sim clock, the start of the last tick we saw: sim seconds that passed while
+        # the message travelled (never time.time() minus sim seconds). The stream says which (label "clock").
+        wall = sample.sent_at > 1e8
         self.stats.observe(kind, sample.key, sample.sender, sample.seq, sample.sent_at,
-                           None if sample.sent_at > 1e8 else sample.sent_at)
+                           None if wall else max(self._last_tick, 0) * self.config.dt, clock="wall" if wall else "sim")
         if sample.sender:
             # wall stamps (paced / up): latency as seen here; sim-time stamps (virtual time) carry no wall latency
             sent = sample.sent_at

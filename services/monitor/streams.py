@@ -54,7 +54,8 @@ STREAMS: tuple[Stream, ...] = (
     Stream("dispatch_delay", "s", "mean sim seconds from an AGV's first help request to a picker's commit, step t"),
     Stream("messages_total", "messages", "messages seen by the monitor; labels: count per kind"),
     Stream("drops_total", "messages", "messages lost: sequence gaps per sender and key, plus rejected payloads"),
-    Stream("latency_seconds", "s", "bus latency publish→monitor over the last second: values = [p50, p90, p99]"),
+    Stream("latency_seconds", "s", "bus latency publish→monitor over the last second: values = [p50, p90, p99]; "
+           "label clock: wall (wall seconds) or sim (virtual time: sim seconds that passed on the way)"),
     # per key class as the monitor received them, every --state-every ticks (issue 5); labels: key, receiver
     *(Stream(f"link/{c}", "messages", f"cumulative messages {c} per key class (sent: highest sequence number + 1)")
       for c in ("sent", "delivered", "dropped", "duplicated", "late")),
@@ -107,6 +108,7 @@ class MessageStats:
         self.total = 0
         self.gaps = 0
         self.rejected = 0
+        self.clock = "wall"  # clock of the latencies: "wall" seconds or "sim" seconds (virtual time)
         self._last_seq: dict[tuple[str, str], int] = {}
         self._latency: deque[tuple[float, float]] = deque()  # (receive time, latency)
         self.latency = Histogram(LATENCY_BUCKETS)
@@ -116,7 +118,10 @@ class MessageStats:
         self._deliveries: deque[int] = deque(maxlen=RATE_WINDOW)
         self._dispatch_row: tuple[int, float, float] | None = None  # (t, sim time, mean delay), not yet published
 
-    def observe(self, kind: str, key: str, sender: str, seq: int, sent_at: float, now: float | None = None) -> None:
+    def observe(self, kind: str, key: str, sender: str, seq: int, sent_at: float, now: float | None = None,
+                clock: str = "wall") -> None:
+        """Count a message; its latency is ``now`` (default: wall time) minus ``sent_at``, both in ``clock``
+        ("wall" seconds, or "sim" seconds of a virtual-time run)."""
         self.total += 1
         self.by_kind[kind] = self.by_kind.get(kind, 0) + 1
         if sender and seq:
@@ -126,6 +131,7 @@ class MessageStats:
             if last is None or seq > last:
                 self._last_seq[(sender, key)] = seq
         if sent_at > 0:
+            self.clock = clock
             now = time.time() if now is None else now
             lat = max(0.0, now - sent_at)
             self.latency.observe(lat)
@@ -179,7 +185,7 @@ class MessageStats:
         q = self.latency_quantiles()
         if all(math.isfinite(x) for x in q):
             out.append(MetricSample(name="latency_seconds", t=t, sim_time=sim_time, unit="s", values=q,
-                                    labels={"quantiles": "0.5,0.9,0.99"}))
+                                    labels={"quantiles": "0.5,0.9,0.99", "clock": self.clock}))
         return out
 
 
