@@ -4,16 +4,19 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import sys
 import time
 
 NAME = "run"
 HELP = "run all services in one process over the in-process bus (deterministic)"
+PROGRESS_EVERY = 2.0  # seconds between progress lines
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from services.runconfig import add_config_arguments
 
     parser.add_argument("--no-record", action="store_true", help="do not write runs/<run-id>/")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
     add_config_arguments(parser, skip=("endpoint", "listen"))
 
 
@@ -22,8 +25,21 @@ def run(args: argparse.Namespace) -> int:
     from services.supervisor.local import run_local
 
     config = config_from_args(args)
+    if not args.no_record:
+        from morph_sim.commands.up import claim_record_dir
+
+        claim_record_dir(config.record_dir)
     started = time.monotonic()
-    result = asyncio.run(run_local(config, record=not args.no_record))
+    shown = [started]
+
+    def progress(t: int, deliveries: int) -> None:  # a line every PROGRESS_EVERY seconds, on stderr
+        now = time.monotonic()
+        if now - shown[0] >= PROGRESS_EVERY and not args.quiet:
+            shown[0] = now
+            print(f"tick {t}/{config.steps}  deliveries {deliveries}  {t / (now - started):.0f} ticks/s",
+                  file=sys.stderr, flush=True)
+
+    result = asyncio.run(run_local(config, record=not args.no_record, progress=progress))
     wall = time.monotonic() - started
     rows = result.monitor.rows
     links = rows[-1]["links"] if rows else 0

@@ -59,6 +59,10 @@ class ClaimingAgent:
                 raise ValueError(f"agvs/pickers: the sim's fleet is {reply.n_agvs}+{reply.n_pickers}, this agent's "
                                  f"configuration {self.config.n_agvs}+{self.config.n_pickers}")
             self.agent_id, self.role = reply.agent_id, reply.role
+        from services.supervisor.process import announce
+
+        announce("agent", f"agent {self.agent_id} ({self.config.role_of(self.agent_id)}) of run {self.config.run_id}, "
+                          f"connected to {self.config.endpoint}; waiting for the sim's ticks")
         # issue 5: a (re)started agent restores its brain from the monitor's latest states unless --cold-restart
         from services.faults.runtime import FaultRuntime
 

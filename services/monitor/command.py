@@ -38,7 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from services.monitor.service import MonitorService
-    from services.supervisor.process import exit_now, run_or_exit, serve, service_config, setup_logging
+    from services.supervisor.process import announce, exit_now, run_or_exit, serve, service_config, setup_logging
 
     config = service_config(args)
     if not config.endpoint:
@@ -65,6 +65,8 @@ def run(args: argparse.Namespace) -> int:
             except OSError as exc:
                 raise ValueError(f"prometheus_port: cannot serve /metrics on {args.prometheus_host}:{port}: "
                                  f"{exc.strerror or exc}") from None
+        announce(NAME, f"run {config.run_id}, connected to {config.endpoint}; recording to {config.record_dir}"
+                       + (f"; Prometheus /metrics on {args.prometheus_host}:{port}" if port is not None else ""))
         return svc
 
     signalled: list[str] = []

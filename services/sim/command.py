@@ -23,14 +23,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from services.sim.service import SimService
-    from services.supervisor.process import exit_now, run_or_exit, serve, service_config, setup_logging
+    from services.supervisor.process import announce, exit_now, run_or_exit, serve, service_config, setup_logging
 
     config = service_config(args)
     if not config.listen and not config.endpoint:
         raise ValueError("listen: the sim needs --listen ENDPOINT (host the run) or --endpoint ENDPOINT (router)")
     setup_logging(args.log_level, "sim")
+    def make(bus):
+        service = SimService(config, bus, wait_for_monitor=not args.no_wait_monitor, faults=_faults(config))
+        where = f"listening on {config.listen}" if config.listen else f"connected to {config.endpoint}"
+        announce(NAME, f"run {config.run_id}, {where}; waiting for {config.n_agents} agents"
+                       f"{'' if args.no_wait_monitor else ' and the monitor'} ({config.steps} steps)")
+        return service
+
     result = run_or_exit(NAME, serve(
-        "sim", lambda bus: SimService(config, bus, wait_for_monitor=not args.no_wait_monitor, faults=_faults(config)),
+        "sim", make,
         lambda svc: svc.run(), lambda svc, why: svc.stop(why), listen=config.listen, connect=config.endpoint))
     print(json.dumps({"steps": result.steps, "deliveries": result.deliveries, "rejected": result.rejected,
                       "absences": result.absences, "ticks_per_s": round(result.ticks_per_s, 1),

@@ -26,8 +26,10 @@ class LocalRun:
 
 
 async def run_local(config: RunConfig, *, record: bool = True, network: LocalNetwork | None = None,
-                    on_bus: Callable[[str, Bus], None] | None = None, faults=None) -> LocalRun:
-    """Run ``config`` in this loop. ``on_bus(name, bus)`` sees every session (tests install fault layers there).
+                    on_bus: Callable[[str, Bus], None] | None = None, faults=None,
+                    progress: Callable[[int, int], None] | None = None) -> LocalRun:
+    """Run ``config`` in this loop. ``on_bus(name, bus)`` sees every session (tests install fault layers there);
+    ``progress(t, deliveries so far)`` is called at the start of every tick.
 
     ``faults``: a FaultRuntime (issue 5) for the sim's session (default: one when ``config.fault_schedule`` is set);
     every agent session then gets its own runtime like it (``FaultRuntime.like``: same seed, Δ, fault time and
@@ -51,7 +53,8 @@ async def run_local(config: RunConfig, *, record: bool = True, network: LocalNet
     monitor = MonitorService(config, session("monitor"), record=record)
     agents = [AgentService(config, session(f"agent-{i}"), i, faults=None if faults is None else faults.like())
               for i in range(config.n_agents)]
-    sim = SimService(config, session("sim"), faults=faults)
+    sim = SimService(config, session("sim"), faults=faults,
+                     on_tick=None if progress is None else lambda t, obs: progress(t, sim.ctl.deliveries))
     tasks = [asyncio.create_task(monitor.run(), name="monitor")]
     tasks += [asyncio.create_task(a.run(), name=f"agent-{a.id}") for a in agents]
     try:

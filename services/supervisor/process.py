@@ -101,6 +101,12 @@ async def serve(identity: str, make: Callable[[Any], Any], run: Callable[[Any], 
         await bus.close()
 
 
+def announce(command: str, line: str) -> None:
+    """The one line a service prints when its session is open (a process started by hand says where it is and
+    what it waits for; under ``up`` the line goes to the child's log)."""
+    print(f"morph-sim {command}: {line}", file=sys.stderr, flush=True)
+
+
 def exit_now(code: int) -> None:
     """Leave without interpreter teardown: Zenoh's native threads can abort a normal exit (zenoh.md §8.1)."""
     import os
