@@ -226,7 +226,8 @@ def _align_tables(directory: Path) -> tuple[int, int]:
         return (-1, 0)
     last = int(rows[-1]["t"])
     links, positions = _table_ts(directory / "links.csv"), _table_ts(directory / "positions.csv")
-    last = min([last] + ([links[-1]] if links else [-1]) + ([positions[-1]] if positions else [-1]))
+    # (a table without any line was never written by this recorder's user: it does not hold the others back)
+    last = min([last] + [table[-1] for table in (links, positions) if table])
     for name in ("metrics.csv", "links.csv", "positions.csv"):
         _keep_upto(directory / name, last)
     rows = [r for r in rows if int(r["t"]) <= last]

@@ -48,6 +48,7 @@ QUIET_EVENTS = ("ready.probe", "ready.ack", "record.progress")
 #: every this many rows the monitor says how far its record is (event ``record.progress``, t = rows written): the
 #: lockstep sim keeps at most its window of ticks ahead of it (services/sim/service.py, MONITOR_WINDOW)
 PROGRESS_EVERY = 50
+HEARTBEAT = 0.5  # seconds: no stream goes longer than about this plus its decimation without a sample
 
 
 def summary_of_rows(rows: list[dict[str, str]]) -> dict:
@@ -139,7 +140,11 @@ class MonitorService:
         await self.bus.subscribe(k.everything, self._on_sample)
         await self.bus.declare_queryable(k.latest_all, self._on_query)
         token = await self.bus.declare_token(k.alive("monitor"))
-        await self._stop.wait()
+        heartbeat = asyncio.get_running_loop().create_task(self._heartbeat())
+        try:
+            await self._stop.wait()
+        finally:
+            heartbeat.cancel()
         if self.result.failure is None:
             try:
                 self._finish()
@@ -460,6 +465,22 @@ class MonitorService:
         pending = {s.name: s for s in self._pending_publish}
         pending.update((s.name, s) for s in samples)
         self._pending_publish = list(pending.values())
+
+    async def _heartbeat(self) -> None:
+        """Every stream gets a sample at least once a second, even while the run makes no new row (a loaded machine,
+        a phase waiting for a late agent): the newest values, or the latest ones again. A live view never goes
+        silent while the run is alive."""
+        while True:
+            await asyncio.sleep(HEARTBEAT)
+            now = time.monotonic()
+            if self.max_rate <= 0 or self._done or now - self._last_publish < HEARTBEAT:
+                continue
+            if self._unbuilt:
+                self._build_samples(self._last_values)  # rows noted since the last publication
+            elif not self._pending_publish:  # (else a publication is on its way)
+                self._pending_publish = list(self.latest_metric.values()) + list(self.latest_links)
+            self._last_publish = now
+            await self._publish_pending()
 
     async def _publish_pending(self, force: bool = False) -> None:
         samples, self._pending_publish = self._pending_publish, []

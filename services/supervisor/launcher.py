@@ -418,7 +418,12 @@ class Supervisor:
         monitors = [c for c in self.children.values() if c.spec.role == "monitor"]
         if self.end_grace > 0 and self.on_progress is not None:
             self.on_progress(self.progress, f"run ended; the monitor serves its last values for {self.end_grace:.0f} s")
-        await self._wait_exit(monitors, MONITOR_END_TIMEOUT + self.end_grace)
+        deadline = time.monotonic() + MONITOR_END_TIMEOUT + self.end_grace
+        while time.monotonic() < deadline and any(c.alive() for c in monitors):
+            if self.stop_requested:  # Ctrl-C while the monitor finishes (or serves its grace): stop now
+                self._event("stop", self.stop_requested)
+                return 143 if self.stop_requested == "SIGTERM" else 130
+            await asyncio.sleep(0.05)
         for monitor in monitors:
             if monitor.alive():
                 raise RunFailed(f"the monitor did not finish the run record within {MONITOR_END_TIMEOUT:.0f} s of "
