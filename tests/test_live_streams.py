@@ -16,6 +16,7 @@ import subprocess
 import sys
 import time
 
+import psutil
 import pytest
 
 from services.bus.zenoh_bus import free_port
@@ -23,6 +24,7 @@ from services.monitor.recorder import read_metrics
 from services.monitor.streams import STREAM_NAMES
 
 from _procs import kill_tree, wait_for_port
+from test_long_run import END_LAG, MONITOR_RSS_BOUND
 
 # A default-settings client (a user's script): per one-second window, the streams seen; the last deliveries_total.
 SUBSCRIBER = r'''
@@ -77,6 +79,7 @@ def test_streams_flow_every_second_and_live_views_end_on_the_record(tmp_path, st
          "--listen", f"tcp/127.0.0.1:{port}", "--output-dir", str(tmp_path)],
         stdout=subprocess.PIPE, stderr=up_err.open("wb"), text=True, start_new_session=True)
     sub = watch = None
+    rss: list[int] = []
     try:
         wait_for_port(port, up, time.monotonic() + 60, 0.05)
         sub = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, str(port), run, "240"], stdout=subprocess.PIPE,
@@ -84,7 +87,16 @@ def test_streams_flow_every_second_and_live_views_end_on_the_record(tmp_path, st
         watch = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "watch", "--run", run, "--endpoint",
                                   f"tcp/127.0.0.1:{port}", "--duration", "240"],
                                  stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-        out, _ = up.communicate(timeout=240)
+        deadline = time.monotonic() + 240
+        while up.poll() is None and time.monotonic() < deadline:  # the monitor's memory while the run goes on
+            for proc in psutil.Process(up.pid).children(recursive=True):
+                try:
+                    if "monitor" in proc.cmdline():
+                        rss.append(proc.memory_info().rss)
+                except psutil.Error:
+                    pass
+            time.sleep(0.5)
+        out, _ = up.communicate(timeout=30)
         sub_out, sub_err = sub.communicate(timeout=30)
         watch_out, _ = watch.communicate(timeout=30)
     finally:
@@ -100,7 +112,14 @@ def test_streams_flow_every_second_and_live_views_end_on_the_record(tmp_path, st
     rows = read_metrics(tmp_path / run)
     summary = json.loads((tmp_path / run / "summary.json").read_text())
     final = int(rows[-1]["deliveries_total"])
-    assert len(rows) == steps and summary["deliveries_total"] == final
+    assert [int(r["t"]) for r in rows] == list(range(steps)) and summary["deliveries_total"] == final
+    assert summary["steps"] == steps
+    events = [json.loads(ln) for ln in (tmp_path / run / "events.jsonl").read_text().splitlines()]
+    finished = [e for e in events if e["kind"] == "run.finished"]
+    assert len(finished) == 1 and finished[0]["details"]["deliveries"] == final
+    # the record ends with the run (no backlog to work off), in bounded memory
+    assert (tmp_path / run / "summary.json").stat().st_mtime - finished[0]["wall_time"] < END_LAG
+    assert rss and max(rss) < MONITOR_RSS_BOUND, f"monitor RSS peaked at {max(rss) / 2**20:.0f} MB"
 
     got = json.loads(sub_out)
     ticks = {int(k): v for k, v in got["ticks"].items()}

@@ -23,7 +23,10 @@ MONITOR_RSS_BOUND = 200 * 2**20  # measured: 141 MB after the start, 157 MB at 5
 END_LAG = 10.0  # seconds between the sim's end of run and the monitor's summary
 
 
-@pytest.mark.parametrize("steps", [pytest.param(50_000, marks=pytest.mark.slow), 1500])
+# The reduced version of this check runs by default in tests/test_live_streams.py (every row, summary, run.finished,
+# monitor memory bound, record ending with the run).
+@pytest.mark.slow
+@pytest.mark.parametrize("steps", [50_000])
 def test_a_long_run_keeps_every_row_with_bounded_monitor_memory(tmp_path, steps):
     up = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", "tiny", "--steps",
                            str(steps), "--run-id", "long", "--output-dir", str(tmp_path)],

@@ -20,7 +20,7 @@ from services.bus.zenoh_bus import endpoint, free_port
 from _procs import alive, descendants, kill_all, wait_for_port
 
 VICTIM = 3
-STEPS = 1500
+STEPS = 2400  # the restarted process needs a few seconds to start, restore and rejoin
 
 
 def _agent_pid(up_pid: int, agent: int) -> int | None:
@@ -51,7 +51,7 @@ def test_sigkilled_agent_restores_its_state_in_a_lockstep_run_and_a_cold_one_say
         wait_for_port(port, up, time.monotonic() + 60, 0.05)
         metrics = tmp_path / run / "metrics.csv"
         deadline = time.monotonic() + 120
-        while not metrics.exists() or metrics.read_text().count("\n") < 400:
+        while not metrics.exists() or metrics.read_text().count("\n") < 300:
             assert up.poll() is None and time.monotonic() < deadline, up.communicate(timeout=10)
             seen |= descendants(up.pid)
             time.sleep(0.05)

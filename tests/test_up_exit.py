@@ -54,9 +54,9 @@ def test_a_taken_run_id_and_an_unusable_output_dir_are_refused_in_one_line(tmp_p
 
 
 def test_a_record_that_cannot_be_written_stops_the_run_with_one_line(tmp_path):
-    # a full disk, as the monitor meets it: its files may not grow beyond 64 KB (RLIMIT_FSIZE; Python then gets
-    # EFBIG instead of SIGXFSZ); positions.csv reaches that after ~1,300 ticks
-    limit = 64 * 1024
+    # a full disk, as the monitor meets it: its files may not grow beyond 32 KB (RLIMIT_FSIZE; Python then gets
+    # EFBIG instead of SIGXFSZ); positions.csv reaches that after ~650 ticks
+    limit = 32 * 1024
 
     def small_disk() -> None:
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
