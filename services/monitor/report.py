@@ -58,16 +58,18 @@ class Record:
             elif kind in ("fault.healed", "fault.reset") and fid in open_:
                 start, label = open_.pop(fid)
                 out.append((start, float(t), label))
-            elif kind == "fault.reset":
+            elif kind == "fault.reset" and fid == kind:  # a reset naming no fault: everything healed
                 for start, label in open_.values():
                     out.append((start, float(t), label))
                 open_.clear()
         out += [(start, end, label) for start, label in open_.values()]
         return out
 
-    def crashes(self) -> list[float]:
-        return [float(e["t"]) for e in self.events if e.get("kind") in ("fault.crash", "agent.restart")
-                and e.get("t") is not None]
+    def crashes(self) -> list[tuple[float, str]]:
+        """(tick, agent) of every crash that happened: the supervisor's ``agent.crash`` events, one per kill or pause
+        (a planned crash that never came, or the restart that follows one, is not a crash)."""
+        return [(float(e["t"]), str((e.get("details") or {}).get("agent", "?"))) for e in self.events
+                if e.get("kind") == "agent.crash" and e.get("t") is not None]
 
     def positions(self) -> dict[int, np.ndarray]:
         path = self.dir / "positions.csv"
@@ -143,8 +145,8 @@ def _shade(ax, rec: Record) -> None:
         ax.axvspan(a, b, color="tab:red", alpha=0.15, label="fault window" if i == 0 else None)
     for i, (a, b) in enumerate(rec.gaps):
         ax.axvspan(a, b + 1, color="grey", alpha=0.3, label="record gap" if i == 0 else None)
-    for t in rec.crashes():
-        ax.axvline(t, color="tab:red", lw=0.8, ls=":")
+    for i, (t, _agent) in enumerate(rec.crashes()):
+        ax.axvline(t, color="black", lw=0.9, ls=":", label="agent crash" if i == 0 else None)
 
 
 def figures(recs: list[Record], out: Path) -> dict[str, Path]:
