@@ -139,12 +139,12 @@ def _seeds(value: str | None, default: tuple[int, ...]) -> tuple[int, ...]:
 def _validated(model, **kw):
     from pydantic import ValidationError as _VE
 
+    from schemas.errors import explain
+
     try:
         return model(**kw)
     except _VE as exc:
-        err = exc.errors()[0]
-        field = ".".join(str(p) for p in err["loc"]) or "config"
-        raise ValueError(f"{field}: {err['msg']}") from None
+        raise ValueError(explain(exc, first_only=True)) from None
 
 
 def _run_shift(args) -> int:
@@ -228,9 +228,9 @@ def run(args) -> int:
             fiedler_every=10 if args.fiedler_every is None else args.fiedler_every,
         )
     except ValidationError as exc:
-        err = exc.errors()[0]
-        field = ".".join(str(p) for p in err["loc"]) or "config"
-        raise ValueError(f"{field}: {err['msg']}") from None
+        from schemas.errors import explain
+
+        raise ValueError(explain(exc, first_only=True)) from None
     from services.agent.presets import load_preset
 
     load_preset(preset)  # fail early, naming the preset

@@ -115,8 +115,8 @@ def build_command(args: argparse.Namespace):
     spec.setdefault("id", time.strftime("op-%H%M%S", time.gmtime()))
     try:
         return FaultCommand(op="set", spec=spec, at_tick=at_tick)
-    except ValidationError as exc:
-        raise _explain(exc, "spec") from None
+    except ValidationError as exc:  # the location already starts at spec (spec.loss.percent: …)
+        raise _explain(exc) from None
 
 
 async def send(endpoint: str, run: str, command, timeout: float = 2.0, bus=None) -> list:

@@ -105,12 +105,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _short(exc: Exception) -> str:
-    errors = getattr(exc, "errors", None)
-    if callable(errors):
-        parts = []
-        for e in errors():
-            loc = ".".join(str(p) for p in e.get("loc", ()))
-            msg = str(e.get("msg", "")).removeprefix("Value error, ")
-            parts.append(f"{loc}: {msg}" if loc else msg)
-        return "; ".join(parts)
-    return str(exc)
+    from pydantic import ValidationError
+
+    from schemas.errors import explain
+
+    return explain(exc) if isinstance(exc, ValidationError) else str(exc)

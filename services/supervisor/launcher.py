@@ -84,7 +84,7 @@ class Child:
         return len(self.failures) < MAX_RESTARTS
 
     def start(self, extra: tuple[str, ...] = ()) -> None:
-        """``extra`` flags go after the spec's (argparse: the last one wins), e.g. ``--cold-restart True``."""
+        """``extra`` flags go after the spec's (argparse: the last one wins), e.g. ``--cold-restart``."""
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         with open(self.log_path, "ab") as out:
             out.write(f"--- start {' '.join(self.spec.argv + extra)} at {time.time():.3f}\n".encode())
@@ -382,7 +382,7 @@ class Supervisor:
                     if not planned:
                         child.failures.append(time.monotonic())
                     child.restarts += 1
-                    child.start(("--cold-restart", "True") if cold else ())
+                    child.start(("--cold-restart",) if cold else ())
                     self._event("restart", f"{child.spec.name} exited with {code}; restarted as pid {child.pid}")
                     await self._publish_event(bus, keys, "agent.restart", agent=child.spec.agent, exit_code=code,
                                               old_pid=old_pid, pid=child.pid, restarts=child.restarts,
