@@ -120,3 +120,13 @@ def _exit(argv) -> int:
         return cli_main(argv)
     except SystemExit as exc:
         return int(exc.code)
+
+
+def test_run_refuses_a_schedule_with_a_crash_it_cannot_carry_out(tmp_path, capsys):
+    schedule = tmp_path / "crash.toml"
+    schedule.write_text('[[at]]\ntick = 0\nspec = { loss = { percent = 5 } }\n'
+                        '[[at]]\ntick = 0\nspec = { crash = { agent = 1, at_tick = 5 } }\n')
+    assert cli_main(["run", "--fault-schedule", str(schedule), "--steps", "10", "--output-dir", str(tmp_path)]) == 2
+    assert capsys.readouterr().err == ("morph-sim run: error: fault_schedule: at[1] is a crash fault, which needs "
+                                       "agent processes and a supervisor to kill and restart them: use "
+                                       "`morph-sim up`\n")
