@@ -93,12 +93,22 @@ async def test_faults_cli_verdicts_and_a_crash_carried_out_at_its_tick(tmp_path)
         assert code == 1 and len(lines) == 1, (code, lines, err)
         assert json.loads(lines[0])["error"].startswith("scope.agents: agent 99 is not in this run (robot ids 0..7")
 
-        code, lines, err = await _cli("faults", "set", *ctl, "--loss", "10", "--key", "agent/*/ack", "--id", "L1")
+        # (on agent states, which only the unfaulted monitor receives: the acks below stay the crash's alone)
+        code, lines, err = await _cli("faults", "set", *ctl, "--loss", "10", "--key", "agent/*/state", "--id", "L1")
         assert code == 0 and json.loads(lines[0])["ok"], (code, lines, err)
         code, lines, err = await _cli("faults", "reset", *ctl, "--id", "L1")
         assert code == 0 and len(lines) == 1, (code, lines, err)
         reply = json.loads(lines[0])
         assert reply["ok"] and "supervisor" not in reply["sources"] and "sim" in reply["sources"]
+
+        while ticks[-1] <= at + 2:  # the crash has happened: it is no longer listed as active
+            assert up.poll() is None, "the run ended before the crash tick"
+            await asyncio.sleep(0.1)
+        assert ticks[-1] < STEPS - 20, "the run is about to end; the test cannot list its faults"
+        code, lines, err = await _cli("faults", "list", *ctl)
+        assert code == 0 and len(lines) == 1, (code, lines, err)
+        reply = json.loads(lines[0])
+        assert reply["ok"] and reply["active"] == [] and "supervisor" in reply["sources"], reply
 
         deadline = time.monotonic() + UP_TIMEOUT
         while up.poll() is None and time.monotonic() < deadline:
@@ -123,10 +133,11 @@ async def test_faults_cli_verdicts_and_a_crash_carried_out_at_its_tick(tmp_path)
     assert [(e["t"], e["details"]["agent"], e["details"]["signal"]) for e in crashes] == [(at, VICTIM, "kill")]
     assert [e["details"]["agent"] for e in events if e["kind"] == "agent.restart"] == [VICTIM]
     assert not [e for e in events if e["kind"] == "agent.crash" and e["details"]["agent"] == 2]
-    # the victim acked tick `at` or died in it; from the next tick on it is missing until it rejoins
+    # the victim acked tick `at` or died in it; it is missing from the next tick on (one tick of slack for a
+    # supervisor descheduled on a loaded machine) until it rejoins
     acks = {int(r["t"]): float(r["acks"]) for r in read_metrics(record)}
     assert all(acks[t] == 8 for t in range(at - 20, at)), [acks[t] for t in range(at - 20, at)]
-    assert acks[at + 1] < 8
+    assert min(acks[at + 1], acks[at + 2]) < 8, [acks[t] for t in range(at, at + 5)]
     assert load(record).crashes() == [(float(at), str(VICTIM))]  # the report draws this crash and no other
     windows = load(record).fault_windows()
     assert [label for _, _, label in windows] == ["L1"]  # the loss window closed by its reset

@@ -241,3 +241,21 @@ async def test_cli_over_zenoh_sets_lists_and_resets(capsys) -> None:
     finally:
         await agent.close()
         await sim.close()
+
+
+def test_reset_by_id_succeeds_when_the_fault_is_gone_everywhere() -> None:
+    """A process that never held the fault (an agent restarted after it was set) does not fail a reset that removed
+    it everywhere else; a fault nobody held is still an error."""
+    from schemas.messages import FaultReply
+
+    command = FaultCommand(op="reset", fault_id="L1")
+    absent = "fault_id: no active fault 'L1'"
+    mixed = [FaultReply(ok=True, source="sim"), FaultReply(ok=False, error=absent, source="agent-1")]
+    assert all(r.ok for r in faults_cmd.verdict(command, mixed, "r", "e"))
+    nobody = [FaultReply(ok=False, error=absent, source="sim"), FaultReply(ok=False, error=absent, source="agent-1")]
+    assert not any(r.ok for r in faults_cmd.verdict(command, nobody, "r", "e"))
+    crash = FaultCommand(op="set", spec=FaultSpec(crash=Crash(agent=1, at_tick=9)))
+    unserved = faults_cmd.verdict(crash, [FaultReply(ok=True, source="sim")], "r", "e")
+    assert [r.ok for r in unserved] == [True, False] and "no supervisor answered" in unserved[-1].error
+    alone = faults_cmd.verdict(crash, [], "r", "e")
+    assert len(alone) == 1 and alone[0].error.startswith("crash: no supervisor of run 'r' answered on e")

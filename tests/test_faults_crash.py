@@ -56,6 +56,11 @@ def test_a_crash_at_a_tick_already_reached_is_refused_naming_at_tick() -> None:
     now = ctl.handle(FaultCommand(op="set", spec=FaultSpec(id="soon", crash=Crash(agent=1, at_tick=1531))))
     assert now.ok and [s.id for s in now.active] == ["soon"]
     assert ctl.handle(FaultCommand(op="reset", fault_id="soon")).ok and plan.due(1531) == []
+    # a one-shot crash carried out is spent (the supervisor then retires it); a repeating one is not
+    plan.add(FaultSpec(id="once", crash=Crash(agent=2, at_tick=1540)))
+    plan.add(FaultSpec(id="again", crash=Crash(agent=3, every=10)))
+    assert plan.spent() == [] and [a.fault_id for a in plan.due(1540)] == ["once", "again"]
+    assert plan.spent() == ["once"]
 
 
 def _state(pid: int) -> str:

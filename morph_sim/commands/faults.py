@@ -160,12 +160,19 @@ def verdict(command, replies: list, run: str, endpoint: str) -> list:
     """The replies plus what is missing from them: a crash fault no supervisor answered for is not carried out."""
     from schemas.messages import FaultReply
 
-    if not replies:
+    crash = command.op == "set" and command.spec is not None and command.spec.crash is not None
+    if not replies and not crash:
         return [FaultReply(ok=False, error=f"no process of run {run!r} answered on {endpoint}")]
-    if (command.op == "set" and command.spec is not None and command.spec.crash is not None
-            and not any(r.source == SUPERVISOR for r in replies)):
-        replies = replies + [FaultReply(ok=False, error="crash: no supervisor answered, so nobody would carry the "
-                                        "crash out (crash faults need a run started with `morph-sim up`)")]
+    if command.op == "reset" and command.fault_id is not None and any(r.ok for r in replies):
+        # the fault is gone everywhere: removed where it was active; a process that never held it (an agent
+        # restarted since it was set) has nothing to remove, which is no failure of the reset
+        absent = f"fault_id: no active fault {command.fault_id!r}"
+        replies = [FaultReply(ok=True, active=r.active, source=r.source) if not r.ok and r.error == absent else r
+                   for r in replies]
+    if crash and not any(r.source == SUPERVISOR for r in replies):
+        replies = replies + [FaultReply(ok=False, error=f"crash: no supervisor of run {run!r} answered on "
+                                        f"{endpoint}, so nobody would carry the crash out (crash faults need a run "
+                                        "started with `morph-sim up`)")]
     return replies
 
 

@@ -217,6 +217,11 @@ class FaultController:
             return FaultReply(ok=False, error=str(exc), active=self._active(), source=source)
         return FaultReply(ok=True, active=self._active(), source=source)
 
+    def retire_crash(self, fault_id: str) -> None:
+        """A one-shot crash was carried out: it is no longer an active fault (its record is the agent.crash event)."""
+        with self.lock:
+            self.crashes = [s for s in self.crashes if s.id != fault_id]
+
     def _active(self) -> list[FaultSpec]:
         # a process lists what it carries out: its network faults, and (the supervisor) its crash faults
         return (self.layers[0].active() if self.layers else []) + list(self.crashes)

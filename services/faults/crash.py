@@ -57,6 +57,12 @@ class CrashPlanner:
         self._specs.append((spec.id or f"crash-{len(self._specs) + 1}", spec))
         return None
 
+    def spent(self) -> list[str]:
+        """Ids of one-shot crash specs whose tick has been reached: carried out, no longer active."""
+        return [f for f, spec in self._specs
+                if spec.crash is not None and spec.crash.every is None and spec.crash.at_tick is not None
+                and spec.crash.at_tick <= self.reached]
+
     def reset(self, fault_id: str | None = None) -> None:
         """Forget the crash spec ``fault_id``, or every one."""
         self._specs = [] if fault_id is None else [(f, s) for f, s in self._specs if f != fault_id]

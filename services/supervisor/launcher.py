@@ -202,6 +202,9 @@ class Supervisor:
                 self._later(self._publish_event(self._bus, self._keys, "agent.crash", agent=action.agent,
                                                 signal=action.signal, pid=pid, fault_id=action.fault_id, tick=t,
                                                 at_tick=t))
+            for fault_id in self.planner.spent():  # one-shot crashes done: `faults list` no longer shows them
+                self.planner.reset(fault_id)
+                controller.retire_crash(fault_id)
 
     def _later(self, coro) -> None:
         task = asyncio.ensure_future(coro)
