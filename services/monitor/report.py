@@ -238,7 +238,7 @@ def figures(recs: list[Record], out: Path) -> dict[str, Path]:
             paths[f"w_heatmaps_{k}"] = p
 
     fig, ax = plt.subplots(figsize=(7, 3.5))
-    any_links = False
+    lifetimes = []
     for rec in recs:
         links = rec.links()
         if not links:
@@ -248,11 +248,20 @@ def figures(recs: list[Record], out: Path) -> dict[str, Path]:
             tracker.update(links[t], tick=t)
         life, censored = tracker.lifetimes()
         if life.size:
-            any_links = True
-            ax.hist([life[~censored], life[censored]], bins=30, stacked=True,
-                    label=[f"{rec.name} pruned", f"{rec.name} alive at end"])
+            lifetimes.append((rec.name, life, censored))
+    if lifetimes:
+        # one set of bins for every run, and outlines for several runs, so no run's bars hide another's
+        top = max(float(life.max()) for _, life, _ in lifetimes)
+        bins = np.linspace(0, max(top, 1.0), 31)
+        many = len(lifetimes) > 1
+        for i, (name, life, censored) in enumerate(lifetimes):
+            colour = f"C{i}"
+            for part, what, hatch in ((life[~censored], "pruned", None), (life[censored], "alive at end", "//")):
+                ax.hist(part, bins=bins, histtype="step" if many else "bar", color=colour, hatch=hatch, lw=1.2,
+                        alpha=1.0 if many else (0.9 if hatch is None else 0.45),
+                        label=f"{name}: {what}" if many else what)
     ax.set(xlabel="link lifetime (ticks)", ylabel="links", title="Link lifetimes", yscale="log")
-    if any_links:
+    if lifetimes:
         _legend(ax)
     save(fig, "link_lifetimes")
     return paths
