@@ -30,6 +30,7 @@ from pydantic import ValidationError
 
 from schemas.base import DecodeError
 from schemas.codec import decode
+from schemas.errors import explain
 from schemas.faults import FaultSpec
 from schemas.keys import RunKeys
 from schemas.messages import Event, FaultCommand, FaultReply
@@ -213,8 +214,9 @@ class FaultController:
                 for layer in self.layers:
                     layer.set(spec, at=at)
                 self._event("fault.set", spec.id or "", spec, at)
-        except (ValueError, ValidationError) as exc:
-            return FaultReply(ok=False, error=str(exc), active=self._active(), source=source)
+        except (ValueError, ValidationError) as exc:  # (a ValidationError is a ValueError: worded for the operator)
+            error = explain(exc) if isinstance(exc, ValidationError) else str(exc)
+            return FaultReply(ok=False, error=error, active=self._active(), source=source)
         return FaultReply(ok=True, active=self._active(), source=source)
 
     def retire_crash(self, fault_id: str) -> None:
