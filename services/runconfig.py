@@ -207,6 +207,10 @@ def field_choices(name: str) -> tuple[str, ...] | None:
         from services.sim.world.layout import named_sizes
 
         return tuple(named_sizes())
+    if name == "ablation":
+        from services.agent.presets import ABLATIONS
+
+        return ("full", *ABLATIONS)
     args = get_args(RunConfig.model_fields[name].annotation)
     return tuple(args) if args and all(isinstance(a, str) for a in args) else None
 
