@@ -198,6 +198,8 @@ class FaultController:
                 if error:
                     return FaultReply(ok=False, error=error, active=self._active(), source=source)
                 if spec.crash is not None and self.on_crash is not None:
+                    if spec.id is None:  # the planner and this list name it alike (reset --id, retirement)
+                        spec = spec.model_copy(update={"id": f"crash-{len(self.log) + 1}"})
                     error = self.on_crash(spec)
                     if error:
                         return FaultReply(ok=False, error=error if error.startswith("crash") else f"crash: {error}",
