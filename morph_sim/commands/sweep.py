@@ -43,7 +43,7 @@ def _pairs(items: list[str], what: str) -> dict[str, str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from morph_sim.lab.sweep import SweepPlan, comparison_markdown, parse_grid_arg, plan_from_toml, run_sweep
+    from morph_sim.lab.sweep import SweepPlan, comparison_markdown, default_sweep_id, parse_grid_arg, plan_from_toml, run_sweep
 
     file_run: dict = {}
     if args.file:
@@ -66,9 +66,19 @@ def run(args: argparse.Namespace) -> int:
     n = len(plan.episodes())
     print(f"sweep: {len(plan.conditions())} conditions × {len(plan.seeds)} seeds = {n} episodes "
           f"({plan.engine} engine, {executor} executor)", file=sys.stderr)
-    result = run_sweep(plan, args.out or file_run.get("out", "runs"), args.run_id or file_run.get("run_id"),
-                       executor=executor, jobs=jobs, scheduler=scheduler, progress=not args.no_progress,
-                       argv=sys.argv)
+    from pathlib import Path
+
+    from morph_sim.lab.sweep import count_done
+
+    out = Path(args.out or file_run.get("out", "runs"))
+    run_id = args.run_id or file_run.get("run_id") or default_sweep_id()
+    try:
+        result = run_sweep(plan, out, run_id, executor=executor, jobs=jobs, scheduler=scheduler,
+                           progress=not args.no_progress, argv=sys.argv)
+    except KeyboardInterrupt:
+        print(f"sweep {run_id}: interrupted with {count_done(out / run_id)} of {n} episodes in the record; the same "
+              f"command with --run-id {run_id} resumes it", file=sys.stderr)
+        return 130
     print(comparison_markdown(plan, result.comparison), end="")
     names = ", ".join(p.name for p in result.files.values())
     print(f"sweep {result.dir.name}: {result.ran} episodes run, {result.skipped} already in the record, "

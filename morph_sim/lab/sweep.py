@@ -415,7 +415,7 @@ def run_sweep(plan: SweepPlan, out: str | Path = "runs", sweep_id: str | None = 
     from morph_sim.lab.executors import make_executor
 
     t0 = time.perf_counter()
-    sweep_id = sweep_id or time.strftime("sweep-%Y%m%d-%H%M%S", time.gmtime())
+    sweep_id = sweep_id or default_sweep_id()
     from schemas.keys import validate_run_id
 
     validate_run_id(sweep_id)
@@ -464,6 +464,15 @@ def run_sweep(plan: SweepPlan, out: str | Path = "runs", sweep_id: str | None = 
     comparison = compare(plan, rows)
     files = write_tables(plan, run_dir, rows, comparison)
     return SweepResult(plan, run_dir, rows, comparison, len(todo), skipped, time.perf_counter() - t0, files)
+
+
+def default_sweep_id() -> str:
+    return time.strftime("sweep-%Y%m%d-%H%M%S", time.gmtime())
+
+
+def count_done(run_dir: str | Path) -> int:
+    """Episodes already in a sweep record (what a resumed sweep skips)."""
+    return len(_read_done(Path(run_dir) / "episodes.jsonl"))
 
 
 class _Progress:
