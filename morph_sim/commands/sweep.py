@@ -75,6 +75,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = run_sweep(plan, out, run_id, executor=executor, jobs=jobs, scheduler=scheduler,
                            progress=not args.no_progress, argv=sys.argv)
+    except ImportError as exc:  # the dask executor without the [cluster] extra: one line saying how to get it
+        print(f"morph-sim sweep: error: {exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"sweep {run_id}: interrupted with {count_done(out / run_id)} of {n} episodes in the record; the same "
               f"command with --run-id {run_id} resumes it", file=sys.stderr)
