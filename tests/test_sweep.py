@@ -61,7 +61,8 @@ def _interrupt_at_half(args: list[str], log: Path, sig: int, total: int) -> subp
         kill_tree(proc)
 
 
-def _check_interrupted_then_resumed(tmp_path: Path, grid: list[str], total: int, sig: int, jobs: str) -> None:
+def _check_interrupted_then_resumed(tmp_path: Path, grid: list[str], total: int, sig: int, jobs: str
+                                    ) -> subprocess.CompletedProcess:
     common = [*grid, "--out", str(tmp_path), "--no-progress", "--jobs", jobs]
     whole = _cli(*common, "--run-id", "whole")
     assert whole.returncode == 0, whole.stderr
@@ -87,16 +88,18 @@ def _check_interrupted_then_resumed(tmp_path: Path, grid: list[str], total: int,
     assert _lines(log) == total  # nothing ran twice
     rows = list(csv.DictReader(open(tmp_path / "whole" / "results.csv")))
     assert len(rows) == total
+    return whole
 
 
 def test_interrupted_at_half_and_resumed_equals_an_uninterrupted_sweep(tmp_path):
-    _check_interrupted_then_resumed(tmp_path, [*REDUCED, "--set", "steps=80"], 36, signal.SIGINT, "2")
+    whole = _check_interrupted_then_resumed(tmp_path, [*REDUCED, "--set", "steps=80"], 36, signal.SIGINT, "2")
+    _check_tidy(tmp_path / "whole", whole.stdout)
 
 
 def test_a_killed_sweep_resumes_too(tmp_path):
     """SIGKILL may cut a line of the record in half: the resumed sweep drops it and runs that episode again."""
-    grid = ["--grid", "policy=morph,tsg", "--seeds", "1-6", "--set", "steps=100"]
-    _check_interrupted_then_resumed(tmp_path, grid, 12, signal.SIGKILL, "1")
+    grid = ["--grid", "policy=morph,tsg", "--seeds", "1-5", "--set", "steps=80"]
+    _check_interrupted_then_resumed(tmp_path, grid, 10, signal.SIGKILL, "1")
 
 
 @pytest.mark.slow
@@ -104,28 +107,26 @@ def test_acceptance_sweep_interrupted_and_resumed_at_full_length(tmp_path):
     _check_interrupted_then_resumed(tmp_path, [*ACCEPTANCE, *LONG], 90, signal.SIGINT, "2")
 
 
-def test_the_table_is_tidy_and_every_condition_runs_the_same_seeds(tmp_path):
-    res = _cli(*REDUCED, *SHORT, "--out", str(tmp_path), "--run-id", "t", "--no-progress")
-    assert res.returncode == 0, res.stderr
-    rows = list(csv.DictReader(open(tmp_path / "t" / "results.csv")))
+def _check_tidy(run_dir: Path, stdout: str) -> None:
+    rows = list(csv.DictReader(open(run_dir / "results.csv")))
     assert list(rows[0]) == ["policy", "faults.loss.percent", "scale", "seed", "deliveries", "mean_links",
                              "committed", "dispatch_decisions", "mean_p_respond", "median_lifetime", "eta_mean"]
     by: dict = {}
     for r in rows:
         by.setdefault((r["policy"], r["faults.loss.percent"], r["scale"]), []).append(int(r["seed"]))
+    # common random numbers: every condition ran the same seeds, in order
     assert len(by) == 18 and all(s == [1, 2] for s in by.values())
     import pandas as pd
 
-    pq = pd.read_parquet(tmp_path / "t" / "results.parquet")
+    pq = pd.read_parquet(run_dir / "results.parquet")
     assert len(pq) == 36 and list(pq.columns) == list(rows[0])
     assert pq["deliveries"].tolist() == [int(r["deliveries"]) for r in rows]
     # the comparison table: one row per condition, Welch p against MORPH with the other axes equal
-    comp = list(csv.DictReader(open(tmp_path / "t" / "comparison.csv")))
+    comp = list(csv.DictReader(open(run_dir / "comparison.csv")))
     assert len(comp) == 18
     assert {r["baseline"] for r in comp if r["policy"] != "morph"} == {"policy=morph"}
     assert all(r["p_vs_baseline"] == "" for r in comp if r["policy"] == "morph")
-    md = res.stdout
-    assert "| policy | faults.loss.percent | scale | n | deliveries | links | baseline | Welch p |" in md
+    assert "| policy | faults.loss.percent | scale | n | deliveries | links | baseline | Welch p |" in stdout
 
 
 def _local_cluster():
@@ -284,3 +285,34 @@ def test_an_unreachable_scheduler_is_one_error_line(tmp_path):
 
     with pytest.raises(ValueError, match=r"^scheduler: cannot reach tcp://127.0.0.1:\d+"):
         DaskExecutor(f"tcp://127.0.0.1:{free_port()}", timeout=1)
+
+
+def test_the_scale_study_on_dask_equals_it_on_local_processes(tmp_path):
+    """The existing studies take the same executor: the scale study (with the Proximity calibration that gates some
+    episodes) from the CLI in its own process, on a LocalCluster, gives the same episodes as on local processes."""
+    study = ["experiment", "scale", "--scales", "tiny", "--seeds", "1,2", "--steps", "25", "--conditions",
+             "morph,proximity", "--out", str(tmp_path), "--no-progress"]
+    cli = [sys.executable, "-m", "morph_sim.cli"]
+    local = subprocess.run([*cli, *study, "--run-id", "local"], capture_output=True, text=True, timeout=300)
+    assert local.returncode == 0, local.stderr
+    with _local_cluster() as cluster:
+        dask = subprocess.run([*cli, *study, "--run-id", "dask", "--executor", "dask", "--scheduler",
+                               cluster.scheduler_address], capture_output=True, text=True, timeout=300)
+    assert dask.returncode == 0, dask.stderr
+
+    def episodes(run: str) -> dict:
+        out = {}
+        for p in sorted((tmp_path / run / "episodes").glob("*/summary.json")):
+            summary = json.loads(p.read_text())
+            summary.pop("wall_s")
+            out[p.parent.name] = (summary, (p.parent / "ticks.csv").read_text())
+        return out
+
+    a, b = episodes("local"), episodes("dask")
+    assert len(a) == 4 and a == b
+    assert (tmp_path / "dask" / "summary.csv").read_text() == (tmp_path / "local" / "summary.csv").read_text()
+    bad = subprocess.run([*cli, "experiment", "shift", "--executor", "dask", "--scheduler", "tcp://127.0.0.1:1"],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and bad.stderr.strip() == (
+        "morph-sim experiment: error: executor: the dask executor runs the scale and ablation studies (and sweeps), "
+        "not shift")

@@ -220,7 +220,7 @@ class SweepPlan(BaseModel):
             if name.startswith(FAULTS):
                 if len(name.split(".")) < 3:
                     raise ValueError(f"{name}: name a fault parameter like faults.loss.percent or faults.latency.delay")
-                _fault_spec({name: v}, seed=0) if v not in (0, 0.0) else None
+                _fault_spec({name: v}, seed=0)  # validates the value (the error names the parameter)
                 out.append(v)
                 continue
             if name not in RunConfig.model_fields:
@@ -440,7 +440,7 @@ def run_sweep(plan: SweepPlan, out: str | Path = "runs", sweep_id: str | None = 
     log = run_dir / "episodes.jsonl"
     done = _read_done(log)
     episodes = plan.episodes()
-    todo = []
+    todo: list[EpisodeTask] = []
     for cond, seed in episodes:
         key = plan.episode_key(cond, seed)
         if key not in done:
@@ -450,9 +450,10 @@ def run_sweep(plan: SweepPlan, out: str | Path = "runs", sweep_id: str | None = 
     ex = make_executor(executor, jobs=jobs, scheduler=scheduler)
     try:
         with open(log, "a", encoding="utf-8") as f, bar:
+            by_key = {t.key: t for t in todo}
             for res in ex.map_unordered(run_task, todo):
-                cond_seed = next(t for t in todo if t.key == res["key"])
-                rec = {"key": res["key"], "condition": cond_seed.condition, "seed": cond_seed.seed,
+                task = by_key[res["key"]]
+                rec = {"key": res["key"], "condition": task.condition, "seed": task.seed,
                        "metrics": res["metrics"], "wall_s": res["wall_s"]}
                 f.write(json.dumps(rec) + "\n")
                 f.flush()
