@@ -119,3 +119,9 @@ def test_a_distributed_run_from_python_equals_its_in_process_twin(tmp_path):
     cols = ["t", "deliveries", "deliveries_total", "links", "lambda2"]
     assert dist.metrics[cols].equals(local.metrics[cols])
     assert dist.totals["deliveries_total"] == dist.metrics["deliveries_total"].iloc[-1]
+
+
+async def test_run_works_from_inside_a_running_event_loop_as_in_a_notebook(tmp_path):
+    """Jupyter runs cells inside an event loop; asyncio.run would refuse there, so the API runs in a helper thread."""
+    rec = ms.run(policy="full", steps=15, seed=2, run_id="in-loop", output_dir=tmp_path)
+    assert len(rec.metrics) == 15 and rec.totals["steps"] == 15
