@@ -25,7 +25,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Union
+from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict
@@ -42,14 +42,6 @@ RUN_TABLES: dict[str, tuple[str, ...]] = {
     "links": ("t", "i", "j"),
     "positions": ("t", "agent", "x", "y", "heading", "carrying"),
 }
-
-try:  # a table is a DataFrame when pandas is there, a dict of arrays otherwise
-    import pandas as _pd  # noqa: F401
-
-    Table = Union["_pd.DataFrame", dict[str, np.ndarray]]
-except ImportError:  # pragma: no cover - depends on the environment
-    Table = dict  # type: ignore[misc]
-
 
 def has_pandas() -> bool:
     try:
