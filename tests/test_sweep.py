@@ -316,3 +316,13 @@ def test_the_scale_study_on_dask_equals_it_on_local_processes(tmp_path):
     assert bad.returncode == 2 and bad.stderr.strip() == (
         "morph-sim experiment: error: executor: the dask executor runs the scale and ablation studies (and sweeps), "
         "not shift")
+
+
+def test_progress_counts_every_episode_and_the_bar_ends_full(tmp_path, capsys):
+    plan = SweepPlan.build(grid={"policy": ["tsg", "full"]}, seeds="1-3", base={"steps": 10})
+    seen = []
+    run_sweep(plan, tmp_path, "cb", progress=lambda done, total: seen.append((done, total)), jobs=1)
+    assert seen == [(k, 6) for k in range(1, 7)]
+    code, out, err = _main("--grid", "policy=tsg,full", "--seeds", "1-3", "--set", "steps=10", "--out", str(tmp_path),
+                           "--run-id", "bar", "--jobs", "1", capsys=capsys)
+    assert code == 0 and "6/6" in err and "sweep: 2 conditions × 3 seeds = 6 episodes" in err
