@@ -64,6 +64,10 @@ def add_arguments(parser) -> None:
                         "tiny=10,small=10,medium=6,large=8 (default: calibrate as the reference); shift: one radius "
                         "(default 6)")
     parser.add_argument("--jobs", type=int, default=None, help="worker processes (default 2)")
+    parser.add_argument("--executor", choices=("local", "dask"), default=None,
+                        help="scale/ablation: local processes (default) or a Dask cluster ('morph-sim[cluster]')")
+    parser.add_argument("--scheduler", default=None, help="scale/ablation: Dask scheduler address, e.g. "
+                        "tcp://HOST:8786")
     parser.add_argument("--fiedler-every", type=int, default=None,
                         help="scale/ablation: compute λ₂ every this many ticks (default 10)")
     parser.add_argument("--out", default="runs", help="root directory of run records")
@@ -74,7 +78,7 @@ def add_arguments(parser) -> None:
 SUITES = ("scale", "ablation", "shift", "emergent", "faults")
 _COMMON = {"out", "run_id", "no_progress"}
 _SUITE = {"preset", "scales", "seeds", "steps", "conditions", "dispatch", "reference_stream", "radius", "jobs",
-          "fiedler_every"}
+          "fiedler_every", "executor", "scheduler"}
 # the flags each study honours; any other optional flag given is refused with a one-line message
 FLAGS = {
     "scale": _COMMON | _SUITE,
@@ -201,7 +205,13 @@ def _run_faults(args) -> int:
 def run(args) -> int:
     import time
 
+    if args.executor == "dask" and args.suite not in ("scale", "ablation"):
+        raise ValueError(f"executor: the dask executor runs the scale and ablation studies (and sweeps), "
+                         f"not {args.suite}")
     refuse_unhonoured(args)
+    args.executor = args.executor or "local"
+    if args.executor == "dask" and not args.scheduler:
+        raise ValueError("scheduler: --executor dask needs --scheduler tcp://HOST:8786")
     if args.suite == "shift":
         return _run_shift(args)
     if args.suite == "emergent":
@@ -234,8 +244,12 @@ def run(args) -> int:
     from services.agent.presets import load_preset
 
     load_preset(preset)  # fail early, naming the preset
-    result = run_suite(cfg, Path(args.out), args.run_id, show_progress=not args.no_progress,
-                       argv=["morph-sim", *sys.argv[1:]])
+    try:
+        result = run_suite(cfg, Path(args.out), args.run_id, show_progress=not args.no_progress,
+                           argv=["morph-sim", *sys.argv[1:]], executor=args.executor, scheduler=args.scheduler)
+    except ImportError as exc:  # the dask executor without the [cluster] extra
+        print(f"morph-sim experiment: error: {exc}", file=sys.stderr)
+        return 2
     rows = summarise(cfg, result.episodes)
     print(markdown_table(cfg, rows, result.wall_s, result.radii))
     print(f"study wall time: {result.wall_s:.1f} s for {len(result.episodes)} episodes"
