@@ -122,6 +122,9 @@ class MonitorService:
         from services.faults.linkstats import LinkMeter
 
         self.link_meter = LinkMeter(f"morph/{config.run_id}")
+        from services.monitor.faultwindows import FaultWindows
+
+        self.fault_windows = FaultWindows()  # faults in force, from the events (Prometheus morph_faults_active)
         self.latest_links: list[MetricSample] = []
         self._links_due = False
 
@@ -197,9 +200,10 @@ class MonitorService:
         self.stats.observe(kind, sample.key, sample.sender, sample.seq, sample.sent_at,
                            None if wall else max(self._last_tick, 0) * self.config.dt, clock="wall" if wall else "sim")
         if sample.sender:
-            # wall stamps (paced / up): latency as seen here; sim-time stamps (virtual time) carry no wall latency
+            # the link meter's latency in the same clock as the stamp (see above)
             sent = sample.sent_at
-            self.link_meter.record(sample.key, sample.sender, sample.seq, sent, time.time() if sent > 1e8 else sent)
+            self.link_meter.record(sample.key, sample.sender, sample.seq, sent,
+                                   time.time() if wall else max(self._last_tick, 0) * self.config.dt)
         try:
             if head == "sim" and rel[1:] == ["tick"]:
                 self._on_tick(decode_tick(sample.payload))  # validated, as arrays (schemas/hot.py)
@@ -361,6 +365,7 @@ class MonitorService:
                     kind="ready.ack", source="monitor", details={"round": event.details.get("round", 0)})),
                     "probe")
             return
+        self.fault_windows.add({"kind": event.kind, "t": event.t, "details": event.details})
         if event.kind == "run.finished":
             self.result.finished = {**(self.result.finished or {}), **event.details}
             self._stop.set()
