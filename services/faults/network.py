@@ -103,9 +103,13 @@ class HandoverEvent:
 
 @dataclass
 class _Radio:
-    ap: int = -1
+    ap: int = -1  # the access point now (after the latest move)
     cell: tuple[int, int] | None = None
     seen_at: float = -math.inf
+    # the track, so a message is judged by where the robot was when it was sent, whatever was reported since
+    times: list[float] = field(default_factory=list)
+    cells: list[tuple[int, int]] = field(default_factory=list)
+    aps: list[int] = field(default_factory=list)
     handovers: int = 0
     starts: list[float] = field(default_factory=list)  # outage windows, sorted by start
     ends: list[float] = field(default_factory=list)
@@ -121,6 +125,11 @@ class _Radio:
                 return self.ends[i]
             i -= 1
         return None
+
+    def at(self, time: float) -> tuple[tuple[int, int] | None, int]:
+        """(cell, access point) at ``time``; (None, -1) before the robot was first seen."""
+        i = bisect.bisect_right(self.times, time) - 1
+        return (self.cells[i], self.aps[i]) if i >= 0 else (None, -1)
 
 
 @dataclass(frozen=True)
@@ -209,14 +218,17 @@ class NetworkModel:
             return None
         radio.cell, radio.seen_at = cell, time
         best, dist = self.nearest(cell)
+        if radio.ap >= 0 and (best == radio.ap or dist[radio.ap] - dist[best] <= self.profile.handover.hysteresis):
+            self._track(radio, time)
+            return None
         if radio.ap < 0:
             radio.ap = best
-            return None
-        if best == radio.ap or dist[radio.ap] - dist[best] <= self.profile.handover.hysteresis:
+            self._track(radio, time)
             return None
         outage = draw(self.profile.handover.outage, uniform(self.seed, "handover", robot, radio.handovers))
         event = HandoverEvent(robot, time, radio.ap, best, outage)
         radio.ap = best
+        self._track(radio, time)
         radio.handovers += 1
         if outage > 0.0:
             radio.starts.append(time)
@@ -226,6 +238,29 @@ class NetworkModel:
         self.stats.handovers += 1
         self.stats.outage_seconds += outage
         return event
+
+    @staticmethod
+    def _track(radio: _Radio, time: float) -> None:
+        if radio.times and radio.times[-1] == time:  # two reports at one instant: the later one stands
+            radio.cells[-1], radio.aps[-1] = radio.cell, radio.ap  # type: ignore[assignment]
+            return
+        radio.times.append(time)
+        radio.cells.append(radio.cell)  # type: ignore[arg-type]
+        radio.aps.append(radio.ap)
+
+    def observe_tick(self, t: int, dt: float, cells) -> list[HandoverEvent]:
+        """Every robot's cell as a Tick reports it (robot i at ``cells[i]``). Convention of every driver: the radio
+        follows the robot one step behind — the cells of tick ``t`` take effect at ``(t + 1)·Δ``. A client roams on
+        signal strength averaged over beacons, and a step (Δ = 1 s by default) is the order of that averaging; and
+        it keeps distributed runs deterministic: every process has seen tick t−1's Tick before any message of tick t
+        reaches it, but not necessarily tick t's."""
+        at = (t + 1) * dt
+        events = []
+        for robot, cell in enumerate(cells):
+            event = self.move(robot, at, (int(cell[0]), int(cell[1])))
+            if event is not None:
+                events.append(event)
+        return events
 
     def ap_of(self, robot: int) -> int:
         return self._radio(robot).ap
@@ -247,8 +282,9 @@ class NetworkModel:
             if out is None:
                 return None, "link_queue"
             at = out
-        if radio.ap >= 0 and self._ap_queues[radio.ap] is not None:
-            out = self._ap_queues[radio.ap].admit(at, size)  # type: ignore[union-attr]
+        cell, ap = radio.at(at)
+        if ap >= 0 and self._ap_queues[ap] is not None:
+            out = self._ap_queues[ap].admit(at, size)  # type: ignore[union-attr]
             if out is None:
                 return None, "ap_queue"
             at = out
@@ -256,8 +292,8 @@ class NetworkModel:
         if p.loss > 0.0 and uniform(self.seed, "loss", robot, direction, msg) < p.loss / 100.0:
             return None, "loss"
         keep, extra = 1.0, 0.0
-        if radio.cell is not None:
-            x, y = radio.cell
+        if cell is not None:
+            x, y = cell
             keep, extra = float(self.zone_keep[y, x]), float(self.zone_delay[y, x])
         if keep < 1.0 and uniform(self.seed, "zone", robot, direction, msg) >= keep:
             return None, "dead_zone"
@@ -289,10 +325,12 @@ class NetworkModel:
 
     # -- what a monitor shows --------------------------------------------------------------------------------------
     def counters(self, at: float) -> dict[str, float]:
-        """Cumulative counters and the current state, for metric streams ``net/<name>``."""
+        """The network as of sim time ``at`` (hand-overs started by then, robots in an outage then) and the messages
+        judged so far, for metric streams ``net/<name>``."""
+        started = [e for e in self.events if e.time <= at]
         out: dict[str, float] = {
-            "handovers": float(self.stats.handovers),
-            "outage_seconds": self.stats.outage_seconds,
+            "handovers": float(len(started)),
+            "outage_seconds": float(sum(e.outage for e in started)),
             "in_outage": float(sum(1 for r in self._radios.values() if r.outage_end(at) is not None)),
             "seen": float(self.stats.seen),
             "delivered": float(self.stats.delivered),

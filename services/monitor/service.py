@@ -45,6 +45,7 @@ STREAMS = ("deliveries", "deliveries_total", "requests", "commits", "links", "la
 ACK_HAS_LINKS = "links" in Ack.model_fields  # the wire schema's per-tick link report (else: state rows)
 STOP_GRACE = 3.0  # seconds the monitor waits for the sim's end of run after someone else's stop
 QUIET_EVENTS = ("ready.probe", "ready.ack")
+NET_STREAMS = ("handovers", "in_outage", "outage_seconds")  # what the monitor's own network model can see
 
 
 @dataclass
@@ -110,6 +111,16 @@ class MonitorService:
 
         self.link_meter = LinkMeter(f"morph/{config.run_id}")
         self.latest_links: list[MetricSample] = []
+        # the run's Wi-Fi as the robots drive through it (hand-overs, robots in an outage): the same model, seed and
+        # trajectories as every fault layer of the run, observed here, never applied (the monitor is the instrument)
+        self.network = None
+        if config.network is not None:
+            from schemas.network import load_profile
+            from services.faults.network import NetworkModel
+            from services.sim.world.layout import LayoutConfig, layout_for
+
+            self.network = NetworkModel(load_profile(config.network), layout_for(LayoutConfig.named(config.scale)),
+                                        seed=config.seed)
         self._links_due = False
 
     def _reject(self, what: str, why: object) -> None:
@@ -208,6 +219,8 @@ class MonitorService:
                 row.sim_time = tick.sim_time
         if self.recorder is not None:
             self.recorder.positions(tick.t, *(tick.row(name).tolist() for name in ("x", "y", "heading", "carrying")))
+        if self.network is not None:
+            self.network.observe_tick(tick.t, self.config.dt, list(zip(tick.row("x").tolist(), tick.row("y").tolist())))
         # Row t-2 is due once tick t arrives, but its acks (and the link reports of t-1) travel on other paths than
         # the sim's ticks and may reach the monitor after tick t: a row that still misses an agent's report waits
         # up to ROW_GRACE_TICKS more ticks (an absent agent's row is then written without it).
@@ -368,6 +381,10 @@ class MonitorService:
             v = values.get(name)
             if v is not None and not (isinstance(v, float) and not math.isfinite(v)):
                 self._fresh[name] = (t, sim_time, float(v))
+        if self.network is not None:
+            net = self.network.counters(sim_time)
+            for name in NET_STREAMS:
+                self._fresh[f"net/{name}"] = (t, sim_time, net[name])
         self.stats.row(values)
         self._unbuilt = True
         if t % self.config.state_every == 0:
