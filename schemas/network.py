@@ -34,11 +34,12 @@ class _Spec(BaseModel):
 
 class Placement(_Spec):
     """Where the access points are: an explicit list of cells, else a regular grid with ``spacing`` cells between
-    neighbours, centred in the tiles it cuts the warehouse into (so every scale gets its own default placement)."""
+    neighbours, centred in the tiles it cuts the warehouse into (so every scale gets its own default placement).
+    An empty list means no access points: the robots are as if wired, nobody roams."""
 
     spacing: float = Field(default=12.0, gt=0.0, allow_inf_nan=False, description="cells between neighbouring APs")
-    cells: list[tuple[float, float]] | None = Field(default=None, min_length=1,
-                                                    description="explicit AP positions (x, y); overrides spacing")
+    cells: list[tuple[float, float]] | None = Field(
+        default=None, description="explicit AP positions (x, y); overrides spacing; [] = no radio cells (wired)")
 
 
 class Handover(_Spec):

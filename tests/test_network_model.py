@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from schemas.network import NetworkProfile, Rate, load_profile, parse_profile, profile_names
+from schemas.network import NetworkProfile, Placement, Rate, load_profile, parse_profile, profile_names
 from services.faults.network import NetworkModel, default_access_points
 from services.sim.world.layout import LayoutConfig, layout_for
 
@@ -38,7 +38,32 @@ def test_named_profiles_validate_and_bad_ones_name_the_field():
         parse_profile({"name": "x", "dead_zones": [{"region": "cells", "loss": 5}]})
 
 
-def test_default_placement_covers_every_scale():
+def test_no_access_points_means_nobody_roams():
+    model = NetworkModel(load_profile("lan"), TINY, seed=0)
+    drive_along_row(model, 0, y=0)
+    assert model.events == [] and not model.fate(3.0, 0, "sim", "m").lost
+
+
+def test_judged_by_where_the_robot_was_when_it_sent_whatever_was_reported_since():
+    """Tick t's cells take effect at (t+1)·Δ: a message of tick t is judged the same whether the receiving process
+    has seen tick t's Tick yet or not (distributed runs see them in wall order)."""
+    profile = load_profile("wifi-legacy-roaming")
+    rack = next((x, y) for y in range(TINY.H) for x in range(TINY.W) if not TINY.is_highway(x, y))
+    cells_t0 = [(0, 0), (13, 0)]
+    cells_t1 = [rack, (0, 0)]  # robot 0 drives into a dead zone, robot 1 across to the other AP
+
+    def judged(early: bool):
+        model = NetworkModel(profile, TINY, seed=9)
+        model.observe_tick(0, 1.0, cells_t0)
+        if early:
+            model.observe_tick(1, 1.0, cells_t1)
+        fates = [model.fate(1.0 + k * 0.1, r, "sim", (r, k)) for r in (0, 1) for k in range(10)]
+        if not early:
+            model.observe_tick(1, 1.0, cells_t1)
+        return fates, [(e.robot, e.time) for e in model.events]
+
+    assert judged(True) == judged(False)
+    assert judged(True)[1] == [(1, 2.0)]  # robot 1's hand-over starts one step after the Tick that shows it
     tiny = default_access_points(TINY, 12.0)
     assert tiny.tolist() == [[3.0, 3.25], [10.0, 3.25], [3.0, 10.75], [10.0, 10.75]]
     large = layout_for(LayoutConfig.named("extralarge"))
@@ -154,7 +179,7 @@ def test_link_rate_delivers_at_most_r_per_second_and_queues_or_drops_the_rest():
 
 
 def test_access_point_rate_is_shared_by_its_robots():
-    profile = quiet("lan", ap_rate=Rate(rate=10.0, limit=10_000))
+    profile = quiet("lan", ap_rate=Rate(rate=10.0, limit=10_000), access_points=Placement())  # default grid
     model = NetworkModel(profile, TINY, seed=0)
     model.move(0, 0.0, (0, 0))
     model.move(1, 0.0, (1, 0))  # same AP as robot 0

@@ -168,7 +168,7 @@ class NetworkModel:
         self.seed = int(seed)
         placement = profile.access_points
         if placement.cells is not None:
-            aps = np.asarray(placement.cells, dtype=float)
+            aps = np.asarray(placement.cells, dtype=float).reshape(-1, 2)
             bad = [(x, y) for x, y in placement.cells if not (0 <= x < layout.W and 0 <= y < layout.H)]
             if bad:
                 raise ValueError(f"network.access_points.cells: {bad[0]} is outside the {layout.W}×{layout.H} grid")
@@ -217,6 +217,9 @@ class NetworkModel:
         if time < radio.seen_at or cell == radio.cell:
             return None
         radio.cell, radio.seen_at = cell, time
+        if not len(self.access_points):  # wired: nobody to roam between
+            self._track(radio, time)
+            return None
         best, dist = self.nearest(cell)
         if radio.ap >= 0 and (best == radio.ap or dist[radio.ap] - dist[best] <= self.profile.handover.hysteresis):
             self._track(radio, time)
