@@ -120,13 +120,14 @@ async def test_monitor_streams_handovers(tmp_path):
     assert seen["net/outage_seconds"] > 0
 
 
-def test_cli_rejects_bad_network_values_with_one_line(tmp_path):
-    for value, expect in (("wifi", "unknown profile 'wifi'"), ("congested", "limits rates")):
-        proc = subprocess.run([sys.executable, "-m", "morph_sim.cli", "run", "--no-record", "--steps", "2",
-                               "--network", value], capture_output=True, text=True, timeout=120)
-        assert proc.returncode == 2
-        lines = proc.stderr.strip().splitlines()
-        assert len(lines) == 1 and "network" in lines[0] and expect in lines[0], proc.stderr
+def test_cli_rejects_bad_network_values_with_one_line(capsys):
+    from morph_sim.cli import main
+
+    for value, expect in (("wifi", "unknown profile 'wifi'"), ("congested", "limits rates"),
+                          ("/nonexistent/net.toml", "cannot read")):
+        assert main(["run", "--no-record", "--steps", "2", "--network", value]) == 2
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and "network" in lines[0] and expect in lines[0], lines
 
 
 def check_up_equals_run(tmp_path, scale: str, steps: int, profile: str = "wifi-legacy-roaming") -> None:
