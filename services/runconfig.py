@@ -164,7 +164,7 @@ class RunConfig(BaseModel):
         if self.policy == "proximity":
             return {"radius": self.radius}
         if self.policy == "morph":
-            return {"preset": self.preset, "ablation": self.ablation}
+            return {"preset": self.preset, "ablation": self.ablation, "episode_steps": self.steps}
         return {}
 
     def make_policy(self):

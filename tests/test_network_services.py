@@ -165,3 +165,27 @@ def test_up_equals_run_under_legacy_roaming_tiny(tmp_path):
 @pytest.mark.slow
 def test_up_equals_run_under_legacy_roaming_medium(tmp_path):
     check_up_equals_run(tmp_path, "medium", 400)
+
+
+def test_report_draws_access_points_and_dead_zones(tmp_path):
+    """The report's warehouse GIF of a run under a profile shows the profile's APs (on top) and dead zones (floor)."""
+    from PIL import Image
+
+    from services.monitor.report import load, warehouse_gif
+    from services.sim.world.render import COLORS, Frame, render_frame
+
+    cfg = config(tmp_path, "wifi-legacy-roaming", run_id="gif", steps=20)
+    asyncio.run(run_local(cfg))
+    path = tmp_path / "w.gif"
+    assert warehouse_gif(load(cfg.record_dir), path) is not None
+    frame = Image.open(path).convert("RGB")
+    colours = {c for _, c in frame.getcolors(1 << 16)}
+    assert COLORS["access_point"] in colours and COLORS["dead_zone"] in colours
+
+    lay = layout_for(LayoutConfig.named("tiny"))
+    plain = dict(height=lay.H, width=lay.W, highway=lay.highway, goals=lay.goals, shelves=~lay.highway * 0,
+                 requested=lay.highway * 0, agent_x=[0], agent_y=[0], agent_dir=[0], is_agv=[True], carrying=[False])
+    img = render_frame(Frame(**plain, access_points=[(3.0, 3.0)]), cell_px=24)
+    cx = 3 * 25 + 1 + 23 / 2
+    assert img.getpixel((round(cx) + 3, round(cx) + 3)) == COLORS["access_point"]
+    assert COLORS["access_point"] not in {c for _, c in render_frame(Frame(**plain), cell_px=24).getcolors(1 << 16)}

@@ -2,7 +2,9 @@
 
 scale/ablation: conditions × scales × seeds (the reference's study); shift: the paper's six-phase demand-shift
 experiment with recovery times; emergent: W snapshots, Spearman, link lifetimes, η and λ₂ over long episodes;
-faults: the faults helper's loss/latency sweep (services/lab/faults_experiment.py).
+faults: the faults helper's loss/latency sweep (services/lab/faults_experiment.py); audit: the paper preset's
+departures from the paper, each measured (lab/audit.py; --conditions picks variants, default scales small,medium and
+seeds 11..15).
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 NAME = "experiment"
-HELP = "run an in-process study: scale, ablation, shift, emergent or faults (parallel, with run records)"
+HELP = "run an in-process study: scale, ablation, shift, emergent, faults or audit (parallel, with run records)"
 
 
 def _csv(value: str) -> tuple[str, ...]:
@@ -34,7 +36,8 @@ def _radii(value: str) -> dict[str, int]:
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("suite", choices=("scale", "ablation", "shift", "emergent", "faults"), help="which study")
+    parser.add_argument("suite", choices=("scale", "ablation", "shift", "emergent", "faults", "audit"),
+                        help="which study")
     parser.add_argument("--preset", default=None, help="MORPH preset: reference (scale default) or paper "
                         "(ablation default), or a preset TOML path")
     parser.add_argument("--scales", default="tiny,small,medium,large", help="comma-separated scales")
@@ -132,9 +135,26 @@ def _run_faults(args) -> int:
     return 0
 
 
+def _run_audit(args) -> int:
+    from datetime import datetime, timezone
+
+    from morph_sim.lab.audit import VARIANTS, run_audit
+
+    run_id = args.run_id or f"{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%SZ')}-audit"
+    scales = _csv(args.scales) if args.scales != "tiny,small,medium,large" else ("small", "medium")
+    res = run_audit(Path(args.out) / run_id, scales=scales, seeds=_seeds(args.seeds, (11, 12, 13, 14, 15)),
+                    steps=args.steps or 800, variants=_csv(args.conditions) if args.conditions else tuple(VARIANTS),
+                    jobs=args.jobs, show_progress=not args.no_progress, argv=["morph-sim", *sys.argv[1:]])
+    print((res.run_dir / "audit.md").read_text(encoding="utf-8"))
+    print(f"run record: {res.run_dir}")
+    return 0
+
+
 def run(args) -> int:
     import time
 
+    if args.suite == "audit":
+        return _run_audit(args)
     if args.suite == "shift":
         return _run_shift(args)
     if args.suite == "emergent":
