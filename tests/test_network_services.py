@@ -23,15 +23,6 @@ from services.supervisor.local import run_local
 from test_equivalence import run_up
 
 
-class Recording(FaultRuntime):
-    """The sim's runtime; keeps the runtimes it makes for the agent sessions (``run_local`` calls ``like``)."""
-
-    def like(self) -> FaultRuntime:
-        made = super().like()
-        self.__dict__.setdefault("agents", []).append(made)
-        return made
-
-
 def config(tmp_path, network: str | None, run_id: str = "net", **kw) -> RunConfig:
     values = dict(run_id=run_id, scale="tiny", policy="full", seed=3, steps=120, state_every=10,
                   snapshot_every=50, output_dir=tmp_path / run_id, network=network)
@@ -62,7 +53,7 @@ def recorded_handovers(cfg: RunConfig) -> list[tuple[int, int, int, int, float]]
 
 async def test_legacy_roaming_costs_messages_reports_handovers_and_is_reproducible(tmp_path):
     cfg = config(tmp_path, "wifi-legacy-roaming")
-    rt = Recording.for_service(cfg, "sim")
+    rt = FaultRuntime.for_service(cfg, "sim")
     first = await run_local(cfg, faults=rt)
     assert first.sim.steps == 120 and first.sim.absences == 0  # an outage is not an absence: the run goes on
     lost = rt.network.stats.lost
@@ -70,8 +61,10 @@ async def test_legacy_roaming_costs_messages_reports_handovers_and_is_reproducib
     assert rt.layers[0].stats.dropped == sum(lost.values())
     # a robot in an outage loses the sim's Tick first (its downlink), so it skips the tick and sends nothing the
     # sim could lose: the hand-over losses are the agents'
-    agents = [r.network.stats.lost for r in rt.agents]
+    agents = [r.network.stats.lost for r in rt.likes]
     assert len(agents) == cfg.n_agents and sum(a["handover"] for a in agents) > 0
+    total = rt.network_losses()
+    assert total["handover"] == sum(a["handover"] for a in agents) and total["loss"] > lost["loss"]
 
     # every hand-over in the record is the one the model computes from the recorded trajectories (and one per
     # hand-over: the sim reports them, nobody else)

@@ -22,8 +22,13 @@ def run(args: argparse.Namespace) -> int:
     from services.supervisor.local import run_local
 
     config = config_from_args(args)
+    faults = None
+    if config.network is not None or config.fault_schedule:
+        from services.faults.runtime import FaultRuntime
+
+        faults = FaultRuntime.for_service(config, "sim")
     started = time.monotonic()
-    result = asyncio.run(run_local(config, record=not args.no_record))
+    result = asyncio.run(run_local(config, record=not args.no_record, faults=faults))
     wall = time.monotonic() - started
     rows = result.monitor.rows
     links = rows[-1]["links"] if rows else 0
@@ -31,6 +36,12 @@ def run(args: argparse.Namespace) -> int:
           f"{'/' + config.preset if config.policy == 'morph' else ''} seed {config.seed}: "
           f"{result.sim.steps} ticks, {result.sim.deliveries} deliveries, {links} links at the end, "
           f"{result.sim.steps / wall:.0f} ticks/s")
+    if faults is not None and faults.network is not None:
+        lost = faults.network_losses()
+        print(f"network {config.network}: {len(faults.network.events)} hand-overs, "
+              f"{faults.network.stats.outage_seconds:.1f} robot-seconds of outage; lost "
+              + ", ".join(f"{n} to {cause}" for cause, n in lost.items() if n) if any(lost.values())
+              else f"network {config.network}: {len(faults.network.events)} hand-overs, nothing lost")
     if not args.no_record:
         print(f"record: {config.record_dir}")
     return 0

@@ -79,6 +79,7 @@ class FaultRuntime:
         self.meters: dict[str, LinkMeter] = {}
         self.controller: FaultController | None = None
         self._bus: Bus | None = None
+        self.likes: list[FaultRuntime] = []
 
     def now(self) -> float:
         """Sim seconds: the last boundary reached (virtual), else wall seconds since start (paced runs)."""
@@ -98,9 +99,21 @@ class FaultRuntime:
                    network=None if config.network is None else (config.network, config.scale))
 
     def like(self) -> FaultRuntime:
-        """A runtime for another process of the same run (same seed, Δ, time and schedule; no events)."""
-        return FaultRuntime(self.run, seed=self.seed, dt=self.dt, virtual=self.vtime is not None,
+        """A runtime for another process of the same run (same seed, Δ, time and schedule; no events). In-process
+        runs (``run_local``) keep them in :attr:`likes`, so a run's totals can be read over all its processes."""
+        made = FaultRuntime(self.run, seed=self.seed, dt=self.dt, virtual=self.vtime is not None,
                             schedule=self.schedule, network=self.network_spec)
+        self.likes.append(made)
+        return made
+
+    def network_losses(self) -> dict[str, int]:
+        """Messages the network profile lost, per cause, over this runtime and the ones made by :meth:`like`."""
+        out: dict[str, int] = {}
+        for rt in (self, *self.likes):
+            if rt.network is not None:
+                for cause, n in rt.network.stats.lost.items():
+                    out[cause] = out.get(cause, 0) + n
+        return out
 
     def attach(self, bus: Bus, *, meter: bool = True, receiver: int | str | None = None) -> FaultLayer:
         """Install a fault layer (with a link meter unless ``meter=False``) on ``bus`` (several buses in one process
