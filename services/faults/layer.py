@@ -276,7 +276,7 @@ class FaultLayer:
         """Delivery delays for one message on link sender → receiver: [] dropped, [d] once, [d1, d2] duplicated.
 
         ``at`` (virtual time): the message's send time; the faults active then decide, healed ones included.
-        ``msg`` (its identity, e.g. (publisher, key, seq)) and ``size`` (bytes) feed the network model's draws."""
+        ``msg`` (its identity, e.g. (sender, seq); the key is added) and ``size`` (bytes) feed the network model."""
         self._expire()
         self.stats.seen += 1
         if not self._faults and (at is None or not self._history) and self.network is None:
@@ -395,8 +395,8 @@ class FaultLayer:
             at = self.sent_at(sample)
             if self.before_fate is not None:
                 self.before_fate(at)  # the schedule up to the send time: a fault starts at its time everywhere
-        if self.network is not None and sample.key == self._tick_key and sender == "sim":
-            self._observe_tick(sample)
+        if self.network is not None and sample.key == self._tick_key and sample.sender == "sim":
+            self._observe_tick(sample)  # only the sim's own Ticks say where the robots are (not a stray publisher's)
         fate = self.fate(sample.key, sender, rcv, at, msg=(sender, sample.seq), size=len(sample.payload))
         if self.on_fate is not None:
             self.on_fate(sample, fate)
