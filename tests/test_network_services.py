@@ -182,3 +182,20 @@ def test_report_draws_access_points_and_dead_zones(tmp_path):
     cx = 3 * 25 + 1 + 23 / 2
     assert img.getpixel((round(cx) + 3, round(cx) + 3)) == COLORS["access_point"]
     assert COLORS["access_point"] not in {c for _, c in render_frame(Frame(**plain), cell_px=24).getcolors(1 << 16)}
+
+
+async def test_communication_cost_is_counted_in_messages_and_bytes(tmp_path):
+    """Every protocol message is real: the run record counts what the dispatch protocol sent, per kind, in messages
+    and payload bytes, and per delivery and per agent per tick."""
+    cfg = config(tmp_path, "wifi-legacy-roaming", run_id="comm", steps=60)
+    run = await run_local(cfg)
+    summary = json.loads((cfg.record_dir / "summary.json").read_text())
+    comm = summary["communication"]
+    kinds = comm["kinds"]
+    assert set(kinds) == {"sim", "ack", "request", "reply", "commit"}
+    assert comm["messages"] == sum(summary["messages"].get(k, 0) for k in kinds) > 0
+    assert comm["bytes"] == sum(summary["bytes"].get(k, 0) for k in kinds) > comm["messages"]
+    assert summary["messages"]["sim"] >= cfg.steps  # one Tick per step at least (the monitor is not faulted)
+    assert comm["messages_per_agent_tick"] == pytest.approx(comm["messages"] / (cfg.steps * cfg.n_agents))
+    if run.sim.deliveries:
+        assert comm["bytes_per_delivery"] == pytest.approx(comm["bytes"] / run.sim.deliveries)

@@ -36,6 +36,12 @@ def run(args: argparse.Namespace) -> int:
           f"{'/' + config.preset if config.policy == 'morph' else ''} seed {config.seed}: "
           f"{result.sim.steps} ticks, {result.sim.deliveries} deliveries, {links} links at the end, "
           f"{result.sim.steps / wall:.0f} ticks/s")
+    comm = result.monitor.communication(result.sim.steps, config.n_agents)
+    print(f"communication: {comm['messages']} protocol messages, {comm['bytes'] / 1000:.1f} kB"
+          + (f"; per delivery {comm['messages_per_delivery']:.1f} messages, {comm['bytes_per_delivery']:.0f} B"
+             if comm["messages_per_delivery"] is not None else "; no delivery")
+          + f"; per agent per tick {comm['messages_per_agent_tick']:.2f} messages, "
+            f"{comm['bytes_per_agent_tick']:.0f} B")
     if faults is not None and faults.network is not None:
         lost = faults.network_losses()
         print(f"network {config.network}: {len(faults.network.events)} hand-overs, "

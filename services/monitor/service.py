@@ -45,7 +45,9 @@ STREAMS = ("deliveries", "deliveries_total", "requests", "commits", "links", "la
 ACK_HAS_LINKS = "links" in Ack.model_fields  # the wire schema's per-tick link report (else: state rows)
 STOP_GRACE = 3.0  # seconds the monitor waits for the sim's end of run after someone else's stop
 QUIET_EVENTS = ("ready.probe", "ready.ack")
-NET_STREAMS = ("handovers", "in_outage", "outage_seconds")  # what the monitor's own network model can see
+NET_STREAMS = ("handovers", "in_outage", "outage_seconds")
+# what the dispatch protocol sends, by the monitor's message kind (the sim's Ticks and Resolves are kind "sim")
+PROTOCOL_KINDS = ("sim", "ack", "request", "reply", "commit")  # what the monitor's own network model can see
 
 
 @dataclass
@@ -67,7 +69,20 @@ class MonitorResult:
     deliveries_total: int = 0
     rejected: int = 0
     messages: dict[str, int] = field(default_factory=dict)
+    bytes: dict[str, int] = field(default_factory=dict)  # payload bytes per kind, as messages
     finished: dict | None = None
+
+    def communication(self, steps: int, n_agents: int) -> dict:
+        """What the dispatch protocol sent (Ticks and Resolves of the sim, acks, requests, replies, commits — not the
+        skips that synchronise virtual time, nor telemetry): totals, per delivery, per agent per tick."""
+        msgs = sum(self.messages.get(k, 0) for k in PROTOCOL_KINDS)
+        size = sum(self.bytes.get(k, 0) for k in PROTOCOL_KINDS)
+        per = max(1, self.deliveries_total)
+        agent_ticks = max(1, steps * n_agents)
+        return {"kinds": list(PROTOCOL_KINDS), "messages": msgs, "bytes": size,
+                "messages_per_delivery": msgs / per if self.deliveries_total else None,
+                "bytes_per_delivery": size / per if self.deliveries_total else None,
+                "messages_per_agent_tick": msgs / agent_ticks, "bytes_per_agent_tick": size / agent_ticks}
 
 
 class MonitorService:
@@ -164,6 +179,7 @@ class MonitorService:
         head = rel[0]
         kind = head if head != "agent" or len(rel) < 3 else rel[2]
         self.result.messages[kind] = self.result.messages.get(kind, 0) + 1
+        self.result.bytes[kind] = self.result.bytes.get(kind, 0) + len(sample.payload)
         # a sim-time stamp (virtual time, unfaulted here) means no wall latency: never time.time() - sim seconds
         self.stats.observe(kind, sample.key, sample.sender, sample.seq, sample.sent_at,
                            None if sample.sent_at > 1e8 else sample.sent_at)
@@ -438,6 +454,8 @@ class MonitorService:
             "rejected": self.result.rejected, "mean_links": self._links_sum / max(1, self._next_row),
             "sequence_gaps": self.stats.gaps,  # messages lost on the way to the monitor (per sender and key)
             "messages": dict(sorted(self.result.messages.items())),
+            "bytes": dict(sorted(self.result.bytes.items())),
+            "communication": self.result.communication(self._next_row, self.n),
             "finished": self.result.finished,
             "final_links": self._last_values.get("links"),
         }
