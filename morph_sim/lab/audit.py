@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -124,7 +125,9 @@ def summarise_audit(episodes: dict[str, list[dict]], scales) -> list[dict]:
                 if same:
                     p = 1.0
                 elif (name, c) != ("paper", "morph") and len(base[sc]) > 1 and len(d) > 1:
-                    p = float(stats.ttest_ind(d, base[sc], equal_var=False).pvalue)
+                    with warnings.catch_warnings():  # near-constant groups: scipy warns, the p-value stands
+                        warnings.simplefilter("ignore", RuntimeWarning)
+                        p = float(stats.ttest_ind(d, base[sc], equal_var=False).pvalue)
                 row[sc] = {"mean": float(d.mean()), "std": float(d.std()), "per_seed": d.astype(int).tolist(),
                            "gate": float(np.nanmean([e["mean_p_respond"] for e in group])),
                            "links": float(np.mean([e["mean_links"] for e in group])),
