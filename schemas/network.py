@@ -91,7 +91,8 @@ class NetworkProfile(_Spec):
     link_rate: Rate | None = Field(default=None, description="each robot's radio (uplink and downlink each)")
     ap_rate: Rate | None = Field(default=None, description="each access point's shared medium")
     silence_stop: Seconds | None = Field(
-        default=None, description="informational: silence after which AGV software would stop the robot")
+        default=None, description="AGV software's safety stop: a robot whose radio has been silent this long (in a "
+        "hand-over outage) stands still until it hears again; None = robots never stop")
 
 
 def _explain(exc: ValidationError, where: str) -> ValueError:

@@ -199,3 +199,27 @@ async def test_communication_cost_is_counted_in_messages_and_bytes(tmp_path):
     assert comm["messages_per_agent_tick"] == pytest.approx(comm["messages"] / (cfg.steps * cfg.n_agents))
     if run.sim.deliveries:
         assert comm["bytes_per_delivery"] == pytest.approx(comm["bytes"] / run.sim.deliveries)
+
+
+async def test_a_robot_silent_past_silence_stop_stays_where_it_is(tmp_path):
+    """AGV software stops a robot after silence_stop (0.1 s) of silence: under legacy roaming (outages 1.2–4.7 s) a
+    robot is held in place for every step that starts inside [outage start + 0.1 s, outage end); fast roaming's
+    outages (≤ 45 ms) never stop one."""
+    cfg = config(tmp_path, "wifi-legacy-roaming", run_id="stop", steps=120)
+    rt = FaultRuntime.for_service(cfg, "sim")
+    run = await run_local(cfg, faults=rt)
+    assert run.sim.network_stops > 0
+    n = cfg.n_agents
+    pos = {}
+    with open(cfg.record_dir / "positions.csv") as f:
+        for row in csv.reader(f):
+            pos[int(row[0])] = [(int(x), int(y)) for x, y in zip(row[1:1 + n], row[1 + n:1 + 2 * n])]
+    held = 0
+    for t in range(cfg.steps):
+        for robot in rt.network.silenced(t * cfg.dt, 0.1):
+            assert pos[t + 1][robot] == pos[t][robot], (t, robot)
+            held += 1
+    assert held == run.sim.network_stops
+
+    fast = config(tmp_path, "wifi-fast-roaming", run_id="fast", steps=120)
+    assert (await run_local(fast)).sim.network_stops == 0

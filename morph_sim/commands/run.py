@@ -45,9 +45,10 @@ def run(args: argparse.Namespace) -> int:
     if faults is not None and faults.network is not None:
         lost = faults.network_losses()
         print(f"network {config.network}: {len(faults.network.events)} hand-overs, "
-              f"{faults.network.stats.outage_seconds:.1f} robot-seconds of outage; lost "
-              + ", ".join(f"{n} to {cause}" for cause, n in lost.items() if n) if any(lost.values())
-              else f"network {config.network}: {len(faults.network.events)} hand-overs, nothing lost")
+              f"{faults.network.stats.outage_seconds:.1f} robot-seconds of outage, "
+              f"{result.sim.network_stops} robot-steps stopped by silence; "
+              + ("lost " + ", ".join(f"{n} to {cause}" for cause, n in lost.items() if n) if any(lost.values())
+                 else "nothing lost"))
     if not args.no_record:
         print(f"record: {config.record_dir}")
     return 0

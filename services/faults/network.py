@@ -265,6 +265,19 @@ class NetworkModel:
                 events.append(event)
         return events
 
+    def silenced(self, at: float, after: float) -> set[int]:
+        """Robots whose radio has been silent for at least ``after`` seconds at sim time ``at`` (inside a hand-over
+        outage [s, e) with s + after <= at < e): the safety stop of AGV software that hears nothing."""
+        out = set()
+        for robot, radio in self._radios.items():
+            i = bisect.bisect_right(radio.starts, at - after) - 1
+            while i >= 0 and radio.starts[i] + radio.longest > at:
+                if radio.ends[i] > at:
+                    out.add(robot)
+                    break
+                i -= 1
+        return out
+
     def ap_of(self, robot: int) -> int:
         return self._radio(robot).ap
 
@@ -328,10 +341,12 @@ class NetworkModel:
 
     # -- what a monitor shows --------------------------------------------------------------------------------------
     def counters(self, at: float) -> dict[str, float]:
-        """The network as of sim time ``at`` (hand-overs started by then, robots in an outage then) and the messages
-        judged so far, for metric streams ``net/<name>``."""
+        """The network as of sim time ``at`` (hand-overs started by then, robots in an outage then, robots stopped by
+        the profile's silence_stop then) and the messages judged so far, for metric streams ``net/<name>``."""
         started = [e for e in self.events if e.time <= at]
+        stop = self.profile.silence_stop
         out: dict[str, float] = {
+            "stopped": float(len(self.silenced(at, stop))) if stop is not None else 0.0,
             "handovers": float(len(started)),
             "outage_seconds": float(sum(e.outage for e in started)),
             "in_outage": float(sum(1 for r in self._radios.values() if r.outage_end(at) is not None)),

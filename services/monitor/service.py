@@ -45,7 +45,7 @@ STREAMS = ("deliveries", "deliveries_total", "requests", "commits", "links", "la
 ACK_HAS_LINKS = "links" in Ack.model_fields  # the wire schema's per-tick link report (else: state rows)
 STOP_GRACE = 3.0  # seconds the monitor waits for the sim's end of run after someone else's stop
 QUIET_EVENTS = ("ready.probe", "ready.ack")
-NET_STREAMS = ("handovers", "in_outage", "outage_seconds")
+NET_STREAMS = ("handovers", "in_outage", "outage_seconds", "stopped")
 # what the dispatch protocol sends, by the monitor's message kind (the sim's Ticks and Resolves are kind "sim")
 PROTOCOL_KINDS = ("sim", "ack", "request", "reply", "commit")  # what the monitor's own network model can see
 
