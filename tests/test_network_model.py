@@ -203,3 +203,19 @@ def test_robot_to_robot_crosses_two_legs():
     assert model.fate(event.time + 0.1, 1, 0, "m").cause == "handover"
     ok = model.fate(event.end + 1.0, 1, 0, "m2")
     assert not ok.lost and ok.delivered_at > event.end + 1.0  # two legs of 5 ± 3 ms
+
+
+def test_silence_stop_needs_an_outage_longer_than_it():
+    """Legacy roaming's outages (≥ 1.2 s) outlast the 0.1 s safety stop; fast roaming's (≤ 45 ms) never do."""
+    for name, stops in (("wifi-legacy-roaming", True), ("wifi-fast-roaming", False)):
+        model = NetworkModel(quiet(name), TINY, seed=4)
+        drive_along_row(model, 0, y=0)
+        event = model.events[0]
+        stop = load_profile(name).silence_stop
+        assert stop == 0.1
+        times = [event.time + k * 0.01 for k in range(-10, 500)]
+        silenced = [at for at in times if model.silenced(at, stop)]
+        if stops:
+            assert silenced and min(silenced) >= event.time + stop - 1e-9 and max(silenced) < event.end
+        else:
+            assert silenced == []

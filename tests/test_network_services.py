@@ -51,10 +51,17 @@ def recorded_handovers(cfg: RunConfig) -> list[tuple[int, int, int, int, float]]
     return out
 
 
-async def test_legacy_roaming_costs_messages_reports_handovers_and_is_reproducible(tmp_path):
-    cfg = config(tmp_path, "wifi-legacy-roaming")
+@pytest.fixture(scope="module")
+def legacy(tmp_path_factory):
+    """One recorded tiny run under legacy roaming (Full-Graph, 120 steps), shared by the tests that read it."""
+    cfg = config(tmp_path_factory.mktemp("legacy"), "wifi-legacy-roaming")
     rt = FaultRuntime.for_service(cfg, "sim")
-    first = await run_local(cfg, faults=rt)
+    run = asyncio.run(run_local(cfg, faults=rt))
+    return cfg, rt, run
+
+
+async def test_legacy_roaming_costs_messages_reports_handovers_and_is_reproducible(tmp_path, legacy):
+    cfg, rt, first = legacy
     assert first.sim.steps == 120 and first.sim.absences == 0  # an outage is not an absence: the run goes on
     lost = rt.network.stats.lost
     assert lost["dead_zone"] > 0 and lost["loss"] > 0  # the sim's acks and commits (uplinks)
@@ -73,7 +80,7 @@ async def test_legacy_roaming_costs_messages_reports_handovers_and_is_reproducib
     # the run's replay hands over beyond the last tick only through the sim's final Tick: all within the run
     assert all(t <= cfg.steps + 1 for t, *_ in events)
 
-    again = config(tmp_path, "wifi-legacy-roaming", run_id="net2")
+    again = config(tmp_path, "wifi-legacy-roaming", run_id="net")
     await run_local(again)
     assert (again.record_dir / "metrics.csv").read_bytes() == (cfg.record_dir / "metrics.csv").read_bytes()
 
@@ -160,15 +167,14 @@ def test_up_equals_run_under_legacy_roaming_medium(tmp_path):
     check_up_equals_run(tmp_path, "medium", 400)
 
 
-def test_report_draws_access_points_and_dead_zones(tmp_path):
+def test_report_draws_access_points_and_dead_zones(tmp_path, legacy):
     """The report's warehouse GIF of a run under a profile shows the profile's APs (on top) and dead zones (floor)."""
     from PIL import Image
 
     from services.monitor.report import load, warehouse_gif
     from services.sim.world.render import COLORS, Frame, render_frame
 
-    cfg = config(tmp_path, "wifi-legacy-roaming", run_id="gif", steps=20)
-    asyncio.run(run_local(cfg))
+    cfg = legacy[0]
     path = tmp_path / "w.gif"
     assert warehouse_gif(load(cfg.record_dir), path) is not None
     frame = Image.open(path).convert("RGB")
@@ -184,11 +190,10 @@ def test_report_draws_access_points_and_dead_zones(tmp_path):
     assert COLORS["access_point"] not in {c for _, c in render_frame(Frame(**plain), cell_px=24).getcolors(1 << 16)}
 
 
-async def test_communication_cost_is_counted_in_messages_and_bytes(tmp_path):
+def test_communication_cost_is_counted_in_messages_and_bytes(legacy):
     """Every protocol message is real: the run record counts what the dispatch protocol sent, per kind, in messages
     and payload bytes, and per delivery and per agent per tick."""
-    cfg = config(tmp_path, "wifi-legacy-roaming", run_id="comm", steps=60)
-    run = await run_local(cfg)
+    cfg, _, run = legacy
     summary = json.loads((cfg.record_dir / "summary.json").read_text())
     comm = summary["communication"]
     kinds = comm["kinds"]
@@ -201,13 +206,11 @@ async def test_communication_cost_is_counted_in_messages_and_bytes(tmp_path):
         assert comm["bytes_per_delivery"] == pytest.approx(comm["bytes"] / run.sim.deliveries)
 
 
-async def test_a_robot_silent_past_silence_stop_stays_where_it_is(tmp_path):
+def test_a_robot_silent_past_silence_stop_stays_where_it_is(legacy):
     """AGV software stops a robot after silence_stop (0.1 s) of silence: under legacy roaming (outages 1.2–4.7 s) a
-    robot is held in place for every step that starts inside [outage start + 0.1 s, outage end); fast roaming's
-    outages (≤ 45 ms) never stop one."""
-    cfg = config(tmp_path, "wifi-legacy-roaming", run_id="stop", steps=120)
-    rt = FaultRuntime.for_service(cfg, "sim")
-    run = await run_local(cfg, faults=rt)
+    robot stands still in every step that starts inside [outage start + 0.1 s, outage end) (fast roaming's outages
+    never stop one: tests/test_network_model.py)."""
+    cfg, rt, run = legacy
     assert run.sim.network_stops > 0
     n = cfg.n_agents
     pos = {}
@@ -220,6 +223,3 @@ async def test_a_robot_silent_past_silence_stop_stays_where_it_is(tmp_path):
             assert pos[t + 1][robot] == pos[t][robot], (t, robot)
             held += 1
     assert held == run.sim.network_stops
-
-    fast = config(tmp_path, "wifi-fast-roaming", run_id="fast", steps=120)
-    assert (await run_local(fast)).sim.network_stops == 0
