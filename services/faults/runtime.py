@@ -46,8 +46,10 @@ FAULT_TIMES = ("virtual", "wall")
 class FaultRuntime:
     def __init__(self, run: str, *, seed: int = 0, dt: float = 1.0, virtual: bool = True, events: bool = False,
                  schedule: FaultSchedule | None = None, on_crash: CrashHook | None = None,
-                 phase_owner: bool | None = None, network: tuple[str, str] | None = None):
+                 phase_owner: bool | None = None, fleet: int | None = None,
+                 network: tuple[str, str] | None = None):
         self.run = run
+        self.fleet = fleet  # robots in the run: a fault naming another is refused
         # (profile name or file, scale): the run's Wi-Fi (services/faults/network.py), one model per process, fed by
         # the Ticks this process sees; every process's model follows the same trajectories with the same seed
         self.network_spec = network
@@ -95,14 +97,14 @@ class FaultRuntime:
             schedule = load_schedule(config.fault_schedule)
         sim = role == "sim"
         return cls(config.run_id, seed=config.seed, dt=config.dt, virtual=config.fault_time == "virtual",
-                   events=sim, schedule=schedule, on_crash=on_crash,
+                   events=sim, schedule=schedule, on_crash=on_crash, fleet=config.n_agents,
                    network=None if config.network is None else (config.network, config.scale))
 
     def like(self) -> FaultRuntime:
         """A runtime for another process of the same run (same seed, Δ, time and schedule; no events). In-process
         runs (``run_local``) keep them in :attr:`likes`, so a run's totals can be read over all its processes."""
         made = FaultRuntime(self.run, seed=self.seed, dt=self.dt, virtual=self.vtime is not None,
-                            schedule=self.schedule, network=self.network_spec)
+                            schedule=self.schedule, fleet=self.fleet, network=self.network_spec)
         self.likes.append(made)
         return made
 
@@ -148,7 +150,7 @@ class FaultRuntime:
             raise RuntimeError("attach a bus before start()")
         self.controller = FaultController(self._bus, self.run, self.layers, clock=self.now, dt=self.dt,
                                           events=self.events, on_crash=self.on_crash, schedule=self.schedule,
-                                          lock=self.lock, hold_events=self.events)
+                                          lock=self.lock, hold_events=self.events, fleet=self.fleet)
         await self.controller.start()
         if self.phase_owner:
             await self._bus.subscribe(self.keys.skips, self._on_skip, inline=True)
