@@ -61,8 +61,9 @@ with zenoh.open(conf) as session:
 print(json.dumps({"seconds": {k: sorted(v) for k, v in seconds.items()}, "ticks": ticks, "last": last}))
 '''
 
-# Streams that have a value in every second of a default run (dispatch_delay exists only in ticks with a dispatch).
-EVERY_SECOND = set(STREAM_NAMES) - {"dispatch_delay"}
+# Streams that have a value in every second of a default run (dispatch_delay exists only in ticks with a dispatch,
+# net/* only with --network).
+EVERY_SECOND = {name for name in STREAM_NAMES if name != "dispatch_delay" and not name.startswith("net/")}
 
 
 def _user_env() -> dict[str, str]:
