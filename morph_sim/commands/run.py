@@ -32,7 +32,11 @@ def run(args: argparse.Namespace) -> int:
         if crashes:  # nobody here kills and restarts processes: say so instead of running without the crash
             raise ValueError(f"fault_schedule: at[{crashes[0]}] is a crash fault, which needs agent processes and "
                              "a supervisor to kill and restart them: use `morph-sim up`")
-<<<<<<< HEAD
+    faults = None
+    if config.network is not None or config.fault_schedule:
+        from services.faults.runtime import FaultRuntime
+
+        faults = FaultRuntime.for_service(config, "sim")
     if not args.no_record:
         from morph_sim.commands.up import claim_record_dir
 
@@ -47,16 +51,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"tick {t}/{config.steps}  deliveries {deliveries}  {t / (now - started):.0f} ticks/s",
                   file=sys.stderr, flush=True)
 
-    result = asyncio.run(run_local(config, record=not args.no_record, progress=progress))
-=======
-    faults = None
-    if config.network is not None or config.fault_schedule:
-        from services.faults.runtime import FaultRuntime
-
-        faults = FaultRuntime.for_service(config, "sim")
-    started = time.monotonic()
-    result = asyncio.run(run_local(config, record=not args.no_record, faults=faults))
->>>>>>> main
+    result = asyncio.run(run_local(config, record=not args.no_record, faults=faults, progress=progress))
     wall = time.monotonic() - started
     rows = result.monitor.rows
     links = rows[-1]["links"] if rows else 0

@@ -44,7 +44,6 @@ STREAMS = ("deliveries", "deliveries_total", "requests", "commits", "links", "la
            "w_agv_agv", "w_agv_picker", "w_picker_picker")
 ACK_HAS_LINKS = "links" in Ack.model_fields  # the wire schema's per-tick link report (else: state rows)
 STOP_GRACE = 3.0  # seconds the monitor waits for the sim's end of run after someone else's stop
-<<<<<<< HEAD
 QUIET_EVENTS = ("ready.probe", "ready.ack", "record.progress")
 #: every this many rows the monitor says how far its record is (event ``record.progress``, t = rows written): the
 #: lockstep sim keeps at most its window of ticks ahead of it (services/sim/service.py, MONITOR_WINDOW)
@@ -58,12 +57,11 @@ def summary_of_rows(rows: list[dict[str, str]]) -> dict:
     return {"steps": len(rows), "deliveries_total": int(rows[-1]["deliveries_total"] or 0) if rows else 0,
             "mean_links": sum(links) / max(1, len(links)), "final_links": links[-1] if links else None,
             "rows_missing": (int(rows[-1]["t"]) + 1 - len(rows)) if rows else 0}
-=======
-QUIET_EVENTS = ("ready.probe", "ready.ack")
+
+
 NET_STREAMS = ("handovers", "in_outage", "outage_seconds", "stopped")
 # what the dispatch protocol sends, by the monitor's message kind (the sim's Ticks and Resolves are kind "sim")
 PROTOCOL_KINDS = ("sim", "ack", "request", "reply", "commit")  # what the monitor's own network model can see
->>>>>>> main
 
 
 @dataclass
@@ -223,15 +221,11 @@ class MonitorService:
         head = rel[0]
         kind = head if head != "agent" or len(rel) < 3 else rel[2]
         self.result.messages[kind] = self.result.messages.get(kind, 0) + 1
-<<<<<<< HEAD
+        self.result.bytes[kind] = self.result.bytes.get(kind, 0) + len(sample.payload)
         # Latency in the clock of the stamp: a wall stamp (wall fault time) against our wall clock; a sim-time stamp
         # (virtual time) against our sim clock, the start of the last tick we saw: sim seconds that passed while
         # the message travelled (never time.time() minus sim seconds). The stream says which (label "clock").
         wall = sample.sent_at > 1e8
-=======
-        self.result.bytes[kind] = self.result.bytes.get(kind, 0) + len(sample.payload)
-        # a sim-time stamp (virtual time, unfaulted here) means no wall latency: never time.time() - sim seconds
->>>>>>> main
         self.stats.observe(kind, sample.key, sample.sender, sample.seq, sample.sent_at,
                            None if wall else max(self._last_tick, 0) * self.config.dt, clock="wall" if wall else "sim")
         if sample.sender:

@@ -60,18 +60,14 @@ STREAMS: tuple[Stream, ...] = (
     *(Stream(f"link/{c}", "messages", f"cumulative messages {c} per key class (sent: highest sequence number + 1)")
       for c in ("sent", "delivered", "dropped", "duplicated", "late")),
     *(Stream(f"link/latency/{q}", "s", f"observed latency per key class: {q} since the start")
-<<<<<<< HEAD
       for q in ("mean", "max")),
     *(Stream(f"link/latency/{q}", "s", f"observed latency per key class: {q} of the last 4096 messages")
       for q in ("p50", "p90", "p99")),
-=======
-      for q in ("mean", "p50", "p90", "p99", "max")),
     # with a network profile (--network): the robots' Wi-Fi as they drive through it (docs/faults.md)
     Stream("net/handovers", "hand-overs", "cumulative access-point hand-overs of all robots"),
     Stream("net/in_outage", "robots", "robots whose radio is in a hand-over outage at step t"),
     Stream("net/outage_seconds", "s", "cumulative hand-over outage, all robots"),
     Stream("net/stopped", "robots", "robots held in place at step t: silent for the profile's silence_stop"),
->>>>>>> main
 )
 STREAM_NAMES = tuple(s.name for s in STREAMS)
 ROW_STREAMS = ("deliveries", "deliveries_total", "links", "lambda2", "eta", "w_agv_agv", "w_agv_picker",
