@@ -71,6 +71,8 @@ class Child:
     reaped: set[int] = field(default_factory=set)  # pids whose exit was handled
     failures: list[float] = field(default_factory=list)  # monotonic times of unplanned restarts (crash-loop budget)
     planned: dict[int, bool] = field(default_factory=dict)  # pid killed by a crash fault -> restart it cold?
+    # ZENOH_CONFIG naming this process's credentials file (secure runs): a file name, never the secret itself
+    extra_env: dict[str, str] = field(default_factory=dict)
 
     @property
     def pid(self) -> int | None:
@@ -90,7 +92,8 @@ class Child:
             out.write(f"--- start {' '.join(self.spec.argv + extra)} at {time.time():.3f}\n".encode())
             out.flush()
             self.proc = subprocess.Popen(
-                self.spec.command() + list(extra), env=self.spec.environment(), stdin=subprocess.DEVNULL, stdout=out,
+                self.spec.command() + list(extra), env={**self.spec.environment(), **self.extra_env},
+                stdin=subprocess.DEVNULL, stdout=out,
                 stderr=subprocess.STDOUT, start_new_session=True, preexec_fn=_die_with_parent, close_fds=True)
         self.pids.append(self.proc.pid)
 
@@ -143,8 +146,10 @@ class Supervisor:
 
     def __init__(self, config: RunConfig, *, endpoint: str | None = None,
                  on_progress: Callable[[Progress, str], None] | None = None, ready_timeout: float | None = None,
-                 stall_timeout: float | None = None):
+                 stall_timeout: float | None = None, insecure: bool = False):
         from services.bus.zenoh_bus import endpoint as make_endpoint, free_port
+        from services.credentials import RunCredentials, run_credentials
+        from services.supervisor.process import ZENOH_CONFIG_ENV
 
         self.config = config
         self.external = config.endpoint is not None
@@ -152,6 +157,16 @@ class Supervisor:
         self.specs = process_graph(config, self.endpoint)
         logs = config.record_dir / "logs"
         self.children = {spec.name: Child(spec, logs / f"{spec.name}.log") for spec in self.specs}
+        # Secure by default: the embedded endpoint admits only this run's processes and the operator, each with its
+        # own password, and enforces who may publish what (services/credentials.py). An external router's security
+        # is its deployment's (docs/deploy.md); --insecure keeps the endpoint open.
+        self.insecure = insecure
+        self.credentials: RunCredentials | None = None
+        if not insecure and not self.external:
+            self.credentials = RunCredentials.create(run_credentials(config.record_dir).directory, config.run_id,
+                                                     config.n_agents)
+            for child in self.children.values():
+                child.extra_env[ZENOH_CONFIG_ENV] = str(self.credentials.for_role(child.spec.role, child.spec.agent))
         self.progress = Progress()
         self.on_progress = on_progress
         self.ready_timeout = config.ready_timeout if ready_timeout is None else ready_timeout
@@ -287,9 +302,10 @@ class Supervisor:
         raise StartError(f"sim did not open {self.endpoint} within {self.ready_timeout:.0f} s:\n{sim.log_tail()}")
 
     async def _open_bus(self):
-        from services.bus.zenoh_bus import ZenohBus
+        from services.supervisor.process import open_bus
 
-        return await ZenohBus.open("supervisor", connect=self.endpoint)
+        operator = None if self.credentials is None else str(self.credentials.operator)
+        return await open_bus("supervisor", connect=self.endpoint, config_file=operator)
 
     async def _watch(self, bus) -> int:
         from schemas import MetricSample, Stop
