@@ -46,7 +46,7 @@ MONITOR = "monitor"
 # fails to forward it to every lowlatency subscriber at once, dropping every agent's session (measured with zenoh
 # 1.10.2: 48.5 KB forwarded, 50 KB disconnected every subscriber). The largest message of a run is a Tick (about
 # 45 bytes per robot: 1.2 KB for 24 robots), so 32 KiB leaves room for ~700 robots and a margin below the failure.
-MAX_MESSAGE_BYTES = 32 * 1024
+from schemas.limits import MAX_MESSAGE_BYTES  # noqa: E402
 
 
 def user_of_agent(agent: int) -> str:
