@@ -8,6 +8,7 @@ directory per run, owner-only (0700, every file 0600)::
     operator.json5       the operator's client config (up's supervisor, watch, faults, record, stop)
     monitor.json5        the monitor's client config
     agent-<N>.json5      robot N's client config
+    where                the endpoint the run is hosted on (not a secret: how ``watch`` finds the run's files)
 
 A process is handed its file through ``ZENOH_CONFIG`` (the variable names a file; no secret is ever on a command
 line, where ``ps`` shows it). The sim hosts the endpoint with ``endpoint.json5``; every other process connects with its
@@ -38,6 +39,7 @@ from schemas.keys import ROOT, validate_run_id
 DIRNAME = "credentials"
 ENDPOINT_FILE = "endpoint.json5"
 PASSWORDS_FILE = "passwords.txt"
+WHERE_FILE = "where"
 OPERATOR = "operator"
 MONITOR = "monitor"
 
@@ -71,9 +73,11 @@ def access_control(run_id: str, n_agents: int) -> dict:
     agents = [user_of_agent(a) for a in range(n_agents)]
     everyone = [OPERATOR, MONITOR, *agents]
     rules = [
+        # morph/** rather than this run's prefix: a subscriber on morph/*/metrics/** (any run on this endpoint,
+        # which hosts only this one) must be allowed too; observing publishes nothing
         {"id": "observe", "flows": ["ingress", "egress"], "permission": "allow",
          "messages": ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
-         "key_exprs": [f"{run}/**"]},
+         "key_exprs": [f"{ROOT}/**"]},
         {"id": "receive", "flows": ["egress"], "permission": "allow",
          "messages": ["put", "delete", "reply", "query", "liveliness_token", "declare_queryable"],
          "key_exprs": [f"{run}/**"]},
@@ -163,7 +167,7 @@ class RunCredentials:
         return self.operator
 
     @classmethod
-    def create(cls, directory: Path, run_id: str, n_agents: int) -> RunCredentials:
+    def create(cls, directory: Path, run_id: str, n_agents: int, where: str | None = None) -> RunCredentials:
         """Fresh random passwords for the operator, the monitor and every robot, written owner-only."""
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True, mode=0o700)
@@ -176,6 +180,8 @@ class RunCredentials:
             endpoint_config(run_id, n_agents, directory / PASSWORDS_FILE), indent=1) + "\n")
         for user, password in passwords.items():
             _write_private(directory / f"{user}.json5", json.dumps(client_config(user, password)) + "\n")
+        if where:
+            _write_private(directory / WHERE_FILE, where + "\n")
         return creds
 
 
@@ -192,3 +198,16 @@ def operator_config_path(record_dir: Path, environ: dict[str, str] | None = None
         return env["ZENOH_CONFIG"]
     path = run_credentials(record_dir).operator
     return str(path) if path.is_file() else None
+
+
+def find_operator_config(output_dir: Path, where: str) -> str | None:
+    """The operator config of the newest run under ``output_dir`` hosted on endpoint ``where`` (``watch --endpoint``
+    without ``--run``), or None."""
+    found = []
+    for path in Path(output_dir).glob(f"*/{DIRNAME}/{WHERE_FILE}"):
+        try:
+            if path.read_text().strip() == where and (path.parent / f"{OPERATOR}.json5").is_file():
+                found.append((path.stat().st_mtime, path.parent / f"{OPERATOR}.json5"))
+        except OSError:
+            continue
+    return str(max(found)[1]) if found else None

@@ -247,8 +247,8 @@ async def subscribe_metrics(bus, run_id: str, handler: Callable[[MetricSample], 
 
 #: The README's subscriber example (tests/test_readme_example.py runs it against a live ``morph-sim up``).
 README_EXAMPLE = '''\
-import time, msgpack, zenoh  # after: morph-sim up --listen tcp/127.0.0.1:7447 --steps 5000
-conf = zenoh.Config.from_json5('{mode: "client", connect: {endpoints: ["tcp/127.0.0.1:7447"]}}')
+import time, msgpack, zenoh  # after: morph-sim up --run-id demo --listen tcp/127.0.0.1:7447 --steps 5000
+conf = zenoh.Config.from_file("runs/demo/credentials/operator.json5"); conf.insert_json5("mode", '"client"'); conf.insert_json5("connect/endpoints", '["tcp/127.0.0.1:7447"]')
 with zenoh.open(conf) as session:
     session.declare_subscriber("morph/*/metrics/**", lambda s: print(s.key_expr, msgpack.unpackb(s.payload.to_bytes())))
     time.sleep(10)

@@ -164,7 +164,7 @@ class Supervisor:
         self.credentials: RunCredentials | None = None
         if not insecure and not self.external:
             self.credentials = RunCredentials.create(run_credentials(config.record_dir).directory, config.run_id,
-                                                     config.n_agents)
+                                                     config.n_agents, where=self.endpoint)
             for child in self.children.values():
                 child.extra_env[ZENOH_CONFIG_ENV] = str(self.credentials.for_role(child.spec.role, child.spec.agent))
         self.progress = Progress()

@@ -106,11 +106,13 @@ def operator_credentials(args, run_id: str | None, output_dir=None) -> str | Non
 
     if getattr(args, "credentials", None):
         return args.credentials
+    out = Path(output_dir if output_dir is not None else getattr(args, "output_dir", None) or "runs")
     if run_id is None:
         import os
 
-        return os.environ.get(ZENOH_CONFIG_ENV) or None
-    out = Path(output_dir if output_dir is not None else getattr(args, "output_dir", None) or "runs")
+        from services.credentials import find_operator_config
+
+        return os.environ.get(ZENOH_CONFIG_ENV) or find_operator_config(out, getattr(args, "endpoint", "") or "")
     return operator_config_path(out / run_id)
 
 
