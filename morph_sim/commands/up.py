@@ -39,7 +39,13 @@ def run(args: argparse.Namespace) -> int:
         if progress.finished:
             console.print(line)
 
-    supervisor = Supervisor(config, on_progress=show, insecure=args.insecure)
+    try:
+        supervisor = Supervisor(config, on_progress=show, insecure=args.insecure)
+    except StartError as exc:
+        if status is not None:
+            status.stop()
+        print(f"morph-sim up: error: {exc}", file=sys.stderr)
+        return 1
     if supervisor.credentials is not None:
         print(f"run {config.run_id}: secured endpoint {supervisor.endpoint}; operator credentials "
               f"{supervisor.credentials.operator} (watch/faults/record/stop find them with --run {config.run_id})",

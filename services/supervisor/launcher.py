@@ -157,11 +157,17 @@ class Supervisor:
         self.specs = process_graph(config, self.endpoint)
         logs = config.record_dir / "logs"
         self.children = {spec.name: Child(spec, logs / f"{spec.name}.log") for spec in self.specs}
+        from services.faults.schedule import load_schedule
+
+        # a bad schedule file fails now, before anything is written or started
+        self.schedule = load_schedule(config.fault_schedule, config.n_agents) if config.fault_schedule else None
         # Secure by default: the embedded endpoint admits only this run's processes and the operator, each with its
         # own password, and enforces who may publish what (services/credentials.py). An external router's security
         # is its deployment's (docs/deploy.md); --insecure keeps the endpoint open.
         self.insecure = insecure
         self.credentials: RunCredentials | None = None
+        if not self.external:
+            self._check_port_free()  # StartError naming the port, before anything is written or started
         if not insecure and not self.external:
             self.credentials = RunCredentials.create(run_credentials(config.record_dir).directory, config.run_id,
                                                      config.n_agents, where=self.endpoint)
@@ -178,9 +184,7 @@ class Supervisor:
         # Crash faults (issue 5): specs from the schedule file or `morph-sim faults set` land in the planner (the
         # ctl/faults controller's on_crash hook); each tick the due actions are carried out on the agents' pids.
         from services.faults.crash import CrashPlanner, ProcessFaulter
-        from services.faults.schedule import load_schedule
 
-        self.schedule = load_schedule(config.fault_schedule) if config.fault_schedule else None  # bad file: fail now
         self.planner = CrashPlanner(config.n_agents, config.seed)
         # pause_for is in sim seconds: paced runs map it through the period, lock-step runs at 1 wall s per sim s
         self.faulter = ProcessFaulter(self._agent_pid,
@@ -277,6 +281,24 @@ class Supervisor:
             return await self._watch(bus)
         finally:
             await bus.close()
+
+    def _check_port_free(self) -> None:
+        """The endpoint's port must be ours to listen on: if another program holds it, the wait for the sim's port
+        below would connect to that program and the run would fail later with a misleading reason."""
+        import socket
+
+        proto, _, addr = self.endpoint.partition("/")
+        host, _, port = addr.rpartition(":")
+        if proto != "tcp" or not port.isdigit():
+            return
+        family = socket.AF_INET6 if ":" in host.strip("[]") else socket.AF_INET
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                probe.bind((host.strip("[]"), int(port)))
+            except OSError as exc:
+                raise StartError(f"port {port} of {self.endpoint} (--listen) is not free: {exc.strerror}; another "
+                                 "program holds it; choose another port or leave --listen out") from None
 
     async def _wait_endpoint(self, sim: Child) -> None:
         if self.external:
