@@ -341,14 +341,24 @@ class Supervisor:
                 msg = sample.decode(MetricSample)
             except ValueError:
                 return
+            if sample.sender != "monitor" or not 0 <= msg.t <= self.config.steps:
+                return  # progress drives crash faults and the stall watchdog: only the monitor's, within the run
             if msg.value is not None:
                 self.progress.update(msg.name, msg.t, msg.value)
 
         await bus.subscribe(keys.metrics, on_metric)
 
+        from services.tickorder import TickOrder
+
+        ticks = TickOrder(self.config.steps)  # a forged tick must not fire the crash faults of the ticks it skips
+
         def on_tick(sample) -> None:  # every tick (the metric stream is decimated): crash faults hit their tick
             try:
+                if sample.sender != "sim":
+                    return
                 t = decode_tick(sample.payload).t  # validated, without building the model (0.6-0.9 ms a tick)
+                if not ticks.admit(t):
+                    return
             except ValueError:
                 return
             if self.progress.t < t < self.config.steps:  # (a final Tick t = steps closes the run)
