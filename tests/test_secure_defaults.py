@@ -112,7 +112,7 @@ def test_the_operator_stops_a_secure_run_and_nobody_else_can(tmp_path):
     try:
         metrics = tmp_path / run_id / "metrics.csv"
         deadline = time.monotonic() + 90
-        while not metrics.exists() or metrics.read_text().count("\n") < 20:
+        while not metrics.exists() or metrics.read_text().count("\n") < 3:
             assert up.poll() is None and time.monotonic() < deadline, "up did not start its run"
             time.sleep(0.2)
         # with a robot's credentials the stop is refused by the endpoint (the command sends it, nobody hears it)
