@@ -17,6 +17,7 @@ own file. What the access control allows (default deny; docs/deploy.md shows the
 * every user may subscribe and watch liveliness under the run, and receive what is routed to it;
 * robot N may publish only under ``agent/N/**``, ``alive/N`` and ``events/N``, and answer fault-list queries;
 * the monitor publishes ``metrics/**``, its token and events, and answers ``state/**``;
+* ``up``'s supervisor connects as the operator and answers fault queries for the crash faults it carries out;
 * only the operator may put on ``ctl/**`` (stop, faults), query ``ctl/faults`` (``faults set`` is a query) and publish
   the supervisor's events; nobody else may query ``ctl/**``;
 * the sim publishes ``sim/**``, ``events/sim`` and the end-of-run ``ctl/stop`` from inside the endpoint (its own
@@ -96,7 +97,8 @@ def access_control(run_id: str, n_agents: int) -> dict:
     ]
     policies = [
         {"id": "everyone", "rules": ["observe", "receive", "ask"], "subjects": everyone},
-        {"id": "fault-answers", "rules": ["answer-fault-queries"], "subjects": [MONITOR, *agents]},
+        # up's supervisor (operator credentials) carries out crash faults and answers for them
+        {"id": "fault-answers", "rules": ["answer-fault-queries"], "subjects": [OPERATOR, MONITOR, *agents]},
         {"id": "monitor", "rules": ["monitor-publish", "monitor-serve"], "subjects": [MONITOR]},
         {"id": "operator", "rules": ["operator-control", "operator-query"], "subjects": [OPERATOR]},
     ]
