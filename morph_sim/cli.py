@@ -57,7 +57,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:  # config validation errors: one clear line, no traceback
         print(f"morph-sim {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except ConnectionError as exc:  # no endpoint there (watch, faults, record … against no run): one line
+    except ConnectionError as exc:  # no endpoint there, or it refuses these credentials: one line
         print(f"morph-sim {args.command}: error: {exc}", file=sys.stderr)
         return 1
 

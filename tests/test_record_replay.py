@@ -64,9 +64,11 @@ def test_record_and_replay_commands_against_a_live_up_run(tmp_path):
         import time
 
         wait_for_port(port, up, time.monotonic() + 60, 0.1)
-        # no run flags: the recorder learns the run's configuration from the run
+        # no run flags: the recorder learns the run's configuration from the run; the operator's credentials are
+        # found in the run directory (--output-dir) that `up` wrote them to
         rec = subprocess.run([sys.executable, "-m", "morph_sim.cli", "record", "--run-id", "recup", "--endpoint",
-                              f"tcp/127.0.0.1:{port}", "--out", str(tmp_path / "up.mbr"), "--timeout", "90"],
+                              f"tcp/127.0.0.1:{port}", "--out", str(tmp_path / "up.mbr"), "--timeout", "90",
+                              "--output-dir", str(tmp_path / "live")],
                              capture_output=True, text=True, timeout=120)
         assert rec.returncode == 0, rec.stderr[-2000:]
         assert rec.stderr.startswith("recording run recup (tiny, 150 steps)"), rec.stderr

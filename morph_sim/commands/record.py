@@ -22,6 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="run id (default: the run whose monitor is alive on the endpoint)")
     parser.add_argument("--timeout", type=float, default=None, help="stop after this many seconds")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    _operator_args(parser)
 
 
 async def run_config(bus, run_id: str, timeout: float = CONFIG_WAIT):
@@ -49,6 +50,12 @@ async def run_config(bus, run_id: str, timeout: float = CONFIG_WAIT):
         await asyncio.sleep(0.2)
 
 
+def _operator_args(parser) -> None:
+    from services.supervisor.process import add_operator_arguments
+
+    add_operator_arguments(parser)
+
+
 def run(args: argparse.Namespace) -> int:
     import asyncio
     import signal
@@ -59,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     from schemas.keys import RunKeys, validate_run_id
     from services.monitor.replay import BusRecorder
     from services.runconfig import RunConfig
-    from services.supervisor.process import open_bus
+    from services.supervisor.process import open_operator_bus
 
     if args.run is not None:
         validate_run_id(args.run)
@@ -72,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
             print(line, file=sys.stderr, flush=True)
 
     async def main() -> tuple[int, str]:
-        bus = await open_bus("recorder", connect=args.endpoint)
+        bus = await open_operator_bus("recorder", args.endpoint, args, args.run)
         try:
             run_id = args.run
             if run_id is None:

@@ -36,6 +36,7 @@ from services.monitor.recorder import Recorder, read_metrics
 from services.monitor.streams import MessageStats
 from services.rejects import Rejects
 from services.runconfig import RunConfig
+from services.tickorder import TickOrder
 
 log = logging.getLogger("morph_sim.monitor")
 
@@ -108,6 +109,7 @@ class MonitorService:
         self.config = config
         self._rejects = Rejects(log, "monitor")
         self.bus = bus
+        bus.reject_hook = self._reject  # oversized messages refused on arrival count here
         self.keys = RunKeys(config.run_id)
         self.n = config.n_agents
         self.is_agv = np.arange(self.n) < config.n_agvs
@@ -118,6 +120,7 @@ class MonitorService:
         self._rows: dict[int, Row] = {}
         self._next_row = 0
         self._last_tick = -1
+        self._ticks = TickOrder(config.steps)  # which ticks the record takes (services/tickorder.py)
         self._total = 0
         self._states: dict[int, dict[int, AgentState]] = {}  # tick -> agent -> state
         self.latest_state: dict[int, AgentState] = {}
@@ -226,8 +229,11 @@ class MonitorService:
         # (virtual time) against our sim clock, the start of the last tick we saw: sim seconds that passed while
         # the message travelled (never time.time() minus sim seconds). The stream says which (label "clock").
         wall = sample.sent_at > 1e8
-        self.stats.observe(kind, sample.key, sample.sender, sample.seq, sample.sent_at,
-                           None if wall else max(self._last_tick, 0) * self.config.dt, clock="wall" if wall else "sim")
+        if not self.stats.observe(kind, sample.key, sample.sender, sample.seq, sample.sent_at,
+                                  None if wall else max(self._last_tick, 0) * self.config.dt,
+                                  clock="wall" if wall else "sim"):
+            self._reject(sample.key, f"sequence number {sample.seq} of {sample.sender!r} jumps too far ahead")
+            return
         if sample.sender:
             # the link meter's latency in the same clock as the stamp (see above)
             sent = sample.sent_at
@@ -235,6 +241,8 @@ class MonitorService:
                                    time.time() if wall else max(self._last_tick, 0) * self.config.dt)
         try:
             if head == "sim" and rel[1:] == ["tick"]:
+                if sample.sender != "sim":
+                    raise ValueError(f"tick published by {sample.sender!r}, not the sim")
                 self._on_tick(decode_tick(sample.payload))  # validated, as arrays (schemas/hot.py)
             elif head == "agent" and len(rel) == 3:
                 if rel[2] == "ack":
@@ -244,7 +252,7 @@ class MonitorService:
                 elif rel[2] == "state":
                     self._on_state(sample.decode(AgentState), rel[1])
             elif head == "events" and len(rel) == 2:
-                self._on_event(sample.decode(Event))
+                self._on_event(sample.decode(Event), rel[1])
             elif head == "ctl" and rel[1:] == ["stop"]:
                 sample.decode(Stop)
                 if sample.sender == "sim":
@@ -266,7 +274,7 @@ class MonitorService:
     def _on_tick(self, tick: TickArrays) -> None:
         if tick.n != self.n:
             raise ValueError(f"tick has {tick.n} robots, this fleet {self.n}")
-        if tick.t <= self._last_tick:
+        if not self._ticks.admit(tick.t):
             return
         if self._last_tick < 0 and self.recorder is not None and self.recorder.resume_from is not None:
             self._resume(tick)
@@ -347,6 +355,10 @@ class MonitorService:
 
     def _on_commit(self, commit: Commit, chunk: str) -> None:
         self._check_sender(chunk, commit.picker)
+        if commit.picker < self.config.n_agvs or not 0 <= commit.agv < self.config.n_agvs:
+            raise ValueError(f"commit of robot {commit.picker} to robot {commit.agv}: a picker commits to an AGV")
+        if not 0 <= commit.t <= self._last_tick + 1:
+            raise ValueError(f"commit of tick {commit.t}, the run is at tick {self._last_tick}")
         row = self._row(commit.t)
         if row is not None:
             row.commits += 1
@@ -389,7 +401,12 @@ class MonitorService:
                 self.recorder.snapshot(t, W, A)
         del self._states[t]
 
-    def _on_event(self, event: Event) -> None:
+    def _on_event(self, event: Event, chunk: str | None = None) -> None:
+        """``chunk``: the ``events/<chunk>`` key it came on (None: handed over in-process, e.g. by a test)."""
+        if chunk is not None and str(event.source) != chunk:
+            raise ValueError(f"event of {event.source!r} on the key of {chunk}")
+        if event.kind == "run.finished" and chunk not in (None, "sim"):
+            raise ValueError(f"run.finished from {chunk}: only the sim ends a run")
         if event.kind in QUIET_EVENTS:
             if event.kind == "ready.probe":
                 self.bus._spawn(self.bus.publish(self.keys.event("monitor"), Event(
