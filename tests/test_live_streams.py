@@ -29,8 +29,14 @@ from test_long_run import END_LAG, MONITOR_RSS_BOUND
 # A default-settings client (a user's script): per one-second window, the streams seen; the last deliveries_total.
 SUBSCRIBER = r'''
 import json, sys, time, collections, msgpack, zenoh
-port, run, duration = sys.argv[1], sys.argv[2], float(sys.argv[3])
-conf = zenoh.Config.from_json5('{mode: "client", connect: {endpoints: ["tcp/127.0.0.1:%s"]}}' % port)
+port, run, duration, credentials = sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4]
+while True:  # `up` writes the run's operator credentials before it starts the sim
+    try:
+        conf = zenoh.Config.from_file(credentials)
+        break
+    except Exception:
+        time.sleep(0.1)
+conf.insert_json5("mode", '"client"'); conf.insert_json5("connect/endpoints", '["tcp/127.0.0.1:%s"]' % port)
 seconds = collections.defaultdict(set)
 ticks = collections.defaultdict(int)
 last = {}
@@ -83,10 +89,12 @@ def test_streams_flow_every_second_and_live_views_end_on_the_record(tmp_path, st
     rss: list[int] = []
     try:
         wait_for_port(port, up, time.monotonic() + 60, 0.05)
-        sub = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, str(port), run, "240"], stdout=subprocess.PIPE,
+        credentials = tmp_path / run / "credentials" / "operator.json5"  # the README's subscriber uses them too
+        sub = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, str(port), run, "240", str(credentials)],
+                               stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True, env=_user_env())
         watch = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "watch", "--run", run, "--endpoint",
-                                  f"tcp/127.0.0.1:{port}", "--duration", "240"],
+                                  f"tcp/127.0.0.1:{port}", "--duration", "240", "--output-dir", str(tmp_path)],
                                  stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
         deadline = time.monotonic() + 240
         while up.poll() is None and time.monotonic() < deadline:  # the monitor's memory while the run goes on

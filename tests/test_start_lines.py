@@ -20,7 +20,7 @@ def _first_line(proc: subprocess.Popen, timeout: float = 60.0) -> str:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         line = proc.stderr.readline()
-        if line.startswith("morph-sim "):
+        if line.startswith("morph-sim ") and ": warning: " not in line:
             return line.strip()
         assert line or proc.poll() is None, "ended without a start line"
     raise AssertionError("no start line")
