@@ -8,8 +8,8 @@ import pytest
 
 from schemas import MetricSample
 from services.bus.local import LocalNetwork
-from services.monitor.streams import (STREAM_NAMES, Decimator, Histogram, MessageStats, markdown_table,
-                                                subscribe_metrics)
+from services.monitor.catalogue import BY_NAME, NAMES
+from services.monitor.streams import Decimator, Histogram, MessageStats, subscribe_metrics
 from services.runconfig import RunConfig
 from services.supervisor.local import run_local
 
@@ -23,10 +23,11 @@ async def test_every_documented_stream_is_published_during_a_run(tmp_path):
     run = await run_local(config, network=net)
     await asyncio.sleep(0.05)
     await watcher.close()
-    missing = set(STREAM_NAMES) - set(seen)
+    missing = set(NAMES) - set(seen)
     assert not missing, f"documented but never published: {sorted(missing)}"
     for name, samples in seen.items():
-        assert name in STREAM_NAMES, name
+        assert name in NAMES, name
+        assert {s.unit for s in samples} == {BY_NAME[name].unit}, f"{name}: the catalogue's unit on the wire"
         s = samples[-1]
         assert s.v == MetricSample.VERSION and s.t >= 0 and s.sim_time >= 0
     assert seen["deliveries_total"][-1].value == run.monitor.deliveries_total
@@ -81,12 +82,6 @@ def test_message_stats_count_sequence_gaps_dispatch_delay_and_buckets():
     for v in (0.05, 0.1, 0.5, 3.0):
         h.observe(v)
     assert h.cumulative() == [("0.1", 2), ("1.0", 3), ("+Inf", 4)]
-
-
-def test_the_readme_table_lists_every_stream():
-    table = markdown_table()
-    for name in STREAM_NAMES:
-        assert f"`{name}`" in table
 
 
 def _sustain(tmp_path, scale: str, agvs: int, pickers: int, steps: int) -> dict:

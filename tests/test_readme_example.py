@@ -1,4 +1,5 @@
-"""The README's five-line subscriber example works as written against a live ``morph-sim up`` (issue 6)."""
+"""The README's five-line subscriber example works as written against a live ``morph-sim up``; the README's table of
+metric streams is the catalogue's."""
 
 from __future__ import annotations
 
@@ -13,27 +14,42 @@ import pytest
 from pathlib import Path
 
 from services.bus.zenoh_bus import free_port
-from services.monitor.streams import README_EXAMPLE, STREAM_NAMES
+from services.monitor import catalogue
 
 from _procs import wait_for_port
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
 
-def test_the_readme_shows_the_tested_example():
+def _metrics_section() -> str:
     text = README.read_text(encoding="utf-8")
-    assert "## Metric streams" in text
-    assert README_EXAMPLE.strip() in text
-    for name in STREAM_NAMES:
-        assert f"`{name}`" in text
+    start = text.index("## Metric streams")
+    return text[start:text.index("\n## ", start + 1)]
+
+
+def readme_example() -> str:
+    """The README's subscriber example: the one python block of its metric streams section."""
+    blocks = re.findall(r"```python\n(.*?)```", _metrics_section(), re.S)
+    assert len(blocks) == 1, "the metric streams section shows one python example"
+    return blocks[0]
+
+
+def test_the_readme_table_of_streams_is_the_catalogue():
+    section = _metrics_section()
+    assert catalogue.markdown_table() in section, "README table != services.monitor.catalogue.markdown_table()"
+    for name in catalogue.prometheus_names():
+        assert f"`{name}" in section, f"Prometheus family {name} missing from the README"
+
+
+def test_the_readme_example_is_five_lines():
+    assert len(readme_example().strip().splitlines()) == 5
 
 
 # ~15 s. It used to fail in 1 of 3 runs: express publishers on our lowlatency sessions starved a default-settings
 # client (see tests/test_bus_zenoh.py::test_a_default_settings_client_receives_every_sample_through_the_endpoint).
 def test_the_example_prints_metrics_of_a_live_up_run(tmp_path):
-    assert len(README_EXAMPLE.strip().splitlines()) == 5
     port = free_port()
-    code = README_EXAMPLE.replace("7447", str(port))
+    code = readme_example().replace("7447", str(port))
     # up's output goes to a file (an unread pipe can fill and stall the supervisor), and the example runs with the
     # environment a user has: no Zenoh settings inherited from this test process.
     up_log = tmp_path / "up.log"

@@ -38,7 +38,7 @@ from services.agent.policies import (
     ProximityPolicy,
     TSGPolicy,
 )
-from services.monitor import metrics
+from services.monitor import catalogue, metrics
 from services.sim.world.cta import CTAController, resolve_requests
 from services.sim.world.warehouse import Warehouse, WarehouseConfig
 
@@ -385,9 +385,7 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
         "mean_p_respond": stats.p_sum / stats.decisions if stats.decisions else float("nan"),
         "share_above_floor": stats.w_positive / stats.decisions if stats.decisions else float("nan"),
         "divergent_dispatch_ticks": stats.divergent_ticks,
-        "w_agv_agv": blocks.agv_agv,
-        "w_agv_picker": blocks.agv_picker,
-        "w_picker_picker": blocks.picker_picker,
+        **catalogue.w_block_values(blocks),
         "w_asymmetry": float(np.abs(W - W.T).max()),
     }
     if not brains.memoryless:

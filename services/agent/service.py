@@ -37,9 +37,6 @@ log = logging.getLogger("morph_sim.agent")
 
 STOP_GRACE = 3.0  # seconds an agent waits for the sim's end of run after someone else's stop
 
-def _ack_fields() -> set[str]:
-    return set(Ack.model_fields)
-
 
 @dataclass
 class AgentCounters:
@@ -75,7 +72,6 @@ class AgentService:
         self.brains = config.make_policy().brains(fleet, [agent_id], config.seed)
         self.counters = AgentCounters()
         self.last_t = -1
-        self._ack_extras = _ack_fields() & {"links", "eta"}
         self._stop = asyncio.Event()
         self._seq = 0
         # picker side: requests received per tick, and the resolve being decided
@@ -270,19 +266,13 @@ class AgentService:
                         mission=int(obs.mission[self.id]), seq=self._next_seq()))
                     self.counters.requests += 1
                     asked.append(picker)
-        extras = {}
-        if "links" in self._ack_extras:
-            extras["links"] = self.brains.out_links(self.id)
-        if "eta" in self._ack_extras:
-            extras["eta"] = float(self.brains.state.eta) if isinstance(self.brains, MorphBrains) else None
-        # Without per-tick links in the ack (older wire schema) the state row carries them every tick.
-        publish_state = tick.t % self.config.state_every == 0 or final or "links" not in self._ack_extras
+        eta = float(self.brains.state.eta) if isinstance(self.brains, MorphBrains) else None
+        publish_state = tick.t % self.config.state_every == 0 or final
         # encoded from plain values (no model round trip: the hot path, codec.encode_fields)
         ack = encode_fields(Ack, t=tick.t, agent=self.id, phase=int(Phase.TICK), requests_sent=asked,
-                            seq=self._next_seq(), **extras)
-        if publish_state and (final or "links" not in self._ack_extras):
-            # Before the ack, on the same link: the last state must reach the monitor before the run ends, and a
-            # state that carries the per-tick links of step t−1 before tick t+1 (the monitor closes row t−1 then).
+                            seq=self._next_seq(), links=self.brains.out_links(self.id), eta=eta)
+        if final:
+            # Before the ack, on the same link: the last state must reach the monitor before the run ends.
             self.bus.put(self.keys.agent_state(self.id), self.state_message(tick.t))
             publish_state = False
         self.bus.put(self.keys.ack(self.id), ack)  # the ack first: it is on the sim's critical path
