@@ -22,10 +22,11 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from schemas.errors import invalid
 from schemas.keys import validate_run_id
+from services.agent.policies import POLICY_NAMES
 
 ENV_PREFIX = "MORPH_"
-POLICIES = ("full", "constant", "tsg", "proximity", "none", "morph")
 PRESETS = ("reference", "paper")
 
 
@@ -43,7 +44,7 @@ class RunConfig(BaseModel):
     scale: str = Field(default="tiny", description="warehouse size: tiny, small, medium, large, extralarge")
     agvs: int | None = Field(default=None, ge=1, le=2048, description="number of AGVs (default: the scale's)")
     pickers: int | None = Field(default=None, ge=1, le=2048, description="number of pickers (default: the scale's)")
-    policy: Literal["full", "constant", "tsg", "proximity", "none", "morph"] = Field(
+    policy: Literal[POLICY_NAMES] = Field(  # type: ignore[valid-type]
         default="morph", description="coordination policy")
     preset: Literal["reference", "paper"] = Field(default="reference", description="MORPH preset")
     ablation: str | None = Field(default=None, description="MORPH ablation name (None = full model)")
@@ -163,9 +164,7 @@ class RunConfig(BaseModel):
         try:
             return cls(**{k: v for k, v in values.items() if v is not None})
         except ValidationError as exc:
-            err = exc.errors(include_url=False)[0]
-            field = ".".join(str(p) for p in err.get("loc", ())) or "config"
-            raise ValueError(f"{field}: {err.get('msg')}") from None
+            raise invalid(exc) from None
 
     def to_env(self) -> dict[str, str]:
         """Environment variables (``MORPH_<FIELD>``) that reproduce this config through :meth:`from_env`."""

@@ -20,7 +20,7 @@ from _yaml_subset import YamlSubsetError, defaults_of, interpolate, loads
 from morph_sim.cli import build_parser
 from services import envconfig
 from services.runconfig import RunConfig, config_from_args
-from services.supervisor.graph import CHILD_ENV, process_graph
+from services.supervisor.graph import process_graph
 
 ROOT = Path(__file__).resolve().parent.parent
 COMPOSE = loads((ROOT / "docker-compose.yml").read_text())

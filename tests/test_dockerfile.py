@@ -14,7 +14,6 @@ import sysconfig
 import zipfile
 from pathlib import Path
 
-import pytest
 
 from _yaml_subset import interpolate, loads
 from morph_sim.cli import build_parser
@@ -157,7 +156,7 @@ def test_the_runtime_stage_runs_as_a_non_root_user_without_dev_tools():
     users = [rest for word, rest in runtime if word == "USER"]
     assert users and users[-1] not in ("root", "0") and not users[-1].startswith("0:")
     runs = " && ".join(rest for word, rest in runtime if word == "RUN")
-    assert f"useradd --system --uid 10001 --gid morph" in runs and users[-1] == "morph"
+    assert "useradd --system --uid 10001 --gid morph" in runs and users[-1] == "morph"
     for tool in ("apt-get", "apk ", "gcc", "build-essential", "git ", "make ", "pytest", "[test]", "-e "):
         assert tool not in runs, f"runtime stage installs or uses {tool.strip()!r}"
     assert "pip install /tmp/wheels/*.whl" in runs, "the runtime installs the wheel built in the first stage"

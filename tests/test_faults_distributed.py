@@ -17,7 +17,7 @@ import sys
 import time
 from pathlib import Path
 
-from schemas import FaultSpec, Latency, Loss, RunKeys, Scope
+from schemas import FaultSpec, Loss, RunKeys, Scope
 from services.faults.layer import FaultLayer
 from services.faults.vtime import VirtualTime
 from services.faults.runtime import FaultRuntime

@@ -10,7 +10,6 @@ import subprocess
 import sys
 import time
 
-import pytest
 from pathlib import Path
 
 from services.bus.zenoh_bus import free_port

@@ -12,6 +12,8 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
+from schemas.errors import invalid
+
 NAME = "experiment"
 HELP = "run an in-process study: scale, ablation, shift, emergent or faults (parallel, with run records)"
 
@@ -76,14 +78,14 @@ def _seeds(value: str | None, default: tuple[int, ...]) -> tuple[int, ...]:
 
 
 def _validated(model, **kw):
-    from pydantic import ValidationError as _VE
+    from pydantic import ValidationError
+
+    from schemas.errors import invalid
 
     try:
         return model(**kw)
-    except _VE as exc:
-        err = exc.errors()[0]
-        field = ".".join(str(p) for p in err["loc"]) or "config"
-        raise ValueError(f"{field}: {err['msg']}") from None
+    except ValidationError as exc:
+        raise invalid(exc) from None
 
 
 def _run_shift(args) -> int:
@@ -160,9 +162,7 @@ def run(args) -> int:
             radii=_radii(args.radius) if args.radius else None, jobs=args.jobs, fiedler_every=args.fiedler_every,
         )
     except ValidationError as exc:
-        err = exc.errors()[0]
-        field = ".".join(str(p) for p in err["loc"]) or "config"
-        raise ValueError(f"{field}: {err['msg']}") from None
+        raise invalid(exc) from None
     from services.agent.presets import load_preset
 
     load_preset(preset)  # fail early, naming the preset

@@ -59,9 +59,9 @@ def build_command(args: argparse.Namespace):
     """The FaultCommand the arguments describe; ValueError naming the bad field."""
     from pydantic import ValidationError
 
+    from schemas.errors import invalid
     from schemas.keys import validate_run_id
     from schemas.messages import FaultCommand
-    from services.faults.schedule import _explain
 
     validate_run_id(args.run)
     if args.timeout <= 0:
@@ -114,7 +114,7 @@ def build_command(args: argparse.Namespace):
     try:
         return FaultCommand(op="set", spec=spec, at_tick=at_tick)
     except ValidationError as exc:
-        raise _explain(exc, "spec") from None
+        raise invalid(exc) from None
 
 
 async def send(endpoint: str, run: str, command, timeout: float = 2.0, bus=None) -> list:

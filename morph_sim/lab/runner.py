@@ -29,14 +29,11 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from services.agent.observation import TickObservation
 from services.agent.policies import (
     Coordinator,
-    ConstantPolicy,
     CoordinationPolicy,
     Fleet,
-    FullPolicy,
     MorphPolicy,
-    NonePolicy,
     ProximityPolicy,
-    TSGPolicy,
+    make_policy,
 )
 from services.monitor import catalogue, metrics
 from services.sim.world.cta import CTAController, resolve_requests
@@ -89,7 +86,7 @@ def make_condition_policy(condition: str, preset: str = "reference", radius: int
         if radius is None:
             raise ValueError("radius: the proximity condition needs a radius (or calibration)")
         return ProximityPolicy(radius=radius)
-    return {"none": NonePolicy, "tsg": TSGPolicy, "full": FullPolicy, "constant": ConstantPolicy}[kind]()
+    return make_policy(kind)
 
 
 class EpisodeSpec(BaseModel):

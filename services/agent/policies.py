@@ -482,22 +482,24 @@ class MorphPolicy(CoordinationPolicy):
         return {"name": self.name, "preset": self.preset, "ablation": self.ablation or "full"}
 
 
-POLICY_NAMES = ("full", "constant", "tsg", "proximity", "none", "morph")
+#: The coordination policies by name: the one list that the run configuration (and so every CLI's --policy and
+#: MORPH_POLICY), the lab's conditions and this factory read.
+POLICIES: dict[str, type[CoordinationPolicy]] = {
+    "full": FullPolicy,
+    "constant": ConstantPolicy,
+    "tsg": TSGPolicy,
+    "proximity": ProximityPolicy,
+    "none": NonePolicy,
+    "morph": MorphPolicy,
+}
+POLICY_NAMES = tuple(POLICIES)
 
 
 def make_policy(name: str, **options) -> CoordinationPolicy:
     """A policy by name with its options (p for constant, radius for proximity, preset/ablation for morph)."""
-    classes = {
-        "full": FullPolicy,
-        "none": NonePolicy,
-        "constant": ConstantPolicy,
-        "tsg": TSGPolicy,
-        "proximity": ProximityPolicy,
-        "morph": MorphPolicy,
-    }
-    if name not in classes:
+    if name not in POLICIES:
         raise ValueError(f"policy: unknown {name!r} (known: {', '.join(POLICY_NAMES)})")
     try:
-        return classes[name](**options)
+        return POLICIES[name](**options)
     except TypeError as exc:
         raise ValueError(f"policy.{name}: {exc}") from None

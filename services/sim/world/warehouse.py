@@ -378,7 +378,7 @@ class Warehouse:
     def _resolve_conflicts(self) -> int:
         """Phase 2 (§7.3): move graph (Stage A), then the pairwise clash loop (Stage B), then the final veto."""
         N, W = self.num_agents, self.W
-        xs, ys, req, types = self.x, self.y, self.req, self.types
+        xs, ys, req = self.x, self.y, self.req
         starts = list(zip(xs, ys))
         targets = [self.req_location(i) for i in range(N)]
         committed: set[int] = set()
