@@ -4,7 +4,7 @@ A :class:`RunConfig` travels three ways, all derived from the field list below s
 
 * CLI flags: ``--scale medium --policy morph --seed 42`` (``add_config_arguments`` / ``from_args``);
 * environment variables with the same names: ``MORPH_SCALE=medium MORPH_POLICY=morph`` (``from_env`` / ``to_env``),
-  what the docker-compose file of issue 7 sets;
+  what docker-compose.yml sets;
 * argv for a child process (``to_argv``), what the supervisor passes to ``morph-sim sim|agent|monitor``.
 
 Invalid values raise ``ValueError`` naming the field (pydantic ``ValidationError`` is one).

@@ -1,4 +1,4 @@
-"""The bus fault layer (issue 5): acceptance statistics of loss and latency, reproducibility per link, scopes,
+"""The bus fault layer: acceptance statistics of loss and latency, reproducibility per link, scopes,
 partitions, auto-heal, and the layer installed on a real bus through the interposer seam."""
 
 from __future__ import annotations

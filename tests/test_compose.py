@@ -1,4 +1,4 @@
-"""docker-compose.yml without a Docker engine (issue 7): it parses, its commands are real CLI invocations, its process
+"""docker-compose.yml without a Docker engine: it parses, its commands are real CLI invocations, its process
 graph is the supervisor's, its environment is the RunConfig's, and the services honour its healthcheck and stop signal.
 """
 
@@ -52,7 +52,7 @@ def _parse(argv: list[str]):
 
 
 def _without_prometheus(argv: list[str]) -> list[str]:
-    """Until the monitor has --prometheus-port (issue 6), check the rest of its command line."""
+    """Until the monitor has --prometheus-port, check the rest of its command line."""
     if PROMETHEUS_FLAG_EXISTS or "--prometheus-port" not in argv:
         return argv
     i = argv.index("--prometheus-port")

@@ -1,4 +1,4 @@
-"""The Dockerfile without a Docker engine (issue 7): its instructions are checked, and (slow) its steps are replayed —
+"""The Dockerfile without a Docker engine: its instructions are checked, and (slow) its steps are replayed —
 the build context it would see, the wheel it builds, a fresh venv that installs that wheel, `morph-sim up` from it.
 """
 

@@ -1,4 +1,4 @@
-"""DESIGN §7.4: a zero-fault distributed run (``morph-sim up``: one OS process per agent over Zenoh) equals the
+"""A zero-fault distributed run (``morph-sim up``: one OS process per agent over Zenoh) equals the
 LocalBus run (``morph-sim run``) with the same seed — per-tick deliveries, links and W snapshots, tick for tick.
 
 The default suite keeps one configuration per scale of the fast kind; the full matrix is marked slow.

@@ -1,6 +1,6 @@
 """Runtime fault commands with ``at_tick`` (``morph-sim faults set --at-tick N``): every process applies the command at
 the start of tick N instead of on arrival, so a run changed at run time is as reproducible as one with the same
-command in a schedule file (virtual time, issue 5)."""
+command in a schedule file (virtual time)."""
 
 from __future__ import annotations
 

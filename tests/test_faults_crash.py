@@ -1,4 +1,4 @@
-"""Process faults (issue 5): the crash planner's schedule (at a tick, every k ticks, a seeded random agent) and the
+"""Process faults: the crash planner's schedule (at a tick, every k ticks, a seeded random agent) and the
 faulter's signals on a real child process (SIGSTOP/SIGCONT, SIGKILL), by pid."""
 
 from __future__ import annotations

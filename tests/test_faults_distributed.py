@@ -1,4 +1,4 @@
-"""Faults in deterministic virtual time across OS processes (issue 5 acceptance: "same seed and fault config give the
+"""Faults in deterministic virtual time across OS processes ("same seed and fault config give the
 same run twice (virtual time), on LocalBus and on Zenoh").
 
 Every process has its own FaultRuntime: the sim, and every agent (ingress faults on ticks, resolves, help requests and

@@ -1,4 +1,4 @@
-"""The real services (sim clock, agents, monitor on a LocalBus) under faults in virtual time (issue 5): lost and
+"""The real services (sim clock, agents, monitor on a LocalBus) under faults in virtual time: lost and
 late acks and commits cost their senders the tick, the run never hangs or loses a tick, and the same seed and fault
 config give the same run twice."""
 

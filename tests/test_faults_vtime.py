@@ -1,4 +1,4 @@
-"""Virtual time (DESIGN §4, issue 5) on the real LocalBus: a message sent at sim time s with latency L is delivered at
+"""Virtual time (docs/faults.md) on the real LocalBus: a message sent at sim time s with latency L is delivered at
 the first phase boundary at or after s + L, late if that is after its phase's deadline; runs are deterministic; the
 link meter measures what arrived. Wall-time mode sleeps for real."""
 

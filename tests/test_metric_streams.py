@@ -1,4 +1,4 @@
-"""Metric streams (issue 6): every documented stream is published by the monitor, versioned, with tick and time."""
+"""Metric streams: every documented stream is published by the monitor, versioned, with tick and time."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""``morph-sim report`` and the run record's robustness (issue 6)."""
+"""``morph-sim report`` and the run record's robustness."""
 
 from __future__ import annotations
 

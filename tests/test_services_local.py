@@ -68,7 +68,7 @@ async def test_local_run_is_deterministic(tmp_path):
                                            ("tsg", "reference"), ("proximity", "reference"), ("none", "reference"),
                                            ("constant", "reference")])
 async def test_services_equal_the_lab(tmp_path, policy, preset):
-    """DESIGN §2: the lab drives the pure core directly; it must give the services' trajectories."""
+    """The lab drives the pure core directly; it must give the services' trajectories."""
     steps = 80
     spec = EpisodeSpec(scale="tiny", condition=policy, seed=7, steps=steps, preset=preset,
                        radius=4 if policy == "proximity" else None)
@@ -205,7 +205,7 @@ def test_process_graph_is_real_cli_invocations():
         assert spec.env["ZENOH_RUNTIME"].startswith("(rx:")
     assert specs[0].argv[-2:] == ("--listen", "tcp/127.0.0.1:7447")
     assert all(s.argv[-2:] == ("--endpoint", "tcp/127.0.0.1:7447") for s in specs[1:])
-    assert [s.restart for s in specs] == ["never"] + ["on-failure"] * 8 + ["on-failure"]  # monitor: issue 6
+    assert [s.restart for s in specs] == ["never"] + ["on-failure"] * 8 + ["on-failure"]  # the monitor restarts too
     external = process_graph(config.model_copy(update={"endpoint": "tcp/127.0.0.1:9000"}), "tcp/127.0.0.1:9000")
     assert external[0].argv[-2:] == ("--endpoint", "tcp/127.0.0.1:9000")
 

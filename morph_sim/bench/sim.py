@@ -22,7 +22,7 @@ SCALES = ("tiny", "small", "medium", "large", "extralarge")
 
 
 def reference_rates() -> tuple[dict[str, float], str, dict[str, float], str]:
-    """(rates from the issue / tarware.md §13.2, their source, rates re-measured on an idle machine, source)."""
+    """(the original's measured rates, their source, rates re-measured on an idle machine, source)."""
     text = resources.files("morph_sim.presets").joinpath("bench_reference.toml").read_text(encoding="utf-8")
     data = tomllib.loads(text)
     idle = dict(data.get("steps_per_second_idle", {}))

@@ -52,7 +52,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--quick", action="store_true", help="faults: the reduced sweep")
     parser.add_argument("--conditions", default=None, help="comma-separated conditions (default: the study's)")
     parser.add_argument("--dispatch", choices=("concurrent", "sequential"), default=None,
-                        help="picker resolution: concurrent (DESIGN §3) or sequential (the reference); "
+                        help="picker resolution: concurrent (the tick protocol) or sequential (the reference); "
                         "default: sequential with --reference-stream, else concurrent")
     parser.add_argument("--reference-stream", action="store_true",
                         help="draw gates from the warehouse's request stream, as the reference does")

@@ -1,4 +1,4 @@
-"""The paper's emergent-structure analysis (issue 8; paper §"Emergent allocation structure", morph.md §7.3–§7.4).
+"""The paper's emergent-structure analysis (paper section "Emergent allocation structure"; docs/morph.md).
 
 Long Medium MORPH episodes (T = 1500, several seeds, each preset): W snapshots at fixed ticks, Spearman of the final
 W against the episode's mean Manhattan distance (directed AGV→picker pairs with a permutation p; the reference's
@@ -25,7 +25,7 @@ from morph_sim.lab.suite import _git_revision, _jsonable, _versions
 from services.monitor import catalogue, metrics
 
 SNAPSHOT_TICKS = (0, 100, 200, 400, 600, 800, 1500)
-#: ticks at which λ₂ is quoted (morph.md §8.5's list, plus the end)
+#: ticks at which λ₂ is quoted (the reference's list, plus the end)
 LAMBDA_TICKS = (1, 50, 100, 200, 400, 800, 1500)
 
 

@@ -1,4 +1,4 @@
-"""The paper's spatial demand-shift experiment (issue 8, paper Table 4, morph.md §7.2).
+"""The paper's spatial demand-shift experiment (paper Table 4; docs/morph.md).
 
 Medium warehouse, six phases alternating left/right demand (L–R–L–R–L–R), each ``phase_steps`` long. Demand
 shift = replacement requests drawn from the active half of the shelves (:meth:`Warehouse.set_demand_side`); the

@@ -1,7 +1,7 @@
 """Experiment suites: conditions × scales × seeds in parallel processes, with run records and tables.
 
-``scale`` is the reference's scale study (spec §7.1: nine conditions, four scales, five seeds, T = 800,
-Proximity radius calibrated first per §6); ``ablation`` runs MORPH and its ablations of one preset.
+``scale`` is the reference's scale study (nine conditions, four scales, five seeds, T = 800,
+Proximity radius calibrated first; docs/morph.md); ``ablation`` runs MORPH and its ablations of one preset.
 Every episode gets a record under ``runs/<run-id>/episodes/<key>/`` (``manifest.json``, ``ticks.csv``,
 ``summary.json``); the suite writes ``manifest.json``, ``summary.csv``, ``summary.md`` and plots.
 Any table can be recomputed from the episode summaries alone (:func:`summarise`).

@@ -1,7 +1,7 @@
 """The agent service: one robot's coordination brain, learning and deciding from messages only.
 
 It owns that robot's :class:`~services.agent.policies.Coordinator` (its plasticity state and its own seeded
-RNG) and nothing else. Per tick ``t`` (DESIGN §3):
+RNG) and nothing else. Per tick ``t`` (docs/services.md):
 
 * on ``Tick`` it rebuilds the observation from the message alone, applies the plasticity update of step t−1,
   and, as an AGV that needs a picker, picks a candidate by the policy's rule, draws its gate and on success sends a
@@ -50,12 +50,12 @@ class AgentService:
     """Agent ``agent_id`` of the run of ``config`` over ``bus``. ``await run()`` until stop."""
 
     def __init__(self, config: RunConfig, bus: Bus, agent_id: int, *, restore: bool = True, faults=None):
-        # issue 5: this process's FaultRuntime (ingress faults on what this agent receives, its ctl/faults
+        # this process's FaultRuntime (ingress faults on what this agent receives, its ctl/faults
         # controller, sim-time stamps); in virtual time it advances on every Tick/Resolve that arrives (_on_arrival)
         self.faults = faults
         # picker, with faults: t -> AGVs whose request arrived but was dropped (or held past the boundary)
         self._arrived: dict[int, set[int]] = {}
-        # restore (issue 5): a (re)started agent loads its plasticity state from the monitor's latest states
+        # restore: a (re)started agent loads its plasticity state from the monitor's latest states
         # (state/agent/*) before it joins; a first start finds none. restore=False is the cold restart.
         self.restore = restore
         self.restored_from: AgentState | None = None
@@ -100,7 +100,7 @@ class AgentService:
             self._layer = layer
             await self.faults.start()  # ctl/faults, and the schedule from time 0
         restored = await self._restore() if self.restore else None
-        # inline: the lock-step hot path skips the hop to the loop (3-4x the tick rate over Zenoh, zenoh.md §4c)
+        # inline: the lock-step hot path skips the hop to the loop (3-4x the tick rate over Zenoh, docs/services.md)
         await bus.subscribe(k.tick, self._on_tick, inline=True)
         await bus.subscribe(k.event("sim"), self._on_probe)
         await bus.subscribe(k.stop, self._on_stop)
@@ -137,7 +137,7 @@ class AgentService:
         return Event(
             kind="agent.restored", source=self.id, t=restored,
             # the row the brain holds now (read back from it, not copied from the state): the record can show that a
-            # restarted agent resumed with the W row last published (issue 5 acceptance)
+            # restarted agent resumed with the W row last published 
             details={"from_t": restored, "w_row": self.state_message(restored).w_row})
 
     def stop(self) -> None:
@@ -171,7 +171,7 @@ class AgentService:
         self._seq += 1
         return self._seq
 
-    # -- virtual time (issue 5) ------------------------------------------------------------------------------------
+    # -- virtual time ----------------------------------------------------------------------------------------------
     def _on_arrival(self, sample: Sample, fate: list[float]) -> None:
         """Fault layer hook: a sample physically arrived (any thread, under the runtime's lock, before it is
         delivered, dropped or held). A Tick or Resolve carries the sim's boundary: reach it first (releasing what is

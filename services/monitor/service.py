@@ -1,6 +1,6 @@
 """The monitor service: observes the whole run, computes per-tick metrics from messages alone, records the run.
 
-One subscription on ``morph/<run>/**`` (one Zenoh callback thread, fan-out in Python — zenoh.md §8.12) feeds:
+One subscription on ``morph/<run>/**`` (one Zenoh callback thread, fan-out in Python) feeds:
 
 * ``sim/tick``            deliveries of step t−1 (its ``delivered_by``), sim time;
 * ``agent/<id>/ack``      requests sent, the agent's out-links after its update (→ links, λ₂), η;
@@ -102,7 +102,7 @@ class MonitorService:
         self._stop_timer: asyncio.TimerHandle | None = None
         self._link_shift = 1 if config.policy == "morph" else 0
         self.stats = MessageStats(self.n, config.dt)  # message streams (counts, drops, latency, dispatch)
-        # issue 5 (F3): per key class sent / delivered / dropped / duplicated / late and latency, from the samples'
+        # per key class sent / delivered / dropped / duplicated / late and latency, from the samples'
         # own headers, published as link/* metrics every k (state_every) ticks
         from services.faults.linkstats import LinkMeter
 

@@ -1,4 +1,4 @@
-"""Warehouse grid layouts with TA-RWARE's formulas and index orders (spec: shared/reference/tarware.md §2).
+"""Warehouse grid layouts with TA-RWARE's formulas and index orders.
 
 Pure data: a :class:`LayoutConfig` (validated by pydantic) and the :class:`Layout` derived from it. Cells are
 ``(x, y)`` with ``y`` the row; arrays are indexed ``[y, x]``; flat cell indices are ``y * W + x``.
