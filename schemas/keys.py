@@ -277,10 +277,6 @@ class RunKeys:
     def stop(self) -> str:
         return self._k("ctl", "stop")
 
-    @property
-    def control(self) -> str:
-        return self._k("ctl", "**")
-
     def event(self, source: int | str) -> str:
         return self._k("events", _agent_chunk(source))
 

@@ -397,7 +397,6 @@ class PaperState:
         # -0.001 per step). Only J > 0.25 is credited, so the AGV's delivery strengthens its link to the
         # picker that shared the delivered task, not every co-active pair.
         jac = self.task_jaccard()
-        self.last_jaccard = jac
         credit = np.where(jac > p.credit_threshold, jac, 0.0)
         r = x.reward[own] if p.use_step_reward else np.full(len(own), p.cov)
         self.W *= retention

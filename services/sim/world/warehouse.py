@@ -25,12 +25,6 @@ from services.sim.world.conflicts import commit_cells
 from services.sim.world.layout import Layout, LayoutConfig, layout_for
 
 
-class AgentType(IntEnum):
-    AGV = 0
-    PICKER = 1
-    AGENT = 2  # used for every agent when there are no pickers: it loads and unloads alone
-
-
 class Direction(IntEnum):
     UP = 0
     DOWN = 1
