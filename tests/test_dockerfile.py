@@ -15,7 +15,7 @@ import zipfile
 from pathlib import Path
 
 
-from _yaml_subset import interpolate, loads
+from _compose import interpolate, load
 from morph_sim.cli import build_parser
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -179,7 +179,7 @@ def test_the_default_command_is_a_real_morph_sim_invocation():
 
 
 def test_exposed_ports_are_the_ones_compose_uses():
-    compose = interpolate(loads((ROOT / "docker-compose.yml").read_text()), {})
+    compose = interpolate(load(ROOT / "docker-compose.yml"), {})
     exposed = {p.split("/")[0] for word, rest in DOCKERFILE if word == "EXPOSE" for p in rest.split()}
     sim_port = compose["services"]["sim"]["command"][-1].rsplit(":", 1)[1]
     prom_port = compose["services"]["monitor"]["ports"][0].rsplit(":", 1)[1]
