@@ -85,7 +85,7 @@ def test_same_seed_same_fates_and_links_are_independent() -> None:
         layer = FaultLayer("f1", base_seed=seed)
         layer.set(spec)
         out = []
-        for i in range(500):
+        for _i in range(500):
             out.append(layer.fate(K.ack(1), 1, "sim"))
             if interleave:  # other links' traffic must not shift this link's stream
                 layer.fate(K.ack(2), 2, "sim")

@@ -415,7 +415,7 @@ async def test_local_delivery_order_is_deterministic() -> None:
         log: list[tuple[str, str, int]] = []
         for bus in buses:
             await bus.subscribe("morph/t1/**", lambda s, me=bus.identity: log.append((me, s.sender, s.seq)))
-        for round_ in range(3):
+        for _round in range(3):
             for bus in reversed(buses):
                 await bus.publish(K.ack(int(bus.identity)), b"x")
         await asyncio.sleep(0)

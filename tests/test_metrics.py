@@ -55,7 +55,7 @@ def test_link_tracker_scripted_sequence():
     ]
     tr = m.LinkTracker(n)
     formed, pruned = [], []
-    for t, A in enumerate(seq):
+    for _t, A in enumerate(seq):
         f, p = tr.update(A)
         formed.append(f)
         pruned.append(p)

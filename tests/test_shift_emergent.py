@@ -76,7 +76,7 @@ def test_demand_shift_off_is_the_original_generator():
 def test_assignment_filter_prefers_the_active_half():
     """shift.py's variant: requests still come from every shelf, but active-half items are assigned first."""
     left_new = right_new = 0
-    for cta, new, assigned in _full_dispatch_episode(11, 300, assignment_side="left"):
+    for cta, new, _assigned in _full_dispatch_episode(11, 300, assignment_side="left"):
         left_new += sum(cta.wh.on_side(s, "left") for s in new)
         right_new += sum(not cta.wh.on_side(s, "left") for s in new)
     assert left_new > 0 and right_new > 0  # the generator is untouched

@@ -149,7 +149,7 @@ def test_reseed_replays_the_request_stream():
     assert deliveries_with_reseed(7) == deliveries_with_reseed(7)
     assert isinstance(Warehouse(WarehouseConfig.named("tiny")).config, WarehouseConfig)
     with pytest.raises(RuntimeError, match="rng"):
-        Warehouse(WarehouseConfig.named("tiny")).rng
+        _ = Warehouse(WarehouseConfig.named("tiny")).rng
 
 
 RANDOM = json.loads((Path(__file__).parent / "data" / "random_action_digests.json").read_text())

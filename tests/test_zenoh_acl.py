@@ -144,7 +144,7 @@ def test_only_the_operator_changes_faults(router, observer):
         sessions["sim"].put(KEYS.stop, b"stop-by-sim")  # the sim ends its run; it still cannot touch faults
         for user, own in (("agent-0", KEYS.ack(0)), ("sim", KEYS.tick), ("monitor", KEYS.metric("links"))):
             sessions[user].put(own, b"sentinel")
-        for user, own in (("agent-0", KEYS.ack(0)), ("sim", KEYS.tick), ("monitor", KEYS.metric("links"))):
+        for _user, own in (("agent-0", KEYS.ack(0)), ("sim", KEYS.tick), ("monitor", KEYS.metric("links"))):
             observer.wait_for(own, b"sentinel")
         seen = observer.wait_for(KEYS.stop, b"stop-by-sim")
         seen = observer.wait_for(KEYS.faults, b"fault-by-operator")
