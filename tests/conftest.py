@@ -23,7 +23,7 @@ from _procs import LiveRun
 
 KINDS: dict[str, tuple[str, ...]] = {
     "unit": (
-        "test_bus_faults", "test_bus_local", "test_errors", "test_faults_vtime", "test_hot_codec", "test_keys",
+        "test_bus_faults", "test_bus_local", "test_dependencies", "test_errors", "test_faults_vtime", "test_hot_codec", "test_keys",
         "test_layout", "test_metrics", "test_plasticity", "test_policies", "test_render", "test_schemas",
     ),
     "fidelity": (

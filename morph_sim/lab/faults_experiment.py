@@ -141,7 +141,7 @@ def run_fault_episode(condition: str, kind: str, level: float, seed: int, *, sca
                 layer.fate(K.reply(picker, agv), picker, agv)  # sent; its loss is healed by the next Tick
             else:
                 lost += 1
-        for picker, agv in cta.commit(commits):
+        for _picker, agv in cta.commit(commits):
             start = waiting_since.pop(agv, t)
             delays.append(t - start)
         cta.finish_tick()

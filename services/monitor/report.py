@@ -139,7 +139,7 @@ def numbers(rec: Record) -> dict:
 
 # -- figures --------------------------------------------------------------------------------------------------------
 def _shade(ax, rec: Record) -> None:
-    for i, (a, b, label) in enumerate(rec.fault_windows()):
+    for i, (a, b, _label) in enumerate(rec.fault_windows()):
         ax.axvspan(a, b, color="tab:red", alpha=0.15, label="fault window" if i == 0 else None)
     for i, (a, b) in enumerate(rec.gaps):
         ax.axvspan(a, b + 1, color="grey", alpha=0.3, label="record gap" if i == 0 else None)

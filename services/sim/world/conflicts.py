@@ -131,7 +131,7 @@ def _find_cycle(hsucc: dict[Cell, list[Cell]]) -> list[tuple[Cell, Cell]] | None
             active.add(head)
             previous_head = head
         if cycle:
-            for i, (tail, _head) in enumerate(cycle):
+            for i, (tail, _head) in enumerate(cycle):  # noqa: B007 (i is the cycle's start, used below)
                 if tail == final:
                     break
             return cycle[i:]
