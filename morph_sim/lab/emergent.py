@@ -10,9 +10,9 @@ and the textbook algebraic connectivity). Writes figures, ``emergent.json`` and 
 from __future__ import annotations
 
 import json
-import multiprocessing as mp
 import sys
 import time
+from concurrent.futures import as_completed
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from morph_sim.lab.runner import EpisodeSpec, check_nonempty, run_episode
-from morph_sim.lab.suite import _git_revision, _jsonable, _versions
+from morph_sim.lab.suite import _git_revision, _jsonable, _versions, episode_pool
 from services.monitor import catalogue, metrics
 
 SNAPSHOT_TICKS = (0, 100, 200, 400, 600, 800, 1500)
@@ -217,14 +217,9 @@ def run_emergent(cfg: EmergentConfig, out_root: Path | None = Path("runs"), run_
     episodes = []
     with progress:
         task = progress.add_task("emergent analysis", total=len(work))
-        if cfg.jobs > 1:
-            with mp.get_context("fork" if sys.platform != "win32" else "spawn").Pool(cfg.jobs) as pool:
-                for ep in pool.imap_unordered(analyse_episode, work):
-                    episodes.append(ep)
-                    progress.advance(task)
-        else:
-            for w in work:
-                episodes.append(analyse_episode(w))
+        with episode_pool(cfg.jobs) as pool:
+            for future in as_completed([pool.submit(analyse_episode, w) for w in work]):
+                episodes.append(future.result())
                 progress.advance(task)
     order = {(p, s): k for k, (_, p, s) in enumerate(work)}
     episodes.sort(key=lambda e: order[(e["preset"], e["seed"])])

@@ -14,10 +14,12 @@ import json
 import multiprocessing as mp
 import os
 import platform
-import queue
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -97,51 +99,29 @@ class SuiteResult:
     series: dict[tuple[str, str], dict[str, np.ndarray]]  # (scale, condition) -> mean tick series
 
 
-def _work(spec: EpisodeSpec) -> EpisodeResult:
-    return run_episode(spec)
+class _InProcess(Executor):
+    """``jobs == 1``: each episode runs in this process when submitted (no worker process to start or feed)."""
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        future: Future = Future()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except BaseException as exc:  # delivered by future.result(), as a pool would
+            future.set_exception(exc)
+        return future
 
 
-class _Scheduler:
-    """A process pool fed one episode at a time; ``results()`` waits for at least one finished episode."""
-
-    def __init__(self, jobs: int) -> None:
-        self.jobs = jobs
-        self.pending = 0
-        self._queue: queue.Queue = queue.Queue()
-        self._serial: list[EpisodeSpec] = []
-        self._pool = None
-
-    def __enter__(self) -> _Scheduler:
-        if self.jobs > 1:
-            ctx = mp.get_context("fork" if sys.platform != "win32" else "spawn")
-            self._pool = ctx.Pool(processes=self.jobs)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self._pool is not None:
-            self._pool.terminate() if exc[0] is not None else self._pool.close()
-            self._pool.join()
-
-    def submit(self, spec: EpisodeSpec) -> None:
-        self.pending += 1
-        if self._pool is None:
-            self._serial.append(spec)
-        else:
-            self._pool.apply_async(_work, (spec,), callback=self._queue.put, error_callback=self._queue.put)
-
-    def results(self) -> list[EpisodeResult]:
-        if self._pool is None:
-            spec = self._serial.pop(0)
-            out = [_work(spec)]
-        else:
-            out = [self._queue.get()]
-            while not self._queue.empty():
-                out.append(self._queue.get_nowait())
-        for item in out:
-            if isinstance(item, BaseException):
-                raise item
-        self.pending -= len(out)
-        return out
+@contextmanager
+def episode_pool(jobs: int) -> Iterator[Executor]:
+    """Worker processes for episodes (forked: no re-import per worker); on an error the queued episodes are dropped."""
+    pool = (ProcessPoolExecutor(jobs, mp_context=mp.get_context("fork" if sys.platform != "win32" else "spawn"))
+            if jobs > 1 else _InProcess())
+    try:
+        yield pool
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
 
 
 def _cost(spec: EpisodeSpec) -> float:
@@ -179,21 +159,25 @@ def run_suite(cfg: SuiteConfig, out_root: Path | None = Path("runs"), run_id: st
     first = list(cal_morph.values()) + list(cal_prox.values())
     first += sorted((sp for sp in main_specs(False) if sp.condition != "proximity"), key=_cost, reverse=True)
     first += [sp for sp in main_specs(True) if sp.condition == "proximity"]
-    with progress, _Scheduler(cfg.jobs) as pool:
+    with progress, episode_pool(cfg.jobs) as pool:
         task = progress.add_task(f"{cfg.kind} study", total=None)
         submitted = set()
+        running: set[Future] = set()
 
         def submit(specs):
             for sp in specs:
                 k = sp.model_dump_json()
                 if k not in submitted:
                     submitted.add(k)
-                    pool.submit(sp)
+                    running.add(pool.submit(run_episode, sp))
             progress.update(task, total=len(submitted))
 
         submit(first)
-        while pool.pending:
-            for res in pool.results():
+        while running:
+            finished, _ = wait(running, return_when=FIRST_COMPLETED)
+            running.difference_update(finished)
+            for future in finished:
+                res = future.result()
                 done[res.spec.model_dump_json()] = res
                 progress.advance(task)
             for sc in [sc for sc in todo if sc not in radii]:
