@@ -185,3 +185,13 @@ class LiveRun:
 
     def stderr(self) -> str:
         return (self._logs / "stderr").read_text(errors="replace")
+
+
+async def until(condition, timeout: float = 3.0, what: str = "condition") -> None:
+    """Wait (on the event loop) until ``condition()`` holds; fail naming ``what`` after ``timeout`` seconds."""
+    import asyncio
+
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, f"{what} not met within {timeout} s"
+        await asyncio.sleep(0.005)

@@ -16,6 +16,8 @@ from services.faults.layer import FaultLayer, install
 from services.faults.linkstats import LinkMeter, key_class
 from services.faults.vtime import VirtualTime, boundaries, release_boundary
 
+from _procs import until
+
 K = RunKeys("vt")
 
 
@@ -153,7 +155,7 @@ async def test_wall_time_mode_sleeps_for_real() -> None:
     await sender.publish(K.ack(2), b"x")
     await asyncio.sleep(0.01)
     assert got == []
-    await asyncio.sleep(0.15)
+    await until(lambda: got, what="the delayed message")
     assert len(got) == 1 and got[0] - t0 >= 0.045
     assert layer.meter.report()["agent/*/ack"].latency["max"] >= 0.045
     await sender.close()

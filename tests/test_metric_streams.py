@@ -13,6 +13,8 @@ from services.monitor.streams import Decimator, Histogram, MessageStats, subscri
 from services.runconfig import RunConfig
 from services.supervisor.local import run_local
 
+from _procs import until
+
 
 async def test_every_documented_stream_is_published_during_a_run(tmp_path):
     config = RunConfig(run_id="streams", scale="tiny", steps=60, policy="morph", output_dir=tmp_path)
@@ -21,7 +23,8 @@ async def test_every_documented_stream_is_published_during_a_run(tmp_path):
     watcher = net.session("watcher")
     await subscribe_metrics(watcher, config.run_id, lambda m: seen.setdefault(m.name, []).append(m))
     run = await run_local(config, network=net)
-    await asyncio.sleep(0.05)
+    await until(lambda: seen.get("deliveries_total") and seen["deliveries_total"][-1].t == config.steps - 1,
+                what="the final samples")
     await watcher.close()
     missing = set(NAMES) - set(seen)
     assert not missing, f"documented but never published: {sorted(missing)}"

@@ -146,8 +146,11 @@ async def test_stop_on_ctl_stop(tmp_path):
     net = LocalNetwork()
     operator = net.session("operator")
 
+    under_way = asyncio.Event()
+    await operator.subscribe(RunKeys(config.run_id).tick, lambda sample: under_way.set())
+
     async def stop_soon():
-        await asyncio.sleep(0.5)
+        await under_way.wait()  # the first tick is out: the run is under way
         await operator.publish(RunKeys(config.run_id).stop, Stop(reason="operator"))
 
     stopper = asyncio.create_task(stop_soon())
