@@ -112,6 +112,29 @@ class LiveRun:
             time.sleep(0.05)
         return self.proc.returncode
 
+    async def finished(self, timeout: float) -> int:
+        """:meth:`wait` for an async test: the event loop (and the test's own subscriptions) keeps running."""
+        import asyncio
+
+        deadline = time.monotonic() + timeout
+        while self.proc.poll() is None:
+            self._note_children()
+            assert time.monotonic() < deadline, f"up did not end within {timeout} s\n{self.stderr()[-3000:]}"
+            await asyncio.sleep(0.05)
+        return self.proc.returncode
+
+    async def endpoint_open(self, timeout: float = 60.0) -> None:
+        """:meth:`wait_for_endpoint` for an async test."""
+        await until(self._accepts, timeout, f"endpoint on 127.0.0.1:{self.port} (up alive: {self.running()})")
+
+    def _accepts(self) -> bool:
+        assert self.running(), f"up ended ({self.proc.returncode})\n{self.stderr()[-3000:]}"
+        try:
+            socket.create_connection(("127.0.0.1", self.port), timeout=1).close()
+            return True
+        except OSError:
+            return False
+
     def signal(self, sig: int = signal.SIGTERM) -> None:
         """Send ``sig`` to the supervisor process only (what Ctrl-C or ``docker stop`` does)."""
         self._note_children()
@@ -162,14 +185,7 @@ class LiveRun:
             time.sleep(poll)
 
     def wait_for_endpoint(self, timeout: float = 60.0) -> None:
-        def accepts() -> bool:
-            try:
-                socket.create_connection(("127.0.0.1", self.port), timeout=1).close()
-                return True
-            except OSError:
-                return False
-
-        self.wait_until(accepts, timeout, f"endpoint on 127.0.0.1:{self.port}", poll=0.1)
+        self.wait_until(self._accepts, timeout, f"endpoint on 127.0.0.1:{self.port}", poll=0.1)
 
     def rows(self) -> int:
         """Rows of ``metrics.csv`` written so far."""

@@ -9,17 +9,14 @@ from __future__ import annotations
 
 import asyncio
 import json
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 from schemas import AgentState, Event
 from schemas.keys import RunKeys
-from services.bus.zenoh_bus import ZenohBus, endpoint, free_port
+from services.bus.zenoh_bus import ZenohBus
 from services.monitor.recorder import read_metrics
 
-from _procs import alive, descendants, kill_all
+from _procs import kill_all
 
 UP_TIMEOUT = 150
 VICTIM = 6  # a picker at tiny (5 AGVs + 3 pickers)
@@ -30,42 +27,23 @@ def _events(record: Path) -> list[dict]:
     return [json.loads(line) for line in (record / "events.jsonl").read_text().splitlines() if line.strip()]
 
 
-async def _port_open(port: int, proc: subprocess.Popen, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and proc.poll() is None:
-        try:
-            _, writer = await asyncio.wait_for(asyncio.open_connection("127.0.0.1", port), 0.5)
-            writer.close()
-            return True
-        except (OSError, asyncio.TimeoutError):
-            await asyncio.sleep(0.1)
-    return False
-
-
-async def test_up_kills_an_agent_every_100_ticks_and_it_rejoins_with_its_state(tmp_path):
+async def test_up_kills_an_agent_every_100_ticks_and_it_rejoins_with_its_state(live_run, tmp_path):
     schedule = tmp_path / "crash.toml"
     schedule.write_text(f'[[at]]\ntick = 0\nspec = {{ id = "kill-{VICTIM}", crash = {{ agent = {VICTIM}, '
                         'every = 100 } }\n'
                         # and one cold restart for comparison: agent 1 at tick 150 starts from zero
                         '[[at]]\ntick = 0\nspec = { id = "cold-1", crash = { agent = 1, at_tick = 150, '
                         'cold_restart = true } }\n')
-    port = free_port()
     run_id = "upkill"
-    argv = [sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", "tiny", "--run-id", run_id,
-            "--output-dir", str(tmp_path), "--policy", "morph", "--preset", "paper", "--seed", "5",
-            # paced: 100 ticks take 6 s, longer than a restarted agent needs to start, restore and rejoin
-            "--steps", str(STEPS), "--mode", "paced", "--period", "0.06", "--phase-timeout", "3",
-            "--state-every", "10",
-            "--listen", endpoint(port), "--fault-schedule", str(schedule)]
-    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    seen: set[int] = set()
+    up = live_run(run_id, "--policy", "morph", "--preset", "paper", "--seed", "5",
+                  # paced: 100 ticks take 6 s, longer than a restarted agent needs to start, restore and rejoin
+                  "--steps", str(STEPS), "--mode", "paced", "--period", "0.06", "--phase-timeout", "3",
+                  "--state-every", "10", "--fault-schedule", str(schedule))
     received: list[tuple[str, object]] = []  # ("state", AgentState) | ("restored", Event), in arrival order
     bus = None
     try:
-        if not await _port_open(port, proc, 60):
-            proc.kill()
-            raise AssertionError(f"the sim never opened its endpoint: {proc.communicate(timeout=10)[1][-3000:]}")
-        bus = await ZenohBus.open("test-observer", connect=endpoint(port))
+        await up.endpoint_open(60)
+        bus = await ZenohBus.open("test-observer", connect=up.endpoint)
         keys = RunKeys(run_id)
         await bus.subscribe(keys.agent_state(VICTIM), lambda s: received.append(("state", s.decode(AgentState))))
 
@@ -75,20 +53,16 @@ async def test_up_kills_an_agent_every_100_ticks_and_it_rejoins_with_its_state(t
                 received.append(("restored", event))
 
         await bus.subscribe(keys.event(VICTIM), on_event)
-        deadline = time.monotonic() + UP_TIMEOUT
-        while proc.poll() is None and time.monotonic() < deadline:
-            seen |= descendants(proc.pid)
-            await asyncio.sleep(0.1)
-        out, err = proc.communicate(timeout=10)
-        assert proc.returncode == 0, err[-3000:]
+        assert await up.finished(UP_TIMEOUT) == 0, up.stderr()[-3000:]
+        out = up.stdout()
         assert "completed" in out and "4 restarts" in out, out
     finally:
         if bus is not None:
             await bus.close()
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate(timeout=10)
-        left = alive(seen | {proc.pid})
+        if up.running():
+            up.proc.kill()
+            up.proc.wait(timeout=10)
+        left = up.left_behind()
         kill_all(left)
     assert left == [], f"processes left behind: {left}"
 

@@ -87,21 +87,17 @@ def test_message_stats_count_sequence_gaps_dispatch_delay_and_buckets():
     assert h.cumulative() == [("0.1", 2), ("1.0", 3), ("+Inf", 4)]
 
 
-def _sustain(tmp_path, scale: str, agvs: int, pickers: int, steps: int) -> dict:
+def _sustain(live_run, tmp_path, scale: str, agvs: int, pickers: int, steps: int) -> dict:
     """Run ``up`` with every agent publishing its state every tick; the monitor must count every message."""
     import json
-    import subprocess
-    import sys
     import time
 
     run_id = f"sustain-{agvs + pickers}"
     t0 = time.monotonic()
-    proc = subprocess.run(
-        [sys.executable, "-m", "morph_sim.cli", "up", "--scale", scale, "--agvs", str(agvs), "--pickers",
-         str(pickers), "--steps", str(steps), "--state-every", "1", "--run-id", run_id, "--quiet",
-         "--phase-timeout", "60", "--output-dir", str(tmp_path)], capture_output=True, text=True, timeout=1500)
+    up = live_run(run_id, "--agvs", str(agvs), "--pickers", str(pickers), "--steps", str(steps), "--state-every",
+                  "1", "--phase-timeout", "60", scale=scale, listen=False)
+    assert up.wait(1500) == 0, up.stdout()[-2000:] + up.stderr()[-2000:]
     elapsed = time.monotonic() - t0
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     summary = json.loads((tmp_path / run_id / "summary.json").read_text())
     n = agvs + pickers
     assert summary["steps"] == steps and summary["rejected"] == 0
@@ -114,10 +110,10 @@ def _sustain(tmp_path, scale: str, agvs: int, pickers: int, steps: int) -> dict:
     return summary
 
 
-def test_the_monitor_counts_every_state_of_a_small_run(tmp_path):
-    _sustain(tmp_path, "tiny", 5, 3, 100)
+def test_the_monitor_counts_every_state_of_a_small_run(live_run, tmp_path):
+    _sustain(live_run, tmp_path, "tiny", 5, 3, 100)
 
 
 @pytest.mark.slow
-def test_the_monitor_sustains_a_64_agent_run_with_no_drops(tmp_path):
-    _sustain(tmp_path, "large", 42, 22, 60)
+def test_the_monitor_sustains_a_64_agent_run_with_no_drops(live_run, tmp_path):
+    _sustain(live_run, tmp_path, "large", 42, 22, 60)
