@@ -7,8 +7,6 @@ Process hygiene, because a distributed run must never leave processes behind:
   (``PR_SET_PDEATHSIG``), so even a SIGKILLed supervisor leaves no orphans;
 * shutdown is SIGTERM to every group, then SIGKILL by pid to whatever is left after ``TERM_GRACE`` seconds, and a
   final reap: all children are gone within ``SHUTDOWN_BOUND`` (5 s);
-* children are asyncio subprocesses: the supervisor's loop wakes when a child exits, a tick arrives or a stop is
-  requested (and a few times a second for the progress line and the stall watchdog), instead of polling;
 * each child's stdout and stderr go to ``<record>/logs/<name>.log``; a child that fails before the run is ready
   makes ``up`` exit non-zero with the tail of that log.
 """
@@ -66,50 +64,35 @@ class RunStalled(StartError):
 class Child:
     spec: ProcessSpec
     log_path: Path
-    proc: asyncio.subprocess.Process | None = None
+    proc: subprocess.Popen | None = None
     restarts: int = 0
     exit_codes: list[int] = field(default_factory=list)
     pids: list[int] = field(default_factory=list)  # every pid this child ever had (tests check they are gone)
     reaped: set[int] = field(default_factory=set)  # pids whose exit was handled
     failures: list[float] = field(default_factory=list)  # monotonic times of unplanned restarts (crash-loop budget)
     planned: dict[int, bool] = field(default_factory=dict)  # pid killed by a crash fault -> restart it cold?
-    _exit_watch: asyncio.Task | None = field(default=None, repr=False)
 
     @property
     def pid(self) -> int | None:
         return None if self.proc is None else self.proc.pid
 
     def alive(self) -> bool:
-        return self.proc is not None and self.proc.returncode is None
+        return self.proc is not None and self.proc.poll() is None
 
     def restart_allowed(self, now: float) -> bool:
         self.failures = [x for x in self.failures if now - x < RESTART_WINDOW]
         return len(self.failures) < MAX_RESTARTS
 
-    async def start(self, extra: tuple[str, ...] = (), on_exit: Callable[[], None] | None = None) -> None:
-        """``extra`` flags go after the spec's (argparse: the last one wins), e.g. ``--cold-restart True``;
-        ``on_exit`` is called (on the loop) when this process ends."""
+    def start(self, extra: tuple[str, ...] = ()) -> None:
+        """``extra`` flags go after the spec's (argparse: the last one wins), e.g. ``--cold-restart True``."""
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         with open(self.log_path, "ab") as out:
             out.write(f"--- start {' '.join(self.spec.argv + extra)} at {time.time():.3f}\n".encode())
             out.flush()
-            self.proc = await asyncio.create_subprocess_exec(
-                *self.spec.command(), *extra, env=self.spec.environment(), stdin=subprocess.DEVNULL, stdout=out,
+            self.proc = subprocess.Popen(
+                self.spec.command() + list(extra), env=self.spec.environment(), stdin=subprocess.DEVNULL, stdout=out,
                 stderr=subprocess.STDOUT, start_new_session=True, preexec_fn=_die_with_parent, close_fds=True)
         self.pids.append(self.proc.pid)
-        if on_exit is not None:
-            self._exit_watch = asyncio.get_running_loop().create_task(self.proc.wait())
-            self._exit_watch.add_done_callback(lambda _: on_exit())
-
-    async def wait(self, timeout: float) -> bool:
-        """Wait up to ``timeout`` seconds for the current process to end; whether it has."""
-        if not self.alive():
-            return True
-        try:
-            await asyncio.wait_for(asyncio.shield(self.proc.wait()), timeout)
-        except asyncio.TimeoutError:
-            return False
-        return True
 
     def log_tail(self, lines: int = 15) -> str:
         try:
@@ -119,7 +102,7 @@ class Child:
         return "\n".join(text[-lines:])
 
     def signal_group(self, sig: int) -> None:
-        if not self.alive():
+        if self.proc is None or self.proc.poll() is not None:
             return
         try:
             os.killpg(self.proc.pid, sig)  # its own group: pgid == pid
@@ -176,7 +159,6 @@ class Supervisor:
         self.stall_timeout = (max(30.0, 3 * 2 * config.phase_timeout, 3 * config.period) if stall_timeout is None
                               else stall_timeout)
         self.stop_requested: str | None = None
-        self._wake: asyncio.Event | None = None  # set when a child exits, a tick arrives or a stop is requested
         self.events: list[tuple[float, str, str]] = []
         # Crash faults: specs from the schedule file or `morph-sim faults set` land in the planner (the
         # ctl/faults controller's on_crash hook); each tick the due actions are carried out on the agents' pids.
@@ -221,20 +203,11 @@ class Supervisor:
     def request_stop(self, reason: str) -> None:
         if self.stop_requested is None:
             self.stop_requested = reason
-        self._notify()
-
-    def _notify(self) -> None:
-        if self._wake is not None:
-            self._wake.set()
-
-    async def _start(self, child: Child, extra: tuple[str, ...] = ()) -> None:
-        await child.start(extra, on_exit=self._notify)
 
     # -- main ----------------------------------------------------------------------------------------------------------
     async def run(self) -> int:
         """0 when the run completed, 130/143 when interrupted; raises StartError if a process cannot start."""
         loop = asyncio.get_running_loop()
-        self._wake = asyncio.Event()
         for sig in (signal.SIGINT, signal.SIGTERM):
             try:
                 loop.add_signal_handler(sig, self.request_stop, signal.Signals(sig).name)
@@ -271,13 +244,13 @@ class Supervisor:
             raise StartError(f"nothing listens on the Zenoh endpoint {self.endpoint} (--endpoint): start the router "
                              "first, or leave --endpoint out to host the endpoint in the sim")
         sim = self.children["sim"]
-        await self._start(sim)
+        sim.start()
         self._event("start", f"sim pid {sim.pid} ({'connects to' if self.external else 'listens on'} {self.endpoint})")
         # The sim must have opened its endpoint before anyone connects; a short wait for the port is enough.
         await self._wait_endpoint(sim)
         for name, child in self.children.items():
             if name != "sim":
-                await self._start(child)
+                child.start()
         self._event("start", f"{len(self.children) - 1} agent and monitor processes")
         try:
             bus = await self._open_bus()
@@ -342,7 +315,6 @@ class Supervisor:
                 return
             if self.progress.t < t < self.config.steps:  # (a final Tick t = steps closes the run)
                 self.progress.update("tick", t, float("nan"))
-                self._notify()  # crash faults due at this tick
 
         await bus.subscribe(keys.tick, on_tick)
         from services.faults.controller import FaultController
@@ -391,7 +363,7 @@ class Supervisor:
                     if not planned:
                         child.failures.append(time.monotonic())
                     child.restarts += 1
-                    await self._start(child, ("--cold-restart", "True") if cold else ())
+                    child.start(("--cold-restart", "True") if cold else ())
                     self._event("restart", f"{child.spec.name} exited with {code}; restarted as pid {child.pid}")
                     await self._publish_event(bus, keys, "agent.restart", agent=child.spec.agent, exit_code=code,
                                               old_pid=old_pid, pid=child.pid, restarts=child.restarts,
@@ -414,15 +386,7 @@ class Supervisor:
             if now - last_shown >= 0.25:
                 last_shown = now
                 self._show()
-            await self._next_wake(0.25)
-
-    async def _next_wake(self, timeout: float) -> None:
-        """Until a child exits, a tick arrives or a stop is requested — or ``timeout`` (progress line, watchdogs)."""
-        try:
-            await asyncio.wait_for(self._wake.wait(), timeout)
-        except asyncio.TimeoutError:
-            pass
-        self._wake.clear()
+            await asyncio.sleep(0.05)
 
     async def _publish_event(self, bus, keys, kind: str, *, at_tick: int | None = None, **details) -> None:
         """Supervisor events (crashes, restarts) go into the run record through the monitor, with their tick and sim
@@ -449,9 +413,9 @@ class Supervisor:
         self.on_progress(p, line)
 
     async def _wait_exit(self, children: list[Child], timeout: float) -> None:
-        running = [c for c in children if c.alive()]
-        if running:
-            await asyncio.gather(*(c.wait(timeout) for c in running))
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and any(c.alive() for c in children):
+            await asyncio.sleep(0.05)
 
     async def shutdown(self) -> None:
         """Every child gone within SHUTDOWN_BOUND: a moment to exit on its own, SIGTERM, then SIGKILL."""
@@ -464,4 +428,9 @@ class Supervisor:
             if child.alive():
                 self._event("kill", f"{child.spec.name} pid {child.pid} ignored SIGTERM")
                 child.signal_group(signal.SIGKILL)
-        await self._wait_exit(children, 0.5)  # reaped
+        for child in children:
+            if child.proc is not None:
+                try:
+                    child.proc.wait(timeout=0.5)
+                except subprocess.TimeoutExpired:
+                    pass
