@@ -40,12 +40,16 @@ def test_every_service_imports_with_the_base_dependencies_only():
 
 
 def test_python_m_services_help_runs_with_the_base_dependencies_only():
+    body = "import contextlib, io, runpy\n"
     for service in ("agent", "sim", "monitor"):
-        proc = _probe(f"import runpy; sys.argv = ['{service}', '--help']\n"
-                      f"try:\n    runpy.run_module('services.{service}', run_name='__main__')\n"
-                      "except SystemExit as exc:\n    assert exc.code in (0, None), exc.code")
-        assert proc.returncode == 0, (service, proc.stderr[-3000:])
-        assert "usage:" in proc.stdout and json.loads(proc.stdout.splitlines()[-1]) == [], service
+        body += (f"out = io.StringIO()\nsys.argv = ['{service}', '--help']\n"
+                 f"with contextlib.redirect_stdout(out):\n"
+                 f"    try:\n        runpy.run_module('services.{service}', run_name='__main__')\n"
+                 f"    except SystemExit as exc:\n        assert exc.code in (0, None), exc.code\n"
+                 f"assert 'usage:' in out.getvalue(), '{service}'\n")
+    proc = _probe(body)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads(proc.stdout.splitlines()[-1]) == []
 
 
 def test_the_base_dependencies_hold_no_extra():
