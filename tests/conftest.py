@@ -23,8 +23,9 @@ from _procs import LiveRun
 
 KINDS: dict[str, tuple[str, ...]] = {
     "unit": (
-        "test_bus_faults", "test_bus_local", "test_dependencies", "test_errors", "test_faults_vtime", "test_hot_codec", "test_keys",
-        "test_layout", "test_metrics", "test_plasticity", "test_policies", "test_render", "test_schemas",
+        "test_bus_faults", "test_bus_local", "test_dependencies", "test_deploy_manifests", "test_errors",
+        "test_faults_vtime", "test_hot_codec", "test_keys", "test_layout", "test_metrics", "test_plasticity",
+        "test_policies", "test_render", "test_schemas",
     ),
     "fidelity": (
         "test_astar", "test_cta", "test_faults_experiment", "test_heuristic", "test_lab", "test_morph_reference",
@@ -32,13 +33,13 @@ KINDS: dict[str, tuple[str, ...]] = {
     ),
     "services": (
         "test_bus_zenoh", "test_faults_control", "test_faults_crash", "test_faults_lockstep", "test_faults_restore",
-        "test_faults_services", "test_metric_streams", "test_prometheus", "test_record_replay", "test_registry",
-        "test_services_local", "test_zenoh_acl",
+        "test_faults_services", "test_metric_streams", "test_monitoring", "test_prometheus", "test_record_replay",
+        "test_registry", "test_services_local", "test_zenoh_acl",
     ),
     "e2e": (
-        "test_agent_claims", "test_bench_distributed", "test_compose", "test_dockerfile", "test_equivalence",
-        "test_faults_at_tick", "test_faults_distributed", "test_faults_up", "test_fuzz_services", "test_readme_example",
-        "test_report", "test_up", "test_warehouse_cli", "test_watch",
+        "test_agent_claims", "test_api", "test_bench_distributed", "test_compose", "test_dockerfile",
+        "test_equivalence", "test_faults_at_tick", "test_faults_distributed", "test_faults_up", "test_fuzz_services", "test_readme_example",
+        "test_report", "test_sweep", "test_up", "test_warehouse_cli", "test_watch",
     ),
 }
 KIND_OF = {name: kind for kind, names in KINDS.items() for name in names}

@@ -59,6 +59,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--radius", default=None, help="Proximity radii, e.g. tiny=10,small=10,medium=6,large=8 "
                         "(default: calibrate as the reference)")
     parser.add_argument("--jobs", type=int, default=2, help="worker processes")
+    parser.add_argument("--executor", choices=("local", "dask"), default="local",
+                        help="scale/ablation: local processes (default) or a Dask cluster ('morph-sim[cluster]')")
+    parser.add_argument("--scheduler", default=None, help="Dask scheduler address, e.g. tcp://HOST:8786")
     parser.add_argument("--fiedler-every", type=int, default=10, help="compute λ₂ every this many ticks")
     parser.add_argument("--out", default="runs", help="root directory of run records")
     parser.add_argument("--run-id", default=None, help="run record directory name")
@@ -137,6 +140,12 @@ def _run_faults(args) -> int:
 def run(args) -> int:
     import time
 
+    if args.executor == "dask":
+        if args.suite not in ("scale", "ablation"):
+            raise ValueError(f"executor: the dask executor runs the scale and ablation studies (and sweeps), "
+                             f"not {args.suite}")
+        if not args.scheduler:
+            raise ValueError("scheduler: --executor dask needs --scheduler tcp://HOST:8786")
     if args.suite == "shift":
         return _run_shift(args)
     if args.suite == "emergent":
@@ -166,8 +175,12 @@ def run(args) -> int:
     from services.agent.presets import load_preset
 
     load_preset(preset)  # fail early, naming the preset
-    result = run_suite(cfg, Path(args.out), args.run_id, show_progress=not args.no_progress,
-                       argv=["morph-sim", *sys.argv[1:]])
+    try:
+        result = run_suite(cfg, Path(args.out), args.run_id, show_progress=not args.no_progress,
+                           argv=["morph-sim", *sys.argv[1:]], executor=args.executor, scheduler=args.scheduler)
+    except ImportError as exc:  # the dask executor without the [cluster] extra
+        print(f"morph-sim experiment: error: {exc}", file=sys.stderr)
+        return 2
     rows = summarise(cfg, result.episodes)
     print(markdown_table(cfg, rows, result.wall_s, result.radii))
     print(f"study wall time: {result.wall_s:.1f} s for {len(result.episodes)} episodes"

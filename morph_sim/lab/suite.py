@@ -99,6 +99,10 @@ class SuiteResult:
     series: dict[tuple[str, str], dict[str, np.ndarray]]  # (scale, condition) -> mean tick series
 
 
+def _work(spec: EpisodeSpec) -> EpisodeResult:
+    return run_episode(spec)
+
+
 class _InProcess(Executor):
     """``jobs == 1``: each episode runs in this process when submitted (no worker process to start or feed)."""
 
@@ -124,6 +128,75 @@ def episode_pool(jobs: int) -> Iterator[Executor]:
     pool.shutdown(wait=True)
 
 
+class _Scheduler:
+    """This machine's processes (:func:`episode_pool`) fed one episode at a time; ``results()`` waits for at least
+    one finished episode (the interface :class:`_DaskScheduler` shares)."""
+
+    def __init__(self, jobs: int) -> None:
+        self.jobs = jobs
+        self.pending = 0
+        self._running: set[Future] = set()
+
+    def __enter__(self) -> _Scheduler:
+        self._context = episode_pool(self.jobs)
+        self._pool = self._context.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> bool | None:
+        return self._context.__exit__(*exc)
+
+    def submit(self, spec: EpisodeSpec) -> None:
+        self.pending += 1
+        self._running.add(self._pool.submit(_work, spec))
+
+    def results(self) -> list[EpisodeResult]:
+        finished, self._running = wait(self._running, return_when=FIRST_COMPLETED)
+        self.pending -= len(finished)
+        return [future.result() for future in finished]
+
+
+class _DaskScheduler:
+    """The same interface on a Dask cluster (``scheduler``: tcp://HOST:8786, a Client or a LocalCluster): each episode
+    is one task; episodes are deterministic in their spec, so the study equals the local one episode for episode."""
+
+    def __init__(self, scheduler) -> None:
+        from morph_sim.lab.executors import DaskExecutor
+
+        self._executor = DaskExecutor(scheduler)
+        self.pending = 0
+        self._done = None
+        self._futures: list = []
+
+    def __enter__(self) -> _DaskScheduler:
+        from distributed import as_completed
+
+        self._done = as_completed([], loop=self._executor.client.loop)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._executor.client.cancel([f for f in self._futures if not f.done()])
+        self._executor.close()
+
+    def submit(self, spec: EpisodeSpec) -> None:
+        self.pending += 1
+        future = self._executor.client.submit(_work, spec, pure=False)
+        self._futures.append(future)
+        self._done.add(future)
+
+    def results(self) -> list[EpisodeResult]:
+        out = [next(self._done).result()]
+        self.pending -= 1
+        return out
+
+
+def _scheduler(jobs: int, executor: str, scheduler) -> _Scheduler | _DaskScheduler:
+    if executor == "local":
+        return _Scheduler(jobs)
+    if executor == "dask":
+        return _DaskScheduler(scheduler)
+    raise ValueError(f"executor: unknown {executor!r} (local, dask)")
+
+
 def _cost(spec: EpisodeSpec) -> float:
     size = {"tiny": 1.0, "small": 1.4, "medium": 2.0, "large": 2.8}.get(spec.scale, 2.0)
     plastic = 1.6 if CONDITIONS[spec.condition][1] == "morph" else 1.0
@@ -131,7 +204,9 @@ def _cost(spec: EpisodeSpec) -> float:
 
 
 def run_suite(cfg: SuiteConfig, out_root: Path | None = Path("runs"), run_id: str | None = None,
-              show_progress: bool = True, argv: list[str] | None = None) -> SuiteResult:
+              show_progress: bool = True, argv: list[str] | None = None, executor: str = "local",
+              scheduler=None) -> SuiteResult:
+    """Run the study on ``cfg.jobs`` local processes, or on a Dask cluster (``executor="dask"``, ``scheduler``)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     t0 = time.perf_counter()
@@ -159,25 +234,21 @@ def run_suite(cfg: SuiteConfig, out_root: Path | None = Path("runs"), run_id: st
     first = list(cal_morph.values()) + list(cal_prox.values())
     first += sorted((sp for sp in main_specs(False) if sp.condition != "proximity"), key=_cost, reverse=True)
     first += [sp for sp in main_specs(True) if sp.condition == "proximity"]
-    with progress, episode_pool(cfg.jobs) as pool:
+    with progress, _scheduler(cfg.jobs, executor, scheduler) as pool:
         task = progress.add_task(f"{cfg.kind} study", total=None)
         submitted = set()
-        running: set[Future] = set()
 
         def submit(specs):
             for sp in specs:
                 k = sp.model_dump_json()
                 if k not in submitted:
                     submitted.add(k)
-                    running.add(pool.submit(run_episode, sp))
+                    pool.submit(sp)
             progress.update(task, total=len(submitted))
 
         submit(first)
-        while running:
-            finished, _ = wait(running, return_when=FIRST_COMPLETED)
-            running.difference_update(finished)
-            for future in finished:
-                res = future.result()
+        while pool.pending:
+            for res in pool.results():
                 done[res.spec.model_dump_json()] = res
                 progress.advance(task)
             for sc in [sc for sc in todo if sc not in radii]:

@@ -45,25 +45,10 @@ class Record:
 
     def fault_windows(self) -> list[tuple[float, float, str]]:
         """(start tick, end tick, label) of every fault window, from the events (open windows end with the run)."""
+        from services.monitor.faultwindows import FaultWindows
+
         end = float(self.t[-1] + 1) if self.rows else 0.0
-        open_: dict[str, tuple[float, str]] = {}
-        out = []
-        for e in self.events:
-            kind, t = e.get("kind", ""), e.get("t")
-            if t is None:
-                continue
-            fid = str((e.get("details") or {}).get("fault_id") or (e.get("details") or {}).get("id") or kind)
-            if kind == "fault.set":
-                open_[fid] = (float(t), fid)
-            elif kind in ("fault.healed", "fault.reset") and fid in open_:
-                start, label = open_.pop(fid)
-                out.append((start, float(t), label))
-            elif kind == "fault.reset":
-                for start, label in open_.values():
-                    out.append((start, float(t), label))
-                open_.clear()
-        out += [(start, end, label) for start, label in open_.values()]
-        return out
+        return FaultWindows(self.events).windows(end)
 
     def crashes(self) -> list[float]:
         return [float(e["t"]) for e in self.events if e.get("kind") in ("fault.crash", "agent.restart")
