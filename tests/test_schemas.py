@@ -193,6 +193,9 @@ def test_one_corrupted_field_is_named(cls: type, data: st.DataObject) -> None:
         allowed = {field}
         if cls is Tick and field in (*Tick.PER_ROBOT, "x"):
             allowed |= {*Tick.PER_ROBOT, "x"}  # a per-robot array of another length: the first mismatch is named
+        if cls is Tick and field in ("grid_rows", "grid_cols"):
+            allowed |= {"x", "target_x", "prev_target_x", "y", "target_y", "prev_target_y"}  # a smaller grid: the
+            # coordinate that no longer fits is named
         if cls is Resolve and field == "pickers":
             allowed.add("requesters")
         if cls is AgentState and field == "w_row":

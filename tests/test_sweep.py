@@ -222,7 +222,7 @@ def test_a_sweep_file_equals_the_same_grid_on_the_command_line(tmp_path, capsys)
 @pytest.mark.parametrize("args, message", [
     (["--grid", "policy=morph,bogus"], "policy: Input should be 'full', 'constant', 'tsg', 'proximity', 'none' or "
                                        "'morph'"),
-    (["--grid", "scale=tiny,huge"], "scale: Value error, unknown size 'huge'"),
+    (["--grid", "scale=tiny,huge"], "scale: unknown size 'huge'"),
     (["--grid", "faults.loss=0,abc"], "faults.loss.percent: Input should be a valid number"),
     (["--grid", "faults.loss=0,150"], "faults.loss.percent: Input should be less than or equal to 100"),
     (["--grid", "warp=1,2"], "warp: not a RunConfig field or a faults.* parameter"),
