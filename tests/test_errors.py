@@ -41,8 +41,8 @@ def test_a_field_is_never_named_twice():
 
 
 def test_the_cli_prints_one_line_and_exits_2_on_a_bad_value(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "morph_sim.cli", "run", "--policy", "bogus", "--steps", "3",
+    proc = subprocess.run([sys.executable, "-m", "morph_sim.cli", "run", "--steps", "0",
                            "--output-dir", str(tmp_path)], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("morph-sim run: error: policy: Input should be 'full'"), lines
+    assert len(lines) == 1 and lines[0].startswith("morph-sim run: error: steps: Input should be greater than or equal to 1"), lines

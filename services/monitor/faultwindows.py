@@ -33,7 +33,8 @@ class FaultWindows:
         elif fid in self.open:
             start, label = self.open.pop(fid)
             self.closed.append((start, float(t), label))
-        elif kind == "fault.reset":  # a reset without an id heals everything
+        elif kind == "fault.reset" and fid == kind:  # a reset without an id heals everything (a reset of a fault
+            # that opened no window here, e.g. a crash plan cancelled by the supervisor, closes nothing)
             for start, label in self.open.values():
                 self.closed.append((start, float(t), label))
             self.open.clear()
