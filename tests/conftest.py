@@ -24,11 +24,12 @@ from _procs import LiveRun
 KINDS: dict[str, tuple[str, ...]] = {
     "unit": (
         "test_bus_faults", "test_bus_local", "test_dependencies", "test_deploy_manifests", "test_errors",
-        "test_faults_vtime", "test_hot_codec", "test_keys", "test_layout", "test_metrics", "test_plasticity",
+        "test_faults_vtime", "test_hot_codec", "test_keys", "test_layout", "test_metrics", "test_network_model",
+        "test_plasticity",
         "test_figures", "test_policies", "test_render", "test_schemas",
     ),
     "fidelity": (
-        "test_astar", "test_cta", "test_faults_experiment", "test_heuristic", "test_lab", "test_morph_reference",
+        "test_astar", "test_audit", "test_cta", "test_faults_experiment", "test_heuristic", "test_lab", "test_morph_reference",
         "test_movement", "test_shift_emergent", "test_warehouse_fidelity",
     ),
     "services": (
@@ -39,7 +40,8 @@ KINDS: dict[str, tuple[str, ...]] = {
     "e2e": (
         "test_agent_claims", "test_api", "test_bench_distributed", "test_cli_messages", "test_compose",
         "test_dockerfile", "test_equivalence", "test_experiment_flags", "test_faults_at_tick", "test_faults_cli_live",
-        "test_faults_distributed", "test_faults_up", "test_fuzz_services", "test_readme_example", "test_report", "test_sweep", "test_up", "test_warehouse_cli", "test_watch",
+        "test_faults_distributed", "test_faults_up", "test_fuzz_services", "test_hostile", "test_network_services",
+        "test_readme_example", "test_report", "test_secure_defaults", "test_sweep", "test_up", "test_warehouse_cli", "test_watch",
     ),
 }
 KIND_OF = {name: kind for kind, names in KINDS.items() for name in names}

@@ -1,4 +1,4 @@
-"""Crash faults under ``morph-sim up``: real OS processes over Zenoh on loopback.
+"""Crash faults under ``morph-sim up`` (issue 5): real OS processes over Zenoh on loopback.
 
 A schedule file asks for "kill agent k every 100 ticks"; the supervisor carries it out by pid (SIGKILL), restarts
 the agent, which restores its brain from the monitor's latest state and rejoins. The run completes with every tick
@@ -9,14 +9,17 @@ from __future__ import annotations
 
 import asyncio
 import json
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 from schemas import AgentState, Event
 from schemas.keys import RunKeys
-from services.bus.zenoh_bus import ZenohBus
+from services.bus.zenoh_bus import endpoint, free_port
 from services.monitor.recorder import read_metrics
 
-from _procs import kill_all
+from _procs import alive, descendants, kill_all
 
 UP_TIMEOUT = 150
 VICTIM = 6  # a picker at tiny (5 AGVs + 3 pickers)
@@ -27,23 +30,46 @@ def _events(record: Path) -> list[dict]:
     return [json.loads(line) for line in (record / "events.jsonl").read_text().splitlines() if line.strip()]
 
 
-async def test_up_kills_an_agent_every_100_ticks_and_it_rejoins_with_its_state(live_run, tmp_path):
+async def _port_open(port: int, proc: subprocess.Popen, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and proc.poll() is None:
+        try:
+            _, writer = await asyncio.wait_for(asyncio.open_connection("127.0.0.1", port), 0.5)
+            writer.close()
+            return True
+        except (OSError, asyncio.TimeoutError):
+            await asyncio.sleep(0.1)
+    return False
+
+
+async def test_up_kills_an_agent_every_100_ticks_and_it_rejoins_with_its_state(tmp_path):
     schedule = tmp_path / "crash.toml"
     schedule.write_text(f'[[at]]\ntick = 0\nspec = {{ id = "kill-{VICTIM}", crash = {{ agent = {VICTIM}, '
                         'every = 100 } }\n'
                         # and one cold restart for comparison: agent 1 at tick 150 starts from zero
                         '[[at]]\ntick = 0\nspec = { id = "cold-1", crash = { agent = 1, at_tick = 150, '
                         'cold_restart = true } }\n')
+    port = free_port()
     run_id = "upkill"
-    up = live_run(run_id, "--policy", "morph", "--preset", "paper", "--seed", "5",
-                  # paced: 100 ticks take 6 s, longer than a restarted agent needs to start, restore and rejoin
-                  "--steps", str(STEPS), "--mode", "paced", "--period", "0.06", "--phase-timeout", "3",
-                  "--state-every", "10", "--fault-schedule", str(schedule))
+    argv = [sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", "tiny", "--run-id", run_id,
+            "--output-dir", str(tmp_path), "--policy", "morph", "--preset", "paper", "--seed", "5",
+            # paced: 100 ticks take 6 s, longer than a restarted agent needs to start, restore and rejoin
+            "--steps", str(STEPS), "--mode", "paced", "--period", "0.06", "--phase-timeout", "3",
+            "--state-every", "10",
+            "--listen", endpoint(port), "--fault-schedule", str(schedule)]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    seen: set[int] = set()
     received: list[tuple[str, object]] = []  # ("state", AgentState) | ("restored", Event), in arrival order
     bus = None
     try:
-        await up.endpoint_open(60)
-        bus = await ZenohBus.open("test-observer", connect=up.endpoint)
+        if not await _port_open(port, proc, 60):
+            proc.kill()
+            raise AssertionError(f"the sim never opened its endpoint: {proc.communicate(timeout=10)[1][-3000:]}")
+        from services.supervisor.process import open_bus
+
+        # a secured run: the observer connects with the operator credentials `up` wrote into the run directory
+        bus = await open_bus("test-observer", connect=endpoint(port),
+                             config_file=str(tmp_path / run_id / "credentials" / "operator.json5"))
         keys = RunKeys(run_id)
         await bus.subscribe(keys.agent_state(VICTIM), lambda s: received.append(("state", s.decode(AgentState))))
 
@@ -53,16 +79,20 @@ async def test_up_kills_an_agent_every_100_ticks_and_it_rejoins_with_its_state(l
                 received.append(("restored", event))
 
         await bus.subscribe(keys.event(VICTIM), on_event)
-        assert await up.finished(UP_TIMEOUT) == 0, up.stderr()[-3000:]
-        out = up.stdout()
+        deadline = time.monotonic() + UP_TIMEOUT
+        while proc.poll() is None and time.monotonic() < deadline:
+            seen |= descendants(proc.pid)
+            await asyncio.sleep(0.1)
+        out, err = proc.communicate(timeout=10)
+        assert proc.returncode == 0, err[-3000:]
         assert "completed" in out and "4 restarts" in out, out
     finally:
         if bus is not None:
             await bus.close()
-        if up.running():
-            up.proc.kill()
-            up.proc.wait(timeout=10)
-        left = up.left_behind()
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=10)
+        left = alive(seen | {proc.pid})
         kill_all(left)
     assert left == [], f"processes left behind: {left}"
 

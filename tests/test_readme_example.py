@@ -46,7 +46,8 @@ def test_the_example_prints_metrics_of_a_live_up_run(live_run):
     # the example runs with the environment a user has: no Zenoh settings inherited from this test process
     user_env = {k: v for k, v in os.environ.items() if not k.startswith("ZENOH_")}
     up = live_run("readme", "--steps", "100000")
-    code = readme_example().replace("7447", str(up.port))
+    # the example's run id is "demo" under runs/: here the run is "readme" under the test's directory
+    code = readme_example().replace("7447", str(up.port)).replace("runs/demo/", f"{up.record}/")
     up.wait_for_endpoint()  # the README runs the example after `up` has started
     up.wait_for_rows(5)  # the run is under way
     example = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=user_env)

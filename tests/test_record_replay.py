@@ -1,8 +1,10 @@
-"""Bus record and offline replay: the replayed monitor recomputes the live run's metrics exactly."""
+"""Bus record and offline replay (issue 6): the replayed monitor recomputes the live run's metrics exactly."""
 
 from __future__ import annotations
 
 import asyncio
+import os
+import signal
 import subprocess
 import sys
 
@@ -10,11 +12,13 @@ import msgpack
 import pytest
 
 from services.bus.local import LocalNetwork
+from services.bus.zenoh_bus import free_port
 from services.monitor.recorder import read_metrics
 from services.monitor.replay import BusRecorder, read_record, replay
 from services.runconfig import RunConfig
 from services.supervisor.local import run_local
 
+from _procs import wait_for_port
 
 
 @pytest.mark.parametrize("policy", ["morph", "proximity"])
@@ -50,15 +54,27 @@ def test_a_truncated_record_replays_up_to_its_last_whole_frame(tmp_path):
         read_record(tmp_path / "bad.mbr")
 
 
-def test_record_and_replay_commands_against_a_live_up_run(tmp_path, live_run):
-    flags = ["--steps", "150", "--seed", "3"]
-    up = live_run("recup", *flags, output_dir=tmp_path / "live")
-    up.wait_for_endpoint()
-    rec = subprocess.run([sys.executable, "-m", "morph_sim.cli", "record", "--scale", "tiny", "--run-id", "recup",
-                          *flags, "--endpoint", up.endpoint, "--out", str(tmp_path / "up.mbr"), "--timeout", "90"],
-                         capture_output=True, text=True, timeout=120)
-    assert rec.returncode == 0, rec.stderr[-2000:]
-    assert up.wait(timeout=60) == 0
+def test_record_and_replay_commands_against_a_live_up_run(tmp_path):
+    port = free_port()
+    flags = ["--scale", "tiny", "--steps", "150", "--run-id", "recup", "--seed", "3"]
+    up = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "up", *flags, "--quiet", "--listen",
+                           f"tcp/127.0.0.1:{port}", "--output-dir", str(tmp_path / "live")],
+                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        import time
+
+        wait_for_port(port, up, time.monotonic() + 60, 0.1)
+        # the operator's credentials: found in the run directory (--output-dir) that `up` wrote them to
+        rec = subprocess.run([sys.executable, "-m", "morph_sim.cli", "record", *flags, "--endpoint",
+                              f"tcp/127.0.0.1:{port}", "--out", str(tmp_path / "up.mbr"), "--timeout", "90",
+                              "--output-dir", str(tmp_path / "live")],
+                             capture_output=True, text=True, timeout=120)
+        assert rec.returncode == 0, rec.stderr[-2000:]
+        assert up.wait(timeout=60) == 0
+    finally:
+        if up.poll() is None:
+            os.killpg(up.pid, signal.SIGKILL)
+            up.wait(timeout=5)
     rep = subprocess.run([sys.executable, "-m", "morph_sim.cli", "replay", str(tmp_path / "up.mbr"), "--output-dir",
                           str(tmp_path / "replayed")], capture_output=True, text=True, timeout=120)
     assert rep.returncode == 0, rep.stderr[-2000:]

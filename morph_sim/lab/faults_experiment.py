@@ -98,7 +98,8 @@ def run_fault_episode(condition: str, kind: str, level: float, seed: int, *, sca
     cta = CTAController(Warehouse(cfg))
     cta.reset(seed)
     fleet = Fleet(cta.n_agvs, cta.n_pickers, scale)
-    policy = make_condition_policy(lab_condition, preset, PROXIMITY_RADIUS if lab_condition == "proximity" else None)
+    policy = make_condition_policy(lab_condition, preset, PROXIMITY_RADIUS if lab_condition == "proximity" else None,
+                                   steps=steps)
     brains = policy.brains(fleet, range(fleet.n), seed)
     layer = FaultLayer(RUN, base_seed=seed)  # the one receiver-side decision, per link
     spec = fault_spec(kind, level, seed)

@@ -32,6 +32,7 @@ from services.bus.base import Bus, Sample
 from services.rejects import Rejects
 from services.runconfig import RunConfig
 from services.sim.service import observation_from_arrays
+from services.tickorder import TickOrder
 
 log = logging.getLogger("morph_sim.agent")
 
@@ -64,6 +65,7 @@ class AgentService:
         self.config = config
         self._rejects = Rejects(log, f"agent {agent_id}")
         self.bus = bus
+        bus.reject_hook = self._reject  # oversized messages refused on arrival count here
         self.id = agent_id
         self.keys = RunKeys(config.run_id)
         self.is_agv = agent_id < config.n_agvs
@@ -72,6 +74,7 @@ class AgentService:
         self.brains = config.make_policy().brains(fleet, [agent_id], config.seed)
         self.counters = AgentCounters()
         self.last_t = -1
+        self._ticks = TickOrder(config.steps)  # which ticks this agent takes (services/tickorder.py)
         self._stop = asyncio.Event()
         self._seq = 0
         # picker side: requests received per tick, and the resolve being decided
@@ -238,15 +241,17 @@ class AgentService:
         if self._stop.is_set() or self._came_late(sample):
             return  # a stopped agent is gone, even while its session closes
         try:
+            if sample.sender != "sim":
+                raise ValueError(f"tick published by {sample.sender!r}, not the sim")
             tick = decode_tick(sample.payload)  # validated, straight into arrays (schemas/hot.py)
             if tick.n != self.config.n_agents:
                 raise ValueError(f"tick has {tick.n} robots, this fleet {self.config.n_agents}")
             obs = observation_from_arrays(tick, self.config.steps)
+            if not self._ticks.admit(tick.t):
+                return  # a duplicate or stale tick: each tick is learnt from once
         except (ValueError, IndexError) as exc:
             self._reject(sample.key, exc)
             return
-        if tick.t <= self.last_t:
-            return  # a duplicate or stale tick: each tick is learnt from once
         self.last_t = tick.t
         self.counters.ticks += 1
         final = tick.t >= self.config.steps or bool(getattr(obs, "final", False))
@@ -305,6 +310,7 @@ class AgentService:
         # World state is authoritative (the next tick tells the AGV whether a picker comes); replies are only checked.
         try:
             msg = sample.decode(HelpReply)
+            self.keys.check_author(sample.key, msg.picker, "reply of picker")
         except ValueError as exc:
             self._reject(sample.key, exc)
             return
@@ -326,6 +332,10 @@ class AgentService:
             return
         if msg.t < self.last_t:
             return  # stale: the protocol drops it
+        if self.last_t >= 0 and msg.t > self.last_t + self._ticks.max_gap:  # kept per tick until decided: a request
+            # for a far tick would stay forever
+            self._reject(sample.key, f"request for tick {msg.t}, this picker is at tick {self.last_t}")
+            return
         with self._lock:
             self._inbox.setdefault(msg.t, {})[msg.agv] = msg
             self._try_decide()
@@ -334,7 +344,12 @@ class AgentService:
         if self._stop.is_set() or self._came_late(sample):
             return  # a stopped agent is gone, even while its session closes
         try:
+            if sample.sender != "sim":
+                raise ValueError(f"resolve published by {sample.sender!r}, not the sim")
             msg = sample.decode(Resolve)
+            if self.last_t >= 0 and msg.t > self.last_t + self._ticks.max_gap:  # of the tick just taken (or of one
+                # lost on the way)
+                raise ValueError(f"resolve of tick {msg.t}, this picker is at tick {self.last_t}")
         except ValueError as exc:
             self._reject(sample.key, exc)
             return

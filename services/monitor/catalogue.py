@@ -6,7 +6,8 @@ nothing else lists metric names. Each entry says where its value comes from:
 
 * ``row`` — the monitor's per-tick row, from the sim's ticks and the agents' acks, commits and state rows;
 * ``messages`` — the monitor's statistics of the messages themselves (counts, sequence gaps, latency, dispatch);
-* ``link`` — the per key class link statistics (``services.faults.linkstats``), every ``--state-every`` ticks.
+* ``link`` — the per key class link statistics (``services.faults.linkstats``), every ``--state-every`` ticks;
+* ``network`` — the network model's counters, under a network profile (``--network``).
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ class Metric:
     name: str
     unit: str
     help: str
-    source: str  # "row" | "messages" | "link" (module docstring)
+    source: str  # "row" | "messages" | "link" | "network" (module docstring)
     #: Prometheus family name (counters without the ``_total`` the client adds) and type, if exported
     prometheus: str | None = None
     kind: str = "gauge"  # "gauge" | "counter" | "histogram"
@@ -68,6 +69,14 @@ CATALOGUE: tuple[Metric, ...] = (
       for c, what in LINK_COUNTERS.items()),
     *(Metric(f"link/latency/{q}", "s", f"observed latency per key class: {q} since the start", "link")
       for q in LINK_LATENCIES),
+    # with a network profile (--network): the robots' Wi-Fi as they drive through it (docs/faults.md)
+    Metric("net/handovers", "hand-overs", "with `--network`: cumulative access-point hand-overs of all robots",
+           "network"),
+    Metric("net/in_outage", "robots", "with `--network`: robots whose radio is in a hand-over outage at step t",
+           "network"),
+    Metric("net/outage_seconds", "s", "with `--network`: cumulative hand-over outage, all robots", "network"),
+    Metric("net/stopped", "robots",
+           "with `--network`: robots held in place at step t, silent for the profile's `silence_stop`", "network"),
 )
 
 BY_NAME: dict[str, Metric] = {m.name: m for m in CATALOGUE}

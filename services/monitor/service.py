@@ -37,12 +37,16 @@ from services.monitor.recorder import Recorder
 from services.monitor.streams import MessageStats
 from services.rejects import Rejects
 from services.runconfig import RunConfig
+from services.tickorder import TickOrder
 
 log = logging.getLogger("morph_sim.monitor")
 
 ROW_GRACE_TICKS = 8
 STOP_GRACE = 3.0  # seconds the monitor waits for the sim's end of run after someone else's stop
 QUIET_EVENTS = ("ready.probe", "ready.ack")
+NET_STREAMS = tuple(m.name.split("/", 1)[1] for m in catalogue.CATALOGUE if m.source == "network")
+# what the dispatch protocol sends, by the monitor's message kind (the sim's Ticks and Resolves are kind "sim")
+PROTOCOL_KINDS = ("sim", "ack", "request", "reply", "commit")  # what the monitor's own network model can see
 
 
 @dataclass
@@ -64,7 +68,20 @@ class MonitorResult:
     deliveries_total: int = 0
     rejected: int = 0
     messages: dict[str, int] = field(default_factory=dict)
+    bytes: dict[str, int] = field(default_factory=dict)  # payload bytes per kind, as messages
     finished: dict | None = None
+
+    def communication(self, steps: int, n_agents: int) -> dict:
+        """What the dispatch protocol sent (Ticks and Resolves of the sim, acks, requests, replies, commits — not the
+        skips that synchronise virtual time, nor telemetry): totals, per delivery, per agent per tick."""
+        msgs = sum(self.messages.get(k, 0) for k in PROTOCOL_KINDS)
+        size = sum(self.bytes.get(k, 0) for k in PROTOCOL_KINDS)
+        per = max(1, self.deliveries_total)
+        agent_ticks = max(1, steps * n_agents)
+        return {"kinds": list(PROTOCOL_KINDS), "messages": msgs, "bytes": size,
+                "messages_per_delivery": msgs / per if self.deliveries_total else None,
+                "bytes_per_delivery": size / per if self.deliveries_total else None,
+                "messages_per_agent_tick": msgs / agent_ticks, "bytes_per_agent_tick": size / agent_ticks}
 
 
 class MonitorService:
@@ -75,6 +92,7 @@ class MonitorService:
         self.config = config
         self._rejects = Rejects(log, "monitor")
         self.bus = bus
+        bus.reject_hook = self._reject  # oversized messages refused on arrival count here
         self.keys = RunKeys(config.run_id)
         self.n = config.n_agents
         self.is_agv = np.arange(self.n) < config.n_agvs
@@ -85,6 +103,7 @@ class MonitorService:
         self._rows: dict[int, Row] = {}
         self._next_row = 0
         self._last_tick = -1
+        self._ticks = TickOrder(config.steps)  # which ticks the record takes (services/tickorder.py)
         self._total = 0
         self._states: dict[int, dict[int, AgentState]] = {}  # tick -> agent -> state
         self.latest_state: dict[int, AgentState] = {}
@@ -111,6 +130,16 @@ class MonitorService:
 
         self.fault_windows = FaultWindows()  # faults in force, from the events (Prometheus morph_faults_active)
         self.latest_links: list[MetricSample] = []
+        # the run's Wi-Fi as the robots drive through it (hand-overs, robots in an outage): the same model, seed and
+        # trajectories as every fault layer of the run, observed here, never applied (the monitor is the instrument)
+        self.network = None
+        if config.network is not None:
+            from schemas.network import load_profile
+            from services.faults.network import NetworkModel
+            from services.sim.world.layout import LayoutConfig, layout_for
+
+            self.network = NetworkModel(load_profile(config.network), layout_for(LayoutConfig.named(config.scale)),
+                                        seed=config.seed)
         self._links_due = False
 
     def _reject(self, what: str, why: object) -> None:
@@ -154,15 +183,20 @@ class MonitorService:
         head = rel[0]
         kind = head if head != "agent" or len(rel) < 3 else rel[2]
         self.result.messages[kind] = self.result.messages.get(kind, 0) + 1
+        self.result.bytes[kind] = self.result.bytes.get(kind, 0) + len(sample.payload)
         # a sim-time stamp (virtual time, unfaulted here) means no wall latency: never time.time() - sim seconds
-        self.stats.observe(kind, sample.key, sample.sender, sample.seq, sample.sent_at,
-                           None if sample.sent_at > 1e8 else sample.sent_at)
+        if not self.stats.observe(kind, sample.key, sample.sender, sample.seq, sample.sent_at,
+                                  None if sample.sent_at > 1e8 else sample.sent_at):
+            self._reject(sample.key, f"sequence number {sample.seq} of {sample.sender!r} jumps too far ahead")
+            return
         if sample.sender:
             # wall stamps (paced / up): latency as seen here; sim-time stamps (virtual time) carry no wall latency
             sent = sample.sent_at
             self.link_meter.record(sample.key, sample.sender, sample.seq, sent, time.time() if sent > 1e8 else sent)
         try:
             if head == "sim" and rel[1:] == ["tick"]:
+                if sample.sender != "sim":
+                    raise ValueError(f"tick published by {sample.sender!r}, not the sim")
                 self._on_tick(decode_tick(sample.payload))  # validated, as arrays (schemas/hot.py)
             elif head == "agent" and len(rel) == 3:
                 if rel[2] == "ack":
@@ -172,7 +206,7 @@ class MonitorService:
                 elif rel[2] == "state":
                     self._on_state(sample.decode(AgentState), rel[1])
             elif head == "events" and len(rel) == 2:
-                self._on_event(sample.decode(Event))
+                self._on_event(sample.decode(Event), rel[1])
             elif head == "ctl" and rel[1:] == ["stop"]:
                 sample.decode(Stop)
                 if sample.sender == "sim":
@@ -194,7 +228,7 @@ class MonitorService:
     def _on_tick(self, tick: TickArrays) -> None:
         if tick.n != self.n:
             raise ValueError(f"tick has {tick.n} robots, this fleet {self.n}")
-        if tick.t <= self._last_tick:
+        if not self._ticks.admit(tick.t):
             return
         if self._last_tick < 0 and self.recorder is not None and self.recorder.resume_from is not None:
             self._resume(tick.t)
@@ -209,6 +243,8 @@ class MonitorService:
                 row.sim_time = tick.sim_time
         if self.recorder is not None:
             self.recorder.positions(tick.t, *(tick.row(name).tolist() for name in ("x", "y", "heading", "carrying")))
+        if self.network is not None:
+            self.network.observe_tick(tick.t, self.config.dt, list(zip(tick.row("x").tolist(), tick.row("y").tolist())))
         # Row t-2 is due once tick t arrives, but its acks (and the link reports of t-1) travel on other paths than
         # the sim's ticks and may reach the monitor after tick t: a row that still misses an agent's report waits
         # up to ROW_GRACE_TICKS more ticks (an absent agent's row is then written without it).
@@ -259,6 +295,10 @@ class MonitorService:
 
     def _on_commit(self, commit: Commit, chunk: str) -> None:
         self._check_sender(chunk, commit.picker)
+        if commit.picker < self.config.n_agvs or not 0 <= commit.agv < self.config.n_agvs:
+            raise ValueError(f"commit of robot {commit.picker} to robot {commit.agv}: a picker commits to an AGV")
+        if not 0 <= commit.t <= self._last_tick + 1:
+            raise ValueError(f"commit of tick {commit.t}, the run is at tick {self._last_tick}")
         row = self._row(commit.t)
         if row is not None:
             row.commits += 1
@@ -296,7 +336,12 @@ class MonitorService:
                 self.recorder.snapshot(t, W, A)
         del self._states[t]
 
-    def _on_event(self, event: Event) -> None:
+    def _on_event(self, event: Event, chunk: str | None = None) -> None:
+        """``chunk``: the ``events/<chunk>`` key it came on (None: handed over in-process, e.g. by a test)."""
+        if chunk is not None and str(event.source) != chunk:
+            raise ValueError(f"event of {event.source!r} on the key of {chunk}")
+        if event.kind == "run.finished" and chunk not in (None, "sim"):
+            raise ValueError(f"run.finished from {chunk}: only the sim ends a run")
         if event.kind in QUIET_EVENTS:
             if event.kind == "ready.probe":
                 self.bus._spawn(self.bus.publish(self.keys.event("monitor"), Event(
@@ -365,6 +410,10 @@ class MonitorService:
             v = values.get(name)
             if v is not None and not (isinstance(v, float) and not math.isfinite(v)):
                 self._fresh[name] = (t, sim_time, float(v))
+        if self.network is not None:
+            net = self.network.counters(sim_time)
+            for name in NET_STREAMS:
+                self._fresh[f"net/{name}"] = (t, sim_time, net[name])
         self.stats.row(values)
         self._unbuilt = True
         if t % self.config.state_every == 0:
@@ -417,6 +466,8 @@ class MonitorService:
             "rejected": self.result.rejected, "mean_links": self._links_sum / max(1, self._next_row),
             "sequence_gaps": self.stats.gaps,  # messages lost on the way to the monitor (per sender and key)
             "messages": dict(sorted(self.result.messages.items())),
+            "bytes": dict(sorted(self.result.bytes.items())),
+            "communication": self.result.communication(self._next_row, self.n),
             "finished": self.result.finished,
             "final_links": self._last_values.get("links"),
         }

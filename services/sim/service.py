@@ -185,6 +185,7 @@ class SimResult:
     absences: int = 0
     wall_seconds: float = 0.0
     stopped_early: str | None = None
+    network_stops: int = 0  # robot-steps a network profile's silence stop held a robot in place
     # wall seconds spent per part of the tick (where a distributed tick's time goes)
     phase_seconds: dict[str, float] = field(default_factory=lambda: {
         "controller": 0.0, "tick_phase": 0.0, "resolve_phase": 0.0, "step": 0.0})
@@ -241,6 +242,7 @@ class SimService:
         self.faults = faults
         self._rejects = Rejects(log, "sim")
         self.bus = bus
+        bus.reject_hook = self._reject  # oversized messages refused on arrival count here
         self.keys = RunKeys(config.run_id)
         self.n = config.n_agents
         self.wait_for_monitor = wait_for_monitor
@@ -434,6 +436,7 @@ class SimService:
         r = self.result
         await self._event("run.finished", steps=r.steps, deliveries=r.deliveries,
                           stopped_early=r.stopped_early, rejected=r.rejected, absences=r.absences,
+                          **({"network_stops": r.network_stops} if self.config.network is not None else {}),
                           wall_seconds=round(r.wall_seconds, 3),
                           phase_seconds={k: round(v, 3) for k, v in r.phase_seconds.items()})
         await bus.publish(k.stop, Stop(reason="finished" if r.stopped_early is None else r.stopped_early))
@@ -584,7 +587,13 @@ class SimService:
             t3 = time.monotonic()
             spent["resolve_phase"] += t3 - t2
             applied = self.ctl.commit(commits)
-            self.ctl.idle = set(range(self.n)) - self.present()  # an absent agent's robot does not move
+            self.ctl.idle = set(range(self.n)) - self.present()  # an absent agent's robot gets no new target
+            net = self.faults.network if self.faults is not None else None
+            if net is not None and net.profile.silence_stop is not None:
+                # AGV software stops a robot that has heard nothing for silence_stop seconds: a robot whose radio is
+                # in a hand-over outage that long at the step's start stands still for the step (path kept)
+                self.ctl.held = net.silenced(t * cfg.dt, net.profile.silence_stop)
+                self.result.network_stops += len(self.ctl.held)
             self.result.commits_applied += len(applied)
             before = self.ctl.deliveries
             self.ctl.finish_tick()
