@@ -1,4 +1,4 @@
-"""A scripted lockstep protocol over real buses with faults in virtual time (issue 5): each participant has its own
+"""A scripted lockstep protocol over real buses with faults in virtual time: each participant has its own
 FaultRuntime (as separate processes would); the sim waits for every ack to *arrive* (the fault layer's ``on_fate``
 hook, so a dropped ack never makes it wait), closes the TICK phase at t·Δ + Δ/2, and a late or lost ack costs that
 agent its tick. Same seed and fault config give the same record twice, on LocalBus and on Zenoh alike."""

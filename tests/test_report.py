@@ -1,4 +1,4 @@
-"""``morph-sim report`` and the run record's robustness (issue 6)."""
+"""``morph-sim report`` and the run record's robustness."""
 
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ from services.runconfig import RunConfig
 from services.supervisor.local import run_local
 
 from _procs import wait_for_port
+
 
 
 def test_the_report_renders_every_figure_and_the_gif(tmp_path):

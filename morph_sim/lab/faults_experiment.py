@@ -1,9 +1,9 @@
-"""The fault experiment (issue 5): deliveries, links and dispatch delay against message loss (0–50 %, Bernoulli vs
+"""The fault experiment: deliveries, links and dispatch delay against message loss (0–50 %, Bernoulli vs
 bursty Gilbert–Elliott) and latency (0–5 ticks), for MORPH (both presets), full, TSG and proximity, several seeds.
 
 Each episode runs on the lab's pure core (warehouse, CTA controller, every agent's brain in one process, as
-:mod:`.runner`), with the DESIGN §3 dispatch protocol's messages passed through the bus's own fault decision
-(:meth:`FaultLayer.fate`, per-link seeded streams) under virtual time (DESIGN §4, Δ = 1 s):
+:mod:`.runner`), with the dispatch protocol's messages passed through the bus's own fault decision
+(:meth:`FaultLayer.fate`, per-link seeded streams) under virtual time (docs/faults.md, Δ = 1 s):
 
 * an AGV whose gate opens sends ``HelpRequest`` (AGV → picker) and its ``Ack`` (AGV → sim) at t·Δ; both must arrive
   by the TICK deadline t·Δ + Δ/2 (latency ≤ Δ/2), else the request is stale / the ack is late and the AGV gets no
@@ -142,7 +142,7 @@ def run_fault_episode(condition: str, kind: str, level: float, seed: int, *, sca
                 layer.fate(K.reply(picker, agv), picker, agv)  # sent; its loss is healed by the next Tick
             else:
                 lost += 1
-        for picker, agv in cta.commit(commits):
+        for _picker, agv in cta.commit(commits):
             start = waiting_since.pop(agv, t)
             delays.append(t - start)
         cta.finish_tick()

@@ -63,7 +63,7 @@ class ClaimingAgent:
 
         announce("agent", f"agent {self.agent_id} ({self.config.role_of(self.agent_id)}) of run {self.config.run_id}, "
                           f"connected to {self.config.endpoint}; waiting for the sim's ticks")
-        # issue 5: a (re)started agent restores its brain from the monitor's latest states unless --cold-restart
+        # a (re)started agent restores its brain from the monitor's latest states unless --cold-restart
         from services.faults.runtime import FaultRuntime
 
         # its own fault runtime: ingress faults, ctl/faults, the clock of the run's fault time (docs/faults.md)
