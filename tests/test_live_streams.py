@@ -21,7 +21,7 @@ import pytest
 
 from services.bus.zenoh_bus import free_port
 from services.monitor.recorder import read_metrics
-from services.monitor.streams import STREAM_NAMES
+from services.monitor.catalogue import CATALOGUE
 
 from _procs import kill_tree, wait_for_port
 from test_long_run import END_LAG, MONITOR_RSS_BOUND
@@ -69,7 +69,7 @@ print(json.dumps({"seconds": {k: sorted(v) for k, v in seconds.items()}, "ticks"
 
 # Streams that have a value in every second of a default run (dispatch_delay exists only in ticks with a dispatch,
 # net/* only with --network).
-EVERY_SECOND = {name for name in STREAM_NAMES if name != "dispatch_delay" and not name.startswith("net/")}
+EVERY_SECOND = {m.name for m in CATALOGUE if m.name != "dispatch_delay" and m.source != "network"}
 
 
 def _user_env() -> dict[str, str]:
