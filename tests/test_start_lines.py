@@ -58,9 +58,9 @@ def test_services_started_by_hand_say_where_they_are_and_what_they_wait_for(tmp_
 
 
 def test_run_prints_progress_while_it_works(tmp_path):
-    proc = subprocess.run(CLI + ["run", "--scale", "tiny", "--steps", "500", "--run-id", "prog", "--output-dir",
+    proc = subprocess.run(CLI + ["run", "--scale", "tiny", "--steps", "1500", "--run-id", "prog", "--output-dir",
                                  str(tmp_path)], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("tick ")]
-    assert lines and all("/500  deliveries " in ln for ln in lines), proc.stderr
-    assert "500 ticks" in proc.stdout
+    assert lines and all("/1500  deliveries " in ln for ln in lines), proc.stderr
+    assert "1500 ticks" in proc.stdout
