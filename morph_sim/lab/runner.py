@@ -411,7 +411,8 @@ def _network_summary(driver: LabDispatch) -> dict:
     if driver.view_ages:
         ages = np.array(driver.view_ages, dtype=float)
         out["view_age_mean"] = float(np.nanmean(ages)) if np.isfinite(ages).any() else float("nan")
-        out["view_age_max"] = float(np.nanmax(driver.view_age_max))
+        finite = [a for a in driver.view_age_max if np.isfinite(a)]
+        out["view_age_max"] = float(max(finite)) if finite else float("nan")
     return out
 
 

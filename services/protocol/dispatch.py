@@ -96,7 +96,8 @@ class Outcomes:
 
     requests: int = 0  # requests sent
     declined: int = 0  # requests a picker answered with no
-    expired: int = 0  # requests (or a picker's commitment) unanswered within the timeout
+    expired: int = 0  # requests unanswered within the AGV's timeout
+    commitment_expired: int = 0  # a picker's commitment neither applied nor refused within the timeout
     on_time: int = 0  # commitments applied at the boundary of the step they were sent in
     late_applied: int = 0  # commitments applied at a later boundary
     refused_stale: int = 0  # commitments no longer valid when they reached the sim
@@ -218,7 +219,7 @@ class PickerEndpoint:
         requests delivered at the same time. Requests delivered after ``now`` wait for the next decision point."""
         if self.pending is not None and (assigned or now - self.pending.sent_at >= self.timeout - EPS):
             if not assigned:
-                outcomes.expired += 1
+                outcomes.commitment_expired += 1
             self.pending = None
         if not self.inbox:
             return None, []
