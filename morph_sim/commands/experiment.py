@@ -123,13 +123,43 @@ def _run_emergent(args) -> int:
 def _run_faults(args) -> int:
     from datetime import datetime, timezone
 
-    from morph_sim.lab.faults_experiment import run_experiment
+    from morph_sim.lab.faults_experiment import CONDITIONS, markdown, run_experiment
 
+    scales = tuple(_csv(args.scales))
+    seeds = _seeds(args.seeds, ()) or None
+    if args.steps is not None and args.steps < 1:
+        raise ValueError("steps: must be >= 1")
+    conditions = tuple(_csv(args.conditions)) if args.conditions else None
+    for c in conditions or ():
+        if c not in CONDITIONS:
+            raise ValueError(f"conditions: unknown {c!r}; choose from {', '.join(CONDITIONS)}")
     out = Path(args.out) / (args.run_id or f"{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%SZ')}-faults")
     out.mkdir(parents=True, exist_ok=True)
-    res = run_experiment(out, quick=args.quick)
-    print(f"faults experiment: {len(res['rows'])} rows in {res['wall_s']:.1f} s; {res['json']}, {res['png']}")
+    bar = None if args.no_progress else _Progress("faults")
+    res = run_experiment(out, quick=args.quick, scales=scales, seeds=seeds, steps=args.steps, jobs=args.jobs,
+                         conditions=conditions, progress=None if bar is None else bar.update)
+    if bar is not None:
+        bar.close()
+    print(markdown(res["rows"]))
+    print(f"faults experiment: {len(res['rows'])} rows in {res['wall_s']:.1f} s; {res['json']}, "
+          f"{', '.join(res['pngs'])}")
     return 0
+
+
+class _Progress:
+    """A one-line progress bar on stderr: episodes done of total."""
+
+    def __init__(self, what: str):
+        self.what = what
+
+    def update(self, _episode, done: int, total: int) -> None:
+        width = 30
+        filled = width * done // max(total, 1)
+        sys.stderr.write(f"\r{self.what} [{'#' * filled}{'.' * (width - filled)}] {done}/{total}")
+        sys.stderr.flush()
+
+    def close(self) -> None:
+        sys.stderr.write("\n")
 
 
 def run(args) -> int:

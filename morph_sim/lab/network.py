@@ -51,10 +51,34 @@ class FleetBroadcast:
 
 @dataclass
 class NetworkStats:
-    sent: int = 0  # protocol messages sent (a broadcast counts once per receiver)
+    sent: int = 0  # dispatch messages sent (request, reply, commitment, refusal)
+    broadcasts: int = 0  # fleet-state copies sent through the network (one per receiver)
     delivered: int = 0  # copies delivered (a duplicate counts twice)
     dropped: int = 0
     delay_sum: float = 0.0  # over delivered copies, sim seconds
+    bytes: int = 0  # wire bytes sent (each message's encoded size, schemas.codec)
+
+
+_WIRE_SIZES: dict[type, int] = {}
+
+
+def wire_size(msg) -> int:
+    """Encoded size of a protocol message on the wire (its schemas.messages form), bytes. Sizes of one kind differ
+    only by a few bytes of integers, so one representative per kind is measured once."""
+    kind = type(msg)
+    size = _WIRE_SIZES.get(kind)
+    if size is None:
+        from schemas import Commit, HelpReply, HelpRequest
+        from schemas.codec import encode
+
+        if kind is Request:
+            wire = HelpRequest(t=100, agv=msg.agv, picker=msg.picker, target_x=10, target_y=10, seq=100)
+        elif kind is Reply:
+            wire = HelpReply(t=100, picker=msg.picker, agv=msg.agv, accepted=msg.accepted, seq=100)
+        else:  # Commitment, Refusal: the same three numbers and a sequence number
+            wire = Commit(t=100, picker=msg.picker, agv=msg.agv, seq=100)
+        size = _WIRE_SIZES[kind] = len(encode(wire))
+    return size
 
 
 class EventNetwork:
@@ -80,7 +104,11 @@ class EventNetwork:
 
     def send(self, key: str, sender, receiver, msg, at: float) -> None:
         fate = self.layer.fate(key, sender, receiver) if self.layer is not None else [0.0]
-        self.stats.sent += 1
+        if isinstance(msg, FleetBroadcast):
+            self.stats.broadcasts += 1
+        else:
+            self.stats.sent += 1
+            self.stats.bytes += wire_size(msg)
         if not fate:
             self.stats.dropped += 1
         for delay in fate:
@@ -157,6 +185,8 @@ class LabDispatch:
         self.view_age_max: list[float] = []
         self.last_draws: dict[int, float] = {}
         self.sent_commits: list[tuple[int, int]] = []
+        self._waiting_since: dict[int, int] = {}  # AGV -> first tick of its current wait for a picker
+        self.dispatch_delays: list[int] = []  # ticks each served AGV waited for its picker
 
     @property
     def outcomes(self):
@@ -229,6 +259,9 @@ class LabDispatch:
         for agv, endpoint in enumerate(ep.agvs):
             if not needs[agv]:
                 endpoint.may_ask(s_agv, False, out)
+                self._waiting_since.pop(agv, None)
+            else:
+                self._waiting_since.setdefault(agv, obs.t)
         self.last_draws = draws = {}
         for agv in obs.requesters().tolist():  # mission order: a shared stream is drawn in this order
             endpoint = ep.agvs[agv]
@@ -269,6 +302,8 @@ class LabDispatch:
         rank = {int(a): i for i, a in enumerate(obs.request_order)}
         wanted = {a: (int(obs.target[a, 0]), int(obs.target[a, 1])) for a in np.flatnonzero(needs).tolist()}
         applied, refusals = ep.desk.settle(s_sim, rank, wanted, apply, out)
+        for _, agv in applied:
+            self.dispatch_delays.append(obs.t - self._waiting_since.pop(agv, obs.t))
         for r in refusals:
             net.send(k.refusal(r.agv), "sim", r.agv, r, s_sim)
             net.send(k.refusal(r.picker), "sim", r.picker, r, s_sim)

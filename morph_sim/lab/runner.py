@@ -407,7 +407,9 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
 
 def _network_summary(driver: LabDispatch) -> dict:
     st = driver.net.stats
-    out = {"messages_sent": st.sent, "messages_delivered": st.delivered, "messages_dropped": st.dropped}
+    out = {"messages_sent": st.sent, "messages_delivered": st.delivered, "messages_dropped": st.dropped,
+           "bytes_sent": st.bytes,
+           "dispatch_delay": float(np.mean(driver.dispatch_delays)) if driver.dispatch_delays else float("nan")}
     if driver.view_ages:
         ages = np.array(driver.view_ages, dtype=float)
         out["view_age_mean"] = float(np.nanmean(ages)) if np.isfinite(ages).any() else float("nan")
