@@ -183,6 +183,11 @@ class Ack(Message):
     links: list[RobotId] | None = Field(
         default=None, description="out-links after the plasticity update of step t−1 (robot ids j with A[i,j]=1)")
     eta: Finite | None = Field(default=None, description="the agent's η after that update")
+    # Phase RESOLVE only (synchronisation, never faulted): what the sim must wait for before the step boundary
+    committed_to: RobotId | None = Field(
+        default=None, description="RESOLVE: the AGV this picker sent a Commit for (the sim waits for it to arrive)")
+    more: bool = Field(default=False, description="RESOLVE: requests still on their way to or waiting at this "
+                                                  "picker; the sim gives it the next decision point too")
 
 
 class Resolve(Message):
@@ -233,6 +238,7 @@ class HelpReply(Message):
     agv: RobotId
     accepted: bool
     seq: Seq = 0
+    request_seq: Seq = Field(default=0, description="seq of the HelpRequest answered (0: unknown)")
 
 
 class Commit(Message):
@@ -243,6 +249,21 @@ class Commit(Message):
     t: TickNo
     picker: RobotId
     agv: RobotId
+    seq: Seq = 0
+    target_x: OptCoord = Field(default=-1, description="the requested cell (-1: not given)")
+    target_y: OptCoord = -1
+
+
+class Refusal(Message):
+    """Sim → AGV and picker: a commitment that reached the sim no longer valid (the AGV needs no picker at that
+    cell, or the picker is not free); it was not applied."""
+
+    KIND = "refusal"
+
+    t: TickNo = Field(description="the step boundary it was refused at")
+    picker: RobotId
+    agv: RobotId
+    commit_seq: Seq = Field(description="seq of the refused Commit")
     seq: Seq = 0
 
 
@@ -399,13 +420,14 @@ class RegistrationReply(Message):
 
 
 MESSAGE_TYPES: tuple[type[Message], ...] = (
-    Tick, Ack, Resolve, HelpRequest, HelpReply, Commit, AgentState, MetricSample, Event, Stop,
+    Tick, Ack, Resolve, HelpRequest, HelpReply, Commit, Refusal, AgentState, MetricSample, Event, Stop,
     FaultCommand, FaultReply, RegistrationRequest, RegistrationReply,
 )
 MESSAGES: dict[str, type[Message]] = {cls.KIND: cls for cls in MESSAGE_TYPES}
 
 __all__ = [
     "Ack", "AgentState", "Commit", "Event", "FaultCommand", "FaultReply", "Heading", "HelpReply", "HelpRequest",
-    "MESSAGES", "MESSAGE_TYPES", "MetricSample", "MissionType", "Phase", "RegistrationReply", "RegistrationRequest",
+    "MESSAGES", "MESSAGE_TYPES", "MetricSample", "MissionType", "Phase", "Refusal", "RegistrationReply",
+    "RegistrationRequest",
     "Resolve", "Role", "Stop", "Tick",
 ]

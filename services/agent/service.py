@@ -23,12 +23,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas import Ack, AgentState, Commit, Event, HelpReply, HelpRequest, Phase, Resolve, Stop, Tick
+from schemas import Ack, AgentState, Commit, Event, HelpReply, HelpRequest, Phase, Refusal, Resolve, Stop, Tick
 from schemas.codec import encode_fields, unpack_envelope
 from schemas.hot import decode_tick
 from schemas.keys import RunKeys
 from services.agent.policies import Fleet, MorphBrains
 from services.bus.base import Bus, Sample
+from services.protocol import dispatch as protocol
 from services.rejects import Rejects
 from services.runconfig import RunConfig
 from services.sim.service import observation_from_arrays
@@ -89,6 +90,14 @@ class AgentService:
         self._lock = threading.RLock()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._virtual = faults is not None and faults.vtime is not None
+        # the dispatch protocol's endpoint of this robot (services/protocol), and what became of its messages
+        self.outcomes = protocol.Outcomes()
+        if self.is_agv:
+            self.endpoint = protocol.AgvEndpoint(agent_id, config.request_timeout, self._next_seq)
+        else:
+            self.endpoint = protocol.PickerEndpoint(agent_id, config.request_timeout, self._next_seq)
+        self._rank: dict[int, int] = {}  # the fleet's mission order in the latest tick (picker tie-break)
+        self._assigned = False  # on board: the picker has a mission (latest tick)
 
     def _reject(self, what: str, why: object) -> None:
         self._rejects.count(what, why)
@@ -113,6 +122,7 @@ class AgentService:
             await bus.subscribe(k.requests_to(self.id), self._on_request, inline=True)
         else:
             await bus.subscribe(k.replies_to(self.id), self._on_reply, inline=True)
+        await bus.subscribe(k.refusal(self.id), self._on_refusal, inline=True)
         # the token last: once the sim sees it, the subscriptions above are declared
         token = await bus.declare_token(k.alive(self.id))
         if restored is not None:  # published once the session is established, so the record does not miss it
@@ -258,18 +268,25 @@ class AgentService:
             # the final tick only reports the last step: a memoryless brain has nothing to learn from it
             self.brains.learn(obs)
         asked: list[int] = []
-        if self.is_agv and not final and obs.needs_picker[self.id]:
-            picker = self.brains.candidate(self.id, obs)
-            if picker >= 0:
-                p = self.brains.probability(self.id, picker, obs)
-                ask = self.brains.draw(self.id) < p if self.brains.draws else p >= 1.0
-                if ask:
-                    tx, ty = (int(v) for v in obs.target[self.id])
-                    self.bus.put(self.keys.request(self.id, picker), encode_fields(
-                        HelpRequest, t=tick.t, agv=self.id, picker=picker, target_x=tx, target_y=ty,
-                        mission=int(obs.mission[self.id]), seq=self._next_seq()))
+        now = tick.t * self.config.dt  # this robot's decision point of step t
+        if not self.is_agv:
+            with self._lock:
+                self._rank = {int(a): i for i, a in enumerate(obs.request_order)}
+                self._assigned = not bool(obs.free_picker[self.id])
+        elif not final:
+            with self._lock:
+                may_ask = self.endpoint.may_ask(now, bool(obs.needs_picker[self.id]), self.outcomes)
+            if may_ask:
+                g = protocol.gate(self.brains, self.id, obs)
+                if g.ask:
+                    with self._lock:
+                        req = self.endpoint.request(g.picker, obs.target[self.id], now, self.outcomes)
+                    tx, ty = req.cell
+                    self.bus.put(self.keys.request(self.id, g.picker), encode_fields(
+                        HelpRequest, t=tick.t, agv=self.id, picker=g.picker, target_x=tx, target_y=ty,
+                        mission=int(obs.mission[self.id]), seq=req.seq))
                     self.counters.requests += 1
-                    asked.append(picker)
+                    asked.append(g.picker)
         extras = {}
         if "links" in self._ack_extras:
             extras["links"] = self.brains.out_links(self.id)
@@ -312,14 +329,39 @@ class AgentService:
 
     # -- AGV side --------------------------------------------------------------------------------------------------------
     def _on_reply(self, sample: Sample) -> None:
-        # World state is authoritative (the next tick tells the AGV whether a picker comes); replies are only checked.
         try:
             msg = sample.decode(HelpReply)
+            self.keys.check_author(sample.key, msg.picker, "reply of picker")
         except ValueError as exc:
             self._reject(sample.key, exc)
             return
         if msg.agv != self.id:
             self._reject(sample.key, f"reply addressed to AGV {msg.agv}")
+            return
+        with self._lock:  # takes effect at once: it only frees the AGV to ask again at its next decision point
+            self.endpoint.receive(protocol.Reply(msg.picker, msg.agv, msg.accepted, msg.t * self.config.dt,
+                                                 msg.request_seq), self.outcomes)
+
+    def _on_refusal(self, sample: Sample) -> None:
+        try:
+            msg = sample.decode(Refusal)
+        except ValueError as exc:
+            self._reject(sample.key, exc)
+            return
+        if sample.sender != "sim" or self.id not in (msg.agv, msg.picker):
+            self._reject(sample.key, f"refusal of {msg.picker}->{msg.agv} from {sample.sender!r}")
+            return
+        refusal = protocol.Refusal(msg.picker, msg.agv, msg.t * self.config.dt, msg.commit_seq)
+        with self._lock:
+            if self.is_agv:
+                self.endpoint.receive(refusal, self.outcomes)
+            else:
+                self.endpoint.receive(refusal, self._due(sample, msg.t * self.config.dt), self.outcomes)
+
+    def _due(self, sample: Sample, sent: float) -> float:
+        """A protocol message's delivery time, sim seconds: the fault layer's (send time + latency, continuous), or
+        its send time when nothing delayed it."""
+        return sample.due if sample.due >= 0.0 else sent
 
     # -- picker side -----------------------------------------------------------------------------------------------------
     def _on_request(self, sample: Sample) -> None:
@@ -334,9 +376,10 @@ class AgentService:
         if msg.picker != self.id or sender != msg.agv:
             self._reject(sample.key, f"request {msg.agv}->{msg.picker} on key of {sender}")
             return
-        if msg.t < self.last_t:
-            return  # stale: the protocol drops it
+        # never dropped for being late: it waits in the endpoint's inbox for this picker's next decision point
+        req = protocol.Request(msg.agv, msg.picker, (msg.target_x, msg.target_y), msg.t * self.config.dt, msg.seq)
         with self._lock:
+            self.endpoint.receive(req, self._due(sample, req.sent_at), self.outcomes)
             self._inbox.setdefault(msg.t, {})[msg.agv] = msg
             self._try_decide()
 
@@ -348,9 +391,9 @@ class AgentService:
         except ValueError as exc:
             self._reject(sample.key, exc)
             return
-        expected = msg.expected(self.id)
-        if not expected or msg.t < self.last_t or msg.t <= self._resolved_t:
+        if self.id not in msg.pickers or msg.t < self.last_t or msg.t <= self._resolved_t:
             return
+        expected = msg.expected(self.id)
         with self._lock:
             self._pending = (msg.t, expected)
             self._try_decide()
@@ -393,25 +436,29 @@ class AgentService:
         timer, self._pending_timer = self._pending_timer, None
         if timer is not None:
             self._loop.call_soon_threadsafe(timer.cancel)  # TimerHandle.cancel is not thread-safe
-        got = self._inbox.pop(t, {})
         for old in [s for s in self._inbox if s <= t]:
             del self._inbox[old]
         for old in [s for s in self._arrived if s <= t]:
             del self._arrived[old]
-        chosen = next((a for a in expected if a in got), None)  # first in the sim's mission order
-        self._answer(t, expected, got, chosen)
+        now = t * self.config.dt + self.config.dt / 2  # the picker's decision point of step t
+        commit, replies = self.endpoint.decide(now, self._assigned, self._rank, self.outcomes)
+        # requests delivered later, or still held by the network, need this picker's next decision point too
+        held = self._virtual and self.faults.vtime.pending > 0
+        self._answer(t, commit, replies, bool(self.endpoint.inbox) or held)
 
-    def _answer(self, t: int, expected: list[int], got: dict[int, HelpRequest], chosen: int | None) -> None:
+    def _answer(self, t: int, commit, replies, more: bool) -> None:
         k = self.keys
-        if chosen is not None:
-            self.bus.put(k.commit(self.id), Commit(t=t, picker=self.id, agv=chosen, seq=self._next_seq()))
+        if commit is not None:
+            # the commitment (communication, faultable) before the ack that announces it (synchronisation)
+            self.bus.put(k.commit(self.id), Commit(t=t, picker=self.id, agv=commit.agv, seq=commit.seq,
+                                                   target_x=commit.cell[0], target_y=commit.cell[1]))
             self.counters.commits += 1
-        else:
-            self.bus.put(k.ack(self.id), Ack(t=t, agent=self.id, phase=Phase.RESOLVE, seq=self._next_seq()))
-        for agv in expected:
-            if agv in got:
-                self.bus.put(k.reply(self.id, agv), HelpReply(
-                    t=t, picker=self.id, agv=agv, accepted=agv == chosen, seq=self._next_seq()))
+        for reply in replies:
+            self.bus.put(k.reply(self.id, reply.agv), HelpReply(
+                t=t, picker=self.id, agv=reply.agv, accepted=reply.accepted, request_seq=reply.request_seq,
+                seq=self._next_seq()))
+        self.bus.put(k.ack(self.id), Ack(t=t, agent=self.id, phase=Phase.RESOLVE, seq=self._next_seq(),
+                                         committed_to=None if commit is None else commit.agv, more=more))
 
 
 async def run_agent(config: RunConfig, bus: Bus, agent_id: int) -> AgentCounters:

@@ -142,12 +142,13 @@ def gate(coordinator, agv: int, view, draw: Callable[[], float] | None = None, f
 class AgvEndpoint:
     """One AGV's side: at most one request outstanding, answered, refused or expired."""
 
-    def __init__(self, agv: int, timeout: float = DEFAULT_REQUEST_TIMEOUT):
+    def __init__(self, agv: int, timeout: float = DEFAULT_REQUEST_TIMEOUT, next_seq: Callable[[], int] | None = None):
         self.agv = agv
         self.timeout = float(timeout)
         self.outstanding: Request | None = None
         self.accepted = False  # the outstanding request was accepted: its commitment is on its way
         self._seq = 0
+        self._next_seq = next_seq  # a service numbers all its messages in one sequence
 
     def receive(self, msg: Reply | Refusal, outcomes: Outcomes) -> None:
         """A reply or refusal delivered to this AGV (takes effect at once: it only frees the AGV to ask again)."""
@@ -155,7 +156,7 @@ class AgvEndpoint:
         if out is None or msg.picker != out.picker:
             return  # the answer to an earlier request, already given up
         if isinstance(msg, Reply):
-            if msg.request_seq != out.seq:
+            if msg.request_seq and msg.request_seq != out.seq:
                 return
             if msg.accepted:
                 self.accepted = True
@@ -179,7 +180,7 @@ class AgvEndpoint:
         return needs_picker and self.outstanding is None
 
     def request(self, picker: int, cell: tuple[int, int], now: float, outcomes: Outcomes) -> Request:
-        self._seq += 1
+        self._seq = self._next_seq() if self._next_seq is not None else self._seq + 1
         req = Request(self.agv, picker, (int(cell[0]), int(cell[1])), now, self._seq)
         self.outstanding = req
         self.accepted = False
@@ -190,9 +191,11 @@ class AgvEndpoint:
 class PickerEndpoint:
     """One picker's side: an inbox of delivered requests and at most one commitment in flight."""
 
-    def __init__(self, picker: int, timeout: float = DEFAULT_REQUEST_TIMEOUT):
+    def __init__(self, picker: int, timeout: float = DEFAULT_REQUEST_TIMEOUT,
+                 next_seq: Callable[[], int] | None = None):
         self.picker = picker
         self.timeout = float(timeout)
+        self._next_seq = next_seq
         self.inbox: list[tuple[float, Request]] = []  # (delivery time, request)
         self.pending: Commitment | None = None
         self._seen: set[tuple[int, int]] = set()  # (agv, seq) of every request delivered
@@ -234,7 +237,7 @@ class PickerEndpoint:
         for _, req in ready:
             take = commit is None and not assigned and self.pending is None
             if take:
-                self._seq += 1
+                self._seq = self._next_seq() if self._next_seq is not None else self._seq + 1
                 commit = Commitment(self.picker, req.agv, req.cell, now, self._seq)
                 self.pending = commit
             else:
