@@ -122,13 +122,18 @@ class Tick(Message):
     unloads: list[tuple[RobotId, RobotId]] = Field(description="(AGV, picker) co-located at an unload in step t−1")
     handled: list[bool] = Field(description="robots that took part in a load or unload in step t−1")
     final: bool = Field(default=False, description="the report after the last step: agents learn, nobody asks")
+    # synchronisation, not world state: an AGV takes its decision of step t once these replies have arrived (delivered,
+    # held or lost by the network), so whether it heard an answer does not depend on wall-clock races between paths
+    replied: list[RobotId] = Field(default_factory=list, description="AGVs sent a HelpReply at the pickers' "
+                                   "decision point of step t−1, once per reply")
 
     PER_ROBOT: ClassVar[tuple[str, ...]] = (
         "y", "heading", "is_agv", "busy", "carrying", "carrying_requested", "mission", "target_x", "target_y",
         "task", "needs_picker", "partner", "prev_mission", "prev_target_x", "prev_target_y", "prev_task", "reward",
         "loader", "handled",
     )
-    ROBOT_IDS: ClassVar[tuple[str, ...]] = ("mission_order", "free_pickers", "delivered_by", "partner", "loader")
+    ROBOT_IDS: ClassVar[tuple[str, ...]] = ("mission_order", "free_pickers", "delivered_by", "partner", "loader",
+                                            "replied")
 
     @property
     def n(self) -> int:
@@ -188,6 +193,8 @@ class Ack(Message):
         default=None, description="RESOLVE: the AGV this picker sent a Commit for (the sim waits for it to arrive)")
     more: bool = Field(default=False, description="RESOLVE: requests still on their way to or waiting at this "
                                                   "picker; the sim gives it the next decision point too")
+    replied_to: list[RobotId] = Field(default_factory=list, description="RESOLVE: AGVs this picker sent a "
+                                      "HelpReply (the next Tick tells them to wait for it)")
 
 
 class Resolve(Message):

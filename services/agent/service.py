@@ -32,6 +32,7 @@ from services.bus.base import Bus, Sample
 from services.protocol import dispatch as protocol
 from services.rejects import Rejects
 from services.runconfig import RunConfig
+from services.agent.observation import TickObservation
 from services.sim.service import observation_from_arrays
 
 log = logging.getLogger("morph_sim.agent")
@@ -98,6 +99,10 @@ class AgentService:
             self.endpoint = protocol.PickerEndpoint(agent_id, config.request_timeout, self._next_seq)
         self._rank: dict[int, int] = {}  # the fleet's mission order in the latest tick (picker tie-break)
         self._assigned = False  # on board: the picker has a mission (latest tick)
+        # AGV: replies that physically arrived, per picker decision step, and a decision point waiting for them
+        self._reply_arrivals: dict[int, int] = {}
+        self._replies_seen: set[tuple[str, int]] = set()
+        self._deferred: tuple | None = None
 
     def _reject(self, what: str, why: object) -> None:
         self._rejects.count(what, why)
@@ -221,6 +226,14 @@ class AgentService:
             except ValueError:
                 return  # the handler rejects it if it is ever delivered
             self.faults.skip(self.bus, self.id, t, phase)
+        elif missed and self.is_agv and "/reply/" in key:
+            try:
+                msg = sample.decode(HelpReply)
+            except ValueError:
+                return
+            if msg.agv == self.id:
+                with self._lock:
+                    self._count_reply(sample, msg.t)
         elif missed and not self.is_agv and "/request/" in key:
             try:
                 msg = sample.decode(HelpRequest)
@@ -267,6 +280,31 @@ class AgentService:
         if not final or not self.brains.memoryless:
             # the final tick only reports the last step: a memoryless brain has nothing to learn from it
             self.brains.learn(obs)
+        if self.is_agv and not final:
+            awaited = tick.replied.count(self.id)
+            with self._lock:
+                if self._reply_arrivals.get(tick.t - 1, 0) < awaited:
+                    # an answer to this AGV is still on its way (another path than the Tick's): decide once it has
+                    # arrived, so what the AGV knows at its decision point does not depend on wall-clock races
+                    self._deferred = (tick, obs, final, awaited)
+                    return
+        self._act(tick, obs, final)
+
+    def _count_reply(self, sample: Sample, t: int) -> None:
+        """A reply to this AGV physically arrived (once per copy sent, whatever the network did to it); with
+        ``_lock`` held. Resumes a deferred decision point whose replies are all in."""
+        key = (sample.sender, sample.seq)
+        if key in self._replies_seen:
+            return
+        self._replies_seen.add(key)
+        self._reply_arrivals[t] = self._reply_arrivals.get(t, 0) + 1
+        deferred = self._deferred
+        if deferred is not None and self._reply_arrivals.get(deferred[0].t - 1, 0) >= deferred[3]:
+            self._deferred = None
+            self._act(*deferred[:3])
+
+    def _act(self, tick, obs: TickObservation, final: bool) -> None:
+        """This robot's decision point of step t (an AGV's gate and request), then its ack."""
         asked: list[int] = []
         now = tick.t * self.config.dt  # this robot's decision point of step t
         if not self.is_agv:
@@ -341,6 +379,7 @@ class AgentService:
         with self._lock:  # takes effect at once: it only frees the AGV to ask again at its next decision point
             self.endpoint.receive(protocol.Reply(msg.picker, msg.agv, msg.accepted, msg.t * self.config.dt,
                                                  msg.request_seq), self.outcomes)
+            self._count_reply(sample, msg.t)
 
     def _on_refusal(self, sample: Sample) -> None:
         try:
@@ -458,7 +497,8 @@ class AgentService:
                 t=t, picker=self.id, agv=reply.agv, accepted=reply.accepted, request_seq=reply.request_seq,
                 seq=self._next_seq()))
         self.bus.put(k.ack(self.id), Ack(t=t, agent=self.id, phase=Phase.RESOLVE, seq=self._next_seq(),
-                                         committed_to=None if commit is None else commit.agv, more=more))
+                                         committed_to=None if commit is None else commit.agv, more=more,
+                                         replied_to=[r.agv for r in replies]))
 
 
 async def run_agent(config: RunConfig, bus: Bus, agent_id: int) -> AgentCounters:
