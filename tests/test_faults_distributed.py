@@ -124,8 +124,9 @@ def clean_ticks(run) -> int:
 
 
 def test_a_tick_lost_at_an_agent_costs_it_that_tick_without_a_wall_wait(tmp_path):
-    """100 % loss of agent 3's Ticks and of picker 6's Resolves for 40 sim seconds: both skip at once (null
-    messages), the sim never waits its 30 s phase timeout, nobody is marked absent; the same run twice."""
+    """100 % loss of agent 3's Ticks for 40 sim seconds: it skips at once (null messages), the sim never waits its
+    30 s phase timeout, nobody is marked absent; the same run twice. (A Resolve is synchronisation: a fault scoped
+    to it changes nothing.)"""
     path = tmp_path / "lost.toml"
     path.write_text('[[at]]\ntick = 10\nspec = { id = "t3", scope = { key_expr = "sim/tick", agents = [3] }, '
                     'loss = { percent = 100 }, duration = 40.0 }\n'

@@ -283,7 +283,8 @@ class AgentService:
         if self.is_agv and not final:
             awaited = tick.replied.count(self.id)
             with self._lock:
-                if self._reply_arrivals.get(tick.t - 1, 0) < awaited:
+                # only a request of its own can be answered (a restarted agent's predecessor's cannot)
+                if self.endpoint.outstanding is not None and self._reply_arrivals.get(tick.t - 1, 0) < awaited:
                     # an answer to this AGV is still on its way (another path than the Tick's): decide once it has
                     # arrived, so what the AGV knows at its decision point does not depend on wall-clock races
                     self._deferred = (tick, obs, final, awaited)
