@@ -131,8 +131,9 @@ def _cheap(body: dict[str, Any]) -> TickArrays | None:
     if not (type(loads) is list and type(unloads) is list and all(type(v) is list for v in (*lists, replied))
             and all(type(p) is list and len(p) == 2 for p in loads + unloads)):
         return None
-    robot_ids = [v for row in lists for v in row] + [v for p in loads + unloads for v in p] + replied
-    if not (_exact_ints(robot_ids, 0, ids) and _exact_ints(body["request_queue"], 0, _TASK)):
+    robot_ids = [v for row in lists for v in row] + [v for p in loads + unloads for v in p]
+    if not (_exact_ints(robot_ids, 0, ids) and _exact_ints(body["request_queue"], 0, _TASK)
+            and _exact_ints(replied, 0, _TASK)):
         return None
     pairs = [[(a, b) for a, b in loads], [(a, b) for a, b in unloads]]
     split = len(INT_ROWS)

@@ -122,18 +122,18 @@ class Tick(Message):
     unloads: list[tuple[RobotId, RobotId]] = Field(description="(AGV, picker) co-located at an unload in step t−1")
     handled: list[bool] = Field(description="robots that took part in a load or unload in step t−1")
     final: bool = Field(default=False, description="the report after the last step: agents learn, nobody asks")
-    # synchronisation, not world state: an AGV takes its decision of step t once these replies have arrived (delivered,
-    # held or lost by the network), so whether it heard an answer does not depend on wall-clock races between paths
-    replied: list[RobotId] = Field(default_factory=list, description="AGVs sent a HelpReply at the pickers' "
-                                   "decision point of step t−1, once per reply")
+    # synchronisation, not world state: an AGV takes its decision of step t once this many replies to it have arrived
+    # (delivered, held or lost by the network), so whether it heard an answer does not depend on wall-clock races
+    # between the pickers' path and the sim's (cumulative, so a Tick an AGV missed hides nothing)
+    replied: list[Annotated[int, Field(ge=0)]] = Field(
+        default_factory=list, description="per AGV: HelpReplies sent to it so far (cumulative; empty: none)")
 
     PER_ROBOT: ClassVar[tuple[str, ...]] = (
         "y", "heading", "is_agv", "busy", "carrying", "carrying_requested", "mission", "target_x", "target_y",
         "task", "needs_picker", "partner", "prev_mission", "prev_target_x", "prev_target_y", "prev_task", "reward",
         "loader", "handled",
     )
-    ROBOT_IDS: ClassVar[tuple[str, ...]] = ("mission_order", "free_pickers", "delivered_by", "partner", "loader",
-                                            "replied")
+    ROBOT_IDS: ClassVar[tuple[str, ...]] = ("mission_order", "free_pickers", "delivered_by", "partner", "loader")
 
     @property
     def n(self) -> int:

@@ -100,7 +100,8 @@ class AgentService:
         self._rank: dict[int, int] = {}  # the fleet's mission order in the latest tick (picker tie-break)
         self._assigned = False  # on board: the picker has a mission (latest tick)
         # AGV: replies that physically arrived, per picker decision step, and a decision point waiting for them
-        self._reply_arrivals: dict[int, int] = {}
+        self._reply_arrivals: dict[int, int] = {}  # step the picker decided at -> replies arrived
+        self._reply_base = (0, 0)  # (step of the outstanding request, replies announced to this AGV before it)
         self._replies_seen: set[tuple[str, int]] = set()
         self._deferred: tuple | None = None
 
@@ -281,26 +282,33 @@ class AgentService:
             # the final tick only reports the last step: a memoryless brain has nothing to learn from it
             self.brains.learn(obs)
         if self.is_agv and not final:
-            awaited = tick.replied.count(self.id)
+            announced = tick.replied[self.id] if self.id < len(tick.replied) else 0
             with self._lock:
-                # only a request of its own can be answered (a restarted agent's predecessor's cannot)
-                if self.endpoint.outstanding is not None and self._reply_arrivals.get(tick.t - 1, 0) < awaited:
-                    # an answer to this AGV is still on its way (another path than the Tick's): decide once it has
-                    # arrived, so what the AGV knows at its decision point does not depend on wall-clock races
-                    self._deferred = (tick, obs, final, awaited)
+                if self.endpoint.outstanding is not None and self._replies_owed(announced) > 0:
+                    # an answer to this AGV's request is still on its way (another path than the Tick's): decide
+                    # once it has arrived, so what the AGV knows at its decision point does not depend on wall-clock
+                    # races between the two paths
+                    self._deferred = (tick, obs, final, announced)
                     return
         self._act(tick, obs, final)
 
+    def _replies_owed(self, announced: int) -> int:
+        """Replies sent to this AGV since its request (the sim's cumulative count minus the count when it asked) that
+        have not physically arrived yet; with ``_lock`` held."""
+        since, base = self._reply_base
+        arrived = sum(n for t, n in self._reply_arrivals.items() if t >= since)
+        return announced - base - arrived
+
     def _count_reply(self, sample: Sample, t: int) -> None:
-        """A reply to this AGV physically arrived (once per copy sent, whatever the network did to it); with
-        ``_lock`` held. Resumes a deferred decision point whose replies are all in."""
+        """A reply to this AGV, decided at step ``t``, physically arrived (once per copy sent, whatever the network
+        did to it); with ``_lock`` held. Resumes a deferred decision point whose replies are all in."""
         key = (sample.sender, sample.seq)
         if key in self._replies_seen:
             return
         self._replies_seen.add(key)
         self._reply_arrivals[t] = self._reply_arrivals.get(t, 0) + 1
         deferred = self._deferred
-        if deferred is not None and self._reply_arrivals.get(deferred[0].t - 1, 0) >= deferred[3]:
+        if deferred is not None and self._replies_owed(deferred[3]) <= 0:
             self._deferred = None
             self._act(*deferred[:3])
 
@@ -320,6 +328,8 @@ class AgentService:
                 if g.ask:
                     with self._lock:
                         req = self.endpoint.request(g.picker, obs.target[self.id], now, self.outcomes)
+                        self._reply_base = (tick.t, tick.replied[self.id] if self.id < len(tick.replied) else 0)
+                        self._reply_arrivals = {s: n for s, n in self._reply_arrivals.items() if s >= tick.t}
                     tx, ty = req.cell
                     self.bus.put(self.keys.request(self.id, g.picker), encode_fields(
                         HelpRequest, t=tick.t, agv=self.id, picker=g.picker, target_x=tx, target_y=ty,

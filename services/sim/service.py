@@ -267,7 +267,7 @@ class SimService:
         self.desk = protocol.CommitmentDesk(config.dt)
         self._desk_lock = threading.Lock()
         self._more: set[int] = set()  # pickers that asked for the next decision point (requests still to come)
-        self._replied: list[int] = []  # AGVs the pickers answered this step (the next Tick tells them to wait)
+        self._replied = [0] * config.n_agvs  # replies sent to each AGV so far (each Tick tells the AGVs)
         self._probe_round = 0
         self._running = False  # between tick 0 and the end: only then does a leaving agent count as absent
 
@@ -408,7 +408,9 @@ class SimService:
             else:
                 if msg.more:
                     self._more.add(msg.agent)
-                self._replied.extend(a for a in msg.replied_to if 0 <= a < self.config.n_agvs)
+                for a in msg.replied_to:
+                    if 0 <= a < self.config.n_agvs:
+                        self._replied[a] += 1
                 if msg.committed_to is not None and msg.agent not in ph.commit_arrived:
                     ph.commit_wanted[msg.agent] = msg.committed_to  # answered when its Commit arrives
                     return
@@ -509,11 +511,10 @@ class SimService:
         return r
 
     def _wire_tick(self, obs: TickObservation) -> bytes:
-        """The encoded Tick of ``obs``: observation and world, stamped with its sim time, and the replies sent in the
-        step before (synchronisation for the AGVs)."""
-        replied, self._replied = sorted(self._replied), []
+        """The encoded Tick of ``obs``: observation and world, stamped with its sim time, and the replies sent to each
+        AGV so far (synchronisation for the AGVs)."""
         return encode_tick_body(tick_fields(obs, obs.t * self.config.dt,
-                                            {**world_fields(self.ctl, obs), "replied": replied}))
+                                            {**world_fields(self.ctl, obs), "replied": list(self._replied)}))
 
     async def _event(self, kind: str, **details) -> None:
         t = self.ctl.t
