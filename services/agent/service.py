@@ -102,6 +102,7 @@ class AgentService:
         # AGV: replies that physically arrived, per picker decision step, and a decision point waiting for them
         self._reply_arrivals: dict[int, int] = {}  # step the picker decided at -> replies arrived
         self._reply_base = (0, 0)  # (step of the outstanding request, replies announced to this AGV before it)
+        self._holding = False  # picker: the request arriving right now is about to be held by the fault layer
         self._replies_seen: set[tuple[str, int]] = set()
         self._deferred: tuple | None = None
 
@@ -244,7 +245,12 @@ class AgentService:
                 return
             with self._lock:
                 self._arrived.setdefault(msg.t, set()).add(msg.agv)
-                self._try_decide()
+                # this hook runs before the fault layer holds the sample: a decision taken now must count it as held
+                self._holding = bool(fate)
+                try:
+                    self._try_decide()
+                finally:
+                    self._holding = False
 
     def _advance_wall(self, sample: Sample) -> None:
         """Wall time: a Tick still marks its tick's start, where scheduled and ``at_tick`` commands apply (sim
@@ -493,7 +499,7 @@ class AgentService:
         now = t * self.config.dt + self.config.dt / 2  # the picker's decision point of step t
         commit, replies = self.endpoint.decide(now, self._assigned, self._rank, self.outcomes)
         # requests delivered later, or still held by the network, need this picker's next decision point too
-        held = self._virtual and self.faults.vtime.pending > 0
+        held = self._virtual and (self.faults.vtime.pending > 0 or self._holding)
         self._answer(t, commit, replies, bool(self.endpoint.inbox) or held)
 
     def _answer(self, t: int, commit, replies, more: bool) -> None:
