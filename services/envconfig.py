@@ -18,7 +18,7 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from services.runconfig import ENV_PREFIX, RunConfig
+from services.runconfig import ENV_PREFIX, RunConfig, is_switch
 
 # Options that never come from the environment: they only make sense typed by hand.
 NOT_FROM_ENV = frozenset({"help", "version"})
@@ -138,7 +138,13 @@ def env_to_argv(command: str, environ: Mapping[str, str]) -> list[str]:
             continue
         if name not in known:
             raise ValueError(f"{name}: no option {flag_for_env(name)} in 'morph-sim {command}'")
-        if value != "":
+        if value == "":
+            continue
+        field = known[name].field
+        if field is not None and is_switch(field):  # a switch: --flag or --no-flag, no value
+            flag = known[name].flag
+            argv.append(flag if value.strip().lower() in ("1", "true", "yes", "on") else "--no-" + flag[2:])
+        else:
             argv += [known[name].flag, value]
     return argv
 

@@ -18,7 +18,7 @@ import time
 from collections.abc import Mapping
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -167,9 +167,9 @@ class RunConfig(BaseModel):
         try:
             return cls(**{k: v for k, v in values.items() if v is not None})
         except ValidationError as exc:
-            err = exc.errors(include_url=False)[0]
-            field = ".".join(str(p) for p in err.get("loc", ())) or "config"
-            raise ValueError(f"{field}: {err.get('msg')}") from None
+            from schemas.errors import explain
+
+            raise ValueError(explain(exc, first_only=True)) from None
 
     def to_env(self) -> dict[str, str]:
         """Environment variables (``MORPH_<FIELD>``) that reproduce this config through :meth:`from_env`."""
@@ -198,20 +198,49 @@ class RunConfig(BaseModel):
             value = dumped[name]
             if value is None:
                 continue
-            argv += [self.flag(name), str(value)]
+            if is_switch(name):
+                argv.append(self.flag(name) if value else "--no-" + self.flag(name)[2:])
+            else:
+                argv += [self.flag(name), str(value)]
         return argv
 
 
+def field_choices(name: str) -> tuple[str, ...] | None:
+    """The values a RunConfig field takes, when it is a closed set (a Literal, or the named warehouse sizes)."""
+    if name == "scale":
+        from services.sim.world.layout import named_sizes
+
+        return tuple(named_sizes())
+    if name == "ablation":
+        from services.agent.presets import ABLATIONS
+
+        return ("full", *ABLATIONS)
+    args = get_args(RunConfig.model_fields[name].annotation)
+    return tuple(args) if args and all(isinstance(a, str) for a in args) else None
+
+
+def is_switch(name: str) -> bool:
+    """A yes/no field: a switch on the command line (``--cold-restart`` / ``--no-cold-restart``)."""
+    return RunConfig.model_fields[name].annotation is bool
+
+
 def add_config_arguments(parser: argparse.ArgumentParser, *, skip: tuple[str, ...] = ()) -> None:
-    """One flag per RunConfig field; every default is None so env variables and model defaults apply."""
+    """One flag per RunConfig field; every default is None so env variables and model defaults apply. A closed set
+    of values is listed in the help (and checked by argparse); a yes/no field is a switch."""
     group = parser.add_argument_group("run configuration (flags override MORPH_* environment variables)")
     for name, info in RunConfig.model_fields.items():
         if name in skip:
             continue
         default = info.get_default(call_default_factory=False)
         shown = "generated" if info.default_factory is not None else default
-        group.add_argument(RunConfig.flag(name), dest=f"cfg_{name}", default=None, metavar=name.upper(),
-                           help=f"{info.description} (env {RunConfig.env_name(name)}; default {shown})")
+        where = f"(env {RunConfig.env_name(name)}; default {shown})"
+        if is_switch(name):
+            group.add_argument(RunConfig.flag(name), dest=f"cfg_{name}", default=None,
+                               action=argparse.BooleanOptionalAction, help=f"{info.description} {where}")
+            continue
+        choices = field_choices(name)  # shown in the usage as {a,b,…}
+        group.add_argument(RunConfig.flag(name), dest=f"cfg_{name}", default=None, choices=choices,
+                           metavar=None if choices else name.upper(), help=f"{info.description} {where}")
 
 
 def config_from_args(args: argparse.Namespace, environ: Mapping[str, str] | None = None, **overrides: Any

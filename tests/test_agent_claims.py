@@ -59,6 +59,49 @@ def test_eight_agents_without_ids_claim_0_to_7_with_the_fleet_roles_and_the_run_
         _kill_all(procs)
 
 
+def test_eight_agents_started_by_hand_without_id_or_instance_on_one_host_form_a_run(tmp_path):
+    """As the README promises: sim + monitor + eight `morph-sim agent` processes with no --id, no --instance and no
+    MORPH_INSTANCE (so all on one host name) each claim a distinct free id and the run completes with a record."""
+    from services.bus.zenoh_bus import free_port
+
+    where = f"tcp/127.0.0.1:{free_port()}"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MORPH_") and k != ZENOH_CONFIG_ENV}
+    common = ["--run-id", "byhand", "--scale", "tiny", "--steps", "30", "--ready-timeout", "60",
+              "--output-dir", str(tmp_path)]
+    cli = [sys.executable, "-m", "morph_sim.cli"]
+    procs: list[subprocess.Popen] = []
+    try:
+        sim = subprocess.Popen(cli + ["sim", "--listen", where, *common], env=env,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        procs.append(sim)
+        monitor = subprocess.Popen(cli + ["monitor", "--endpoint", where, *common], env=env,
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        procs.append(monitor)
+        agents = [subprocess.Popen(cli + ["agent", "--endpoint", where, *common], env=env,
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                  for _ in range(AGVS + PICKERS)]
+        procs += agents
+        out, err = sim.communicate(timeout=TIMEOUT)
+        assert sim.returncode == 0, err[-3000:]
+        result = json.loads(out.strip().splitlines()[-1])
+        assert result["steps"] == 30 and result["stopped_early"] is None and result["absences"] == 0
+        claimed = {}
+        for proc in agents:
+            text, err = proc.communicate(timeout=30)
+            assert proc.returncode == 0, err[-2000:]
+            report = json.loads(text.strip().splitlines()[-1])
+            claimed[report["agent"]] = report["instance"]
+        assert sorted(claimed) == list(range(AGVS + PICKERS))  # eight distinct ids, the whole fleet
+        assert len(set(claimed.values())) == AGVS + PICKERS
+        _, err = monitor.communicate(timeout=30)
+        assert monitor.returncode == 0, err[-2000:]
+        summary = json.loads((tmp_path / "byhand" / "summary.json").read_text())
+        assert summary["steps"] == 30 and summary["finished"]
+        assert len((tmp_path / "byhand" / "metrics.csv").read_text().splitlines()) == 1 + 30
+    finally:
+        _kill_all(procs)
+
+
 def test_zenoh_config_names_the_deployment_file_and_a_bad_one_is_refused(tmp_path):
     good = tmp_path / "client.json5"
     good.write_text('{ transport: { auth: { usrpwd: { user: "agent", password: "secret" } } } }')

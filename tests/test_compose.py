@@ -24,7 +24,9 @@ from services.supervisor.graph import CHILD_ENV, process_graph
 
 ROOT = Path(__file__).resolve().parent.parent
 COMPOSE = loads((ROOT / "docker-compose.yml").read_text())
-SERVICES = COMPOSE["services"]
+# The run itself: the services `docker compose up` starts without a profile (profile services such as
+# "monitoring"'s Prometheus and Grafana are third-party images, checked in tests/test_monitoring.py).
+SERVICES = {name: s for name, s in COMPOSE["services"].items() if "profiles" not in s}
 DEFAULTS = interpolate(COMPOSE, {})  # what `docker compose up` uses with an empty environment
 ROLE_RESTART = {"never": "no", "on-failure": "on-failure"}
 PROMETHEUS_FLAG_EXISTS = any(v.flag == "--prometheus-port" for v in envconfig.command_variables("monitor"))
@@ -118,7 +120,7 @@ def test_the_prometheus_port_is_published_with_the_flags_variable():
                                            "MORPH_SEED": "7", "AGENTS": "12", "MORPH_RUN_ID": "exp-1"}])
 def test_the_compose_graph_is_the_supervisors(host_env, role):
     compose = interpolate(COMPOSE, host_env)
-    services = compose["services"]
+    services = {name: s for name, s in compose["services"].items() if "profiles" not in s}
     env = services["sim"]["environment"]
     config = RunConfig.from_env(env)
     specs = process_graph(config, "tcp/sim:7447")

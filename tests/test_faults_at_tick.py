@@ -16,6 +16,7 @@ from schemas.codec import decode, encode_fields
 from schemas.messages import FaultCommand
 from services.bus import LocalNetwork
 from services.faults.controller import FaultController
+from services.faults.layer import FaultLayer
 from services.faults.runtime import FaultRuntime
 from services.faults.schedule import parse_schedule
 from services.runconfig import RunConfig
@@ -64,7 +65,7 @@ async def test_a_runtime_command_at_a_tick_equals_the_same_command_in_a_schedule
 
 async def test_a_tick_already_reached_is_refused_naming_at_tick() -> None:
     bus = LocalNetwork().session("sim")
-    controller = FaultController(bus, "attick", [], clock=lambda: 12.0, on_crash=lambda spec: None)
+    controller = FaultController(bus, "attick", [FaultLayer("attick")], clock=lambda: 12.0)
     controller.advance(12.0)
     reply = controller.handle(FaultCommand(op="set", spec=SPEC.model_copy(update={"crash": None}), at_tick=12))
     assert not reply.ok and reply.error.startswith("at_tick:")

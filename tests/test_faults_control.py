@@ -12,7 +12,7 @@ import pytest
 
 from morph_sim.commands import faults as faults_cmd
 from schemas import Event, FaultCommand, FaultReply, FaultSpec, Latency, Loss, Partition, RunKeys
-from schemas.faults import Crash
+from schemas.faults import Crash, Scope
 from services.bus import LocalNetwork
 from services.faults.layer import FaultLayer, install
 from services.faults.vtime import VirtualTime
@@ -84,16 +84,46 @@ async def test_reset_always_heals_everything_even_under_a_total_partition() -> N
     await operator.close()
 
 
-async def test_crash_goes_to_the_supervisor_hook_or_is_rejected() -> None:
+async def test_only_the_processes_that_carry_a_fault_out_give_a_verdict() -> None:
+    """A crash is judged by the supervisor alone (the agents stay silent instead of answering "no supervisor"); a
+    network fault by the processes with layers alone; `reset --id` succeeds where the fault was removed."""
     net, vt = LocalNetwork(), VirtualTime(dt=1.0)
     seen: list[FaultSpec] = []
+    forgotten: list[str | None] = []
     bus = net.session("supervisor")
-    ctl = FaultController(bus, RUN, [], clock=vt.now, on_crash=lambda s: seen.append(s) or None)
+    ctl = FaultController(bus, RUN, [], clock=vt.now, on_crash=lambda s: seen.append(s) or None,
+                          on_crash_reset=forgotten.append, fleet=8)
     crash = FaultSpec(id="k", crash=Crash(agent=3, every=100))
     assert ctl.handle(FaultCommand(op="set", spec=crash)).ok and seen == [crash]
-    plain = FaultController(net.session("1"), RUN, [FaultLayer(RUN)], clock=vt.now)
-    reply = plain.handle(FaultCommand(op="set", spec=crash))
-    assert not reply.ok and "supervisor" in reply.error
+    plain = FaultController(net.session("1"), RUN, [FaultLayer(RUN)], clock=vt.now, fleet=8)
+    assert plain.handle(FaultCommand(op="set", spec=crash)) is None  # not its to judge
+    assert plain.handle(FaultCommand(op="reset", fault_id="k")) is None  # the supervisor's crash, not its fault
+    loss = FaultSpec(id="L1", loss=Loss(percent=10))
+    assert ctl.handle(FaultCommand(op="set", spec=loss)) is None  # the supervisor has no layer to apply it to
+    assert plain.handle(FaultCommand(op="set", spec=loss)).ok
+    assert ctl.handle(FaultCommand(op="reset", fault_id="L1")) is None
+    assert plain.handle(FaultCommand(op="reset", fault_id="L1")).ok and plain.layers[0].active() == []
+    unknown = plain.handle(FaultCommand(op="reset", fault_id="nope"))
+    assert not unknown.ok and unknown.error == "fault_id: no active fault 'nope'"
+    assert ctl.handle(FaultCommand(op="reset", fault_id="k")).ok and forgotten == ["k"]
+    assert [s.id for s in ctl.handle(FaultCommand(op="list")).active] == []
+    # both halves of a mixed spec: the crash to the supervisor, the loss to the layers
+    mixed = FaultSpec(id="m", loss=Loss(percent=5), crash=Crash(agent=1, at_tick=40))
+    assert ctl.handle(FaultCommand(op="set", spec=mixed)).ok and seen[-1] == mixed
+    assert plain.handle(FaultCommand(op="set", spec=mixed)).ok
+    assert plain.layers[0].active()[0].crash is None and plain.layers[0].active()[0].loss is not None
+
+
+async def test_a_fault_naming_a_robot_outside_the_fleet_is_refused_naming_the_field() -> None:
+    vt = VirtualTime(dt=1.0)
+    plain = FaultController(LocalNetwork().session("1"), RUN, [FaultLayer(RUN)], clock=vt.now, fleet=8)
+    reply = plain.handle(FaultCommand(op="set", spec=FaultSpec(loss=Loss(percent=10), scope=Scope(agents=[2, 99]))))
+    assert not reply.ok and reply.error.startswith("scope.agents: agent 99 is not in this run (robot ids 0..7")
+    reply = plain.handle(FaultCommand(op="set", spec=FaultSpec(
+        partition=Partition(from_agents=["sim"], to_agents=[8]))))
+    assert not reply.ok and reply.error.startswith("partition.to_agents: agent 8")
+    assert plain.layers[0].active() == []
+    assert plain.handle(FaultCommand(op="set", spec=FaultSpec(loss=Loss(percent=1), scope=Scope(agents=[7, "sim"])))).ok
 
 
 SCHEDULE = textwrap.dedent("""
@@ -211,3 +241,21 @@ async def test_cli_over_zenoh_sets_lists_and_resets(capsys) -> None:
     finally:
         await agent.close()
         await sim.close()
+
+
+def test_reset_by_id_succeeds_when_the_fault_is_gone_everywhere() -> None:
+    """A process that never held the fault (an agent restarted after it was set) does not fail a reset that removed
+    it everywhere else; a fault nobody held is still an error."""
+    from schemas.messages import FaultReply
+
+    command = FaultCommand(op="reset", fault_id="L1")
+    absent = "fault_id: no active fault 'L1'"
+    mixed = [FaultReply(ok=True, source="sim"), FaultReply(ok=False, error=absent, source="agent-1")]
+    assert all(r.ok for r in faults_cmd.verdict(command, mixed, "r", "e"))
+    nobody = [FaultReply(ok=False, error=absent, source="sim"), FaultReply(ok=False, error=absent, source="agent-1")]
+    assert not any(r.ok for r in faults_cmd.verdict(command, nobody, "r", "e"))
+    crash = FaultCommand(op="set", spec=FaultSpec(crash=Crash(agent=1, at_tick=9)))
+    unserved = faults_cmd.verdict(crash, [FaultReply(ok=True, source="sim")], "r", "e")
+    assert [r.ok for r in unserved] == [True, False] and "nobody would carry the crash out" in unserved[-1].error
+    alone = faults_cmd.verdict(crash, [], "r", "e")
+    assert len(alone) == 1 and alone[0].error.startswith("crash: no supervisor of run 'r' answered on e")

@@ -58,6 +58,13 @@ async def test_scrape_during_and_after_a_run(tmp_path):
     assert _value(text, "morph_bus_latency_seconds_bucket", 'le="0.005",run="prom"') >= 0
     inf = _value(text, "morph_bus_latency_seconds_bucket", 'le="+Inf",run="prom"')
     assert inf == _value(text, "morph_bus_latency_seconds_count") > 0
+    # per key class, as the link meter reports every k ticks: what the dashboard's drop and latency panels query
+    assert _value(text, "morph_faults_active") == 0
+    sent = dict(re.findall(r'^morph_link_messages_total\{key="([^"]+)",outcome="sent",receiver="monitor",run="prom"\} '
+                           r'(\S+)$', text, re.M))
+    assert 0 < float(sent["agent/*/ack"]) <= monitor.stats.by_kind["ack"]  # reported every k ticks
+    assert re.search(r'^morph_link_latency_seconds\{key="agent/\*/ack",receiver="monitor",run="prom",stat="p99"\} '
+                     r'\S+$', text, re.M)
     assert _value(text, "morph_dispatch_delay_seconds_count") > 0
     assert _value(text, "morph_messages_total", 'kind="ack",run="prom"') >= config.n_agents * config.steps
     assert _value(text, "morph_dropped_messages_total", 'reason="sequence_gap",run="prom"') == 0
@@ -66,3 +73,31 @@ async def test_scrape_during_and_after_a_run(tmp_path):
 def test_the_monitor_command_has_the_flag_and_its_variable():
     variables = {v.flag: v for v in command_variables("monitor")}
     assert variables["--prometheus-port"].env == "MORPH_PROMETHEUS_PORT"
+
+
+def test_faults_in_force_follow_the_events():
+    """morph_faults_active counts the faults set and not yet healed or reset (every process reports a scheduled
+    fault; one window per fault id), which the Grafana dashboard shades as fault windows."""
+    from prometheus_client import generate_latest
+
+    from schemas.messages import Event
+
+    config = RunConfig(run_id="prom", scale="tiny", steps=10)
+    monitor = MonitorService(config, LocalNetwork().session("monitor"), record=False)
+    from prometheus_client import CollectorRegistry
+
+    from services.monitor.prometheus import MonitorCollector
+
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(MonitorCollector(monitor))
+    active = lambda: _value(generate_latest(registry).decode(), "morph_faults_active")  # noqa: E731
+    assert active() == 0
+    for source in ("sim", "agent-0", "agent-1"):
+        monitor._on_event(Event(kind="fault.set", source=source, t=5, details={"fault_id": "burst"}))
+    monitor._on_event(Event(kind="fault.set", source="sim", t=8, details={"fault_id": "slow"}))
+    assert active() == 2
+    monitor._on_event(Event(kind="fault.healed", source="sim", t=20, details={"fault_id": "burst"}))
+    assert active() == 1
+    monitor._on_event(Event(kind="fault.reset", source="sim", t=30, details={}))
+    assert active() == 0
+    assert monitor.fault_windows.closed == [(5.0, 20.0, "burst"), (8.0, 30.0, "slow")]

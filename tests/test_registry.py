@@ -130,9 +130,10 @@ def test_no_id_is_granted_while_a_live_token_or_anothers_fresh_grant_holds_it(op
             now += who
 
 
-def test_default_instance_is_the_hostname_unless_named():
+def test_default_instance_is_the_hostname_and_pid_unless_named():
     assert default_instance({"MORPH_INSTANCE": "robot-a"}) == "robot-a"
-    assert default_instance({}) == os.uname().nodename
+    assert default_instance({}) == f"{os.uname().nodename}-{os.getpid()}"
+    assert default_instance({}, pid=7) != default_instance({}, pid=8)  # two processes on one host differ
 
 
 # -- the queryable over LocalBus --------------------------------------------------------------------------------------

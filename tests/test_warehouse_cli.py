@@ -61,7 +61,7 @@ def test_bench_sim_runs_episode_in_child_process(capsys):
 def test_bench_sim_table(capsys):
     assert main(["bench", "sim", "--scales", "tiny", "--steps", "50"]) == 0
     out = capsys.readouterr().out
-    assert "tiny" in out and "5+3" in out and "tarware.md" in out
+    assert "tiny" in out and "5+3" in out and "uoe-agents@6109c33" in out  # the baseline named for a user
 
 
 def test_bench_needs_a_target_and_valid_scales(capsys):

@@ -28,9 +28,14 @@ HELP = "distributed tick rate (up, one process per agent) vs the raw Zenoh barri
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scale", default="medium", help="warehouse size (default medium: 12 AGVs + 6 pickers)")
-    parser.add_argument("--policy", default="morph", help="coordination policy (default morph)")
-    parser.add_argument("--preset", default="reference", help="MORPH preset (default reference)")
+    from services.runconfig import field_choices
+
+    parser.add_argument("--scale", default="medium", choices=field_choices("scale"),
+                        help="warehouse size (default medium: 12 AGVs + 6 pickers)")
+    parser.add_argument("--policy", default="morph", choices=field_choices("policy"),
+                        help="coordination policy (default morph)")
+    parser.add_argument("--preset", default="reference", choices=field_choices("preset"),
+                        help="MORPH preset (default reference)")
     parser.add_argument("--agvs", type=int, default=None, help="AGV count (default: the scale's)")
     parser.add_argument("--pickers", type=int, default=None, help="picker count (default: the scale's)")
     parser.add_argument("--steps", type=int, default=800, help="ticks of the distributed run (default 800)")

@@ -22,7 +22,7 @@ SCALES = ("tiny", "small", "medium", "large", "extralarge")
 
 
 def reference_rates() -> tuple[dict[str, float], str, dict[str, float], str]:
-    """(rates from the issue / tarware.md §13.2, their source, rates re-measured on an idle machine, source)."""
+    """(the original's rates on this machine, their source, the same re-measured on an idle machine, its source)."""
     text = resources.files("morph_sim.presets").joinpath("bench_reference.toml").read_text(encoding="utf-8")
     data = tomllib.loads(text)
     idle = dict(data.get("steps_per_second_idle", {}))
@@ -32,8 +32,8 @@ def reference_rates() -> tuple[dict[str, float], str, dict[str, float], str]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scales", nargs="+", default=list(SCALES), metavar="SCALE",
-                        help=f"sizes to run (default: all of {', '.join(SCALES)})")
+    parser.add_argument("--scales", default=",".join(SCALES), metavar="SCALES",
+                        help=f"comma-separated sizes to run, e.g. tiny,small (default: all of {','.join(SCALES)})")
     parser.add_argument("--steps", type=int, default=800, help="episode length (default 800, as the reference)")
     parser.add_argument("--seed", type=int, default=0, help="episode seed (default 0)")
     parser.add_argument("--json", action="store_true", help="print one JSON object per size instead of a table")
@@ -70,6 +70,9 @@ def _child(scale: str, steps: int, seed: int, timeout: float) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    args.scales = [s.strip() for s in args.scales.split(",") if s.strip()]  # commas, as everywhere in morph-sim
+    if not args.scales:
+        raise ValueError("scales: give at least one size, e.g. --scales tiny,small")
     bad = [s for s in args.scales if s not in SCALES]
     if bad:
         raise ValueError(f"scales: unknown size(s) {', '.join(bad)}; choose from {', '.join(SCALES)}")

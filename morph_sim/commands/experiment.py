@@ -2,7 +2,8 @@
 
 scale/ablation: conditions × scales × seeds (the reference's study); shift: the paper's six-phase demand-shift
 experiment with recovery times; emergent: W snapshots, Spearman, link lifetimes, η and λ₂ over long episodes;
-faults: the faults helper's loss/latency sweep (services/lab/faults_experiment.py).
+faults: the loss/latency sweep (morph_sim/lab/faults_experiment.py). A flag the chosen study cannot honour is
+refused with a one-line message naming it (``FLAGS``), never silently ignored.
 """
 
 from __future__ import annotations
@@ -34,33 +35,93 @@ def _radii(value: str) -> dict[str, int]:
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("suite", choices=("scale", "ablation", "shift", "emergent", "faults"), help="which study")
-    parser.add_argument("--preset", default=None, help="MORPH preset: reference (scale default) or paper "
-                        "(ablation default), or a preset TOML path")
-    parser.add_argument("--scales", default="tiny,small,medium,large", help="comma-separated scales")
+    # Every optional flag defaults to None (or False), so a flag the user gave is known and a study that cannot
+    # honour it refuses it (FLAGS below) instead of running something else than asked.
+    parser.add_argument("suite", choices=SUITES, help="which study: " + ", ".join(SUITES))
+    parser.add_argument("--preset", default=None, help="scale/ablation: MORPH preset reference (scale default) or "
+                        "paper (ablation default), or a preset TOML path; emergent: comma-separated presets "
+                        "(default reference,paper)")
+    parser.add_argument("--scales", default=None, help="comma-separated scales (tiny, small, medium, large); "
+                        "scale/ablation: default all four; shift/emergent: one scale, default medium")
     parser.add_argument("--seeds", default=None, help="comma-separated seeds (default: 42,7,123,999,2024; "
                         "shift: those and 1..15)")
     parser.add_argument("--steps", type=int, default=None, help="steps per episode (default 800; emergent 1500)")
-    parser.add_argument("--phase-steps", type=int, default=400, help="shift: steps per phase")
-    parser.add_argument("--demand", choices=("requests", "assignment", "none"), default="requests",
-                        help="shift: new requests from the active half (paper), shift.py's assignment filter, "
-                        "or none (the no-shift control)")
-    parser.add_argument("--loss", type=float, default=0.0, help="shift/emergent: Gilbert–Elliott message loss "
-                        "in percent (mean), bursty; 0 = no faults")
-    parser.add_argument("--quick", action="store_true", help="faults: the reduced sweep")
-    parser.add_argument("--conditions", default=None, help="comma-separated conditions (default: the study's)")
+    parser.add_argument("--phase-steps", type=int, default=None, help="shift: steps per phase (default 400)")
+    parser.add_argument("--demand", choices=("requests", "assignment", "none"), default=None,
+                        help="shift: new requests from the active half (requests, the paper's; default), "
+                        "shift.py's assignment filter, or none (the no-shift control)")
+    parser.add_argument("--loss", type=float, default=None, help="shift/emergent: Gilbert–Elliott message loss "
+                        "in percent (mean), bursty; default 0 = no faults")
+    parser.add_argument("--quick", action="store_true", help="faults only: the reduced sweep")
+    parser.add_argument("--conditions", default=None, help="scale/ablation/shift: comma-separated conditions "
+                        "(default: the study's)")
     parser.add_argument("--dispatch", choices=("concurrent", "sequential"), default=None,
-                        help="picker resolution: concurrent (DESIGN §3) or sequential (the reference); "
-                        "default: sequential with --reference-stream, else concurrent")
+                        help="scale/ablation: picker resolution, concurrent (all pickers at once) or sequential "
+                        "(the reference's); default: sequential with --reference-stream, else concurrent")
     parser.add_argument("--reference-stream", action="store_true",
-                        help="draw gates from the warehouse's request stream, as the reference does")
-    parser.add_argument("--radius", default=None, help="Proximity radii, e.g. tiny=10,small=10,medium=6,large=8 "
-                        "(default: calibrate as the reference)")
-    parser.add_argument("--jobs", type=int, default=2, help="worker processes")
-    parser.add_argument("--fiedler-every", type=int, default=10, help="compute λ₂ every this many ticks")
+                        help="scale/ablation: draw gates from the warehouse's request stream, as the reference does")
+    parser.add_argument("--radius", default=None, help="scale/ablation: Proximity radii per scale, e.g. "
+                        "tiny=10,small=10,medium=6,large=8 (default: calibrate as the reference); shift: one radius "
+                        "(default 6)")
+    parser.add_argument("--jobs", type=int, default=None, help="worker processes (default 2)")
+    parser.add_argument("--executor", choices=("local", "dask"), default=None,
+                        help="scale/ablation: local processes (default) or a Dask cluster ('morph-sim[cluster]')")
+    parser.add_argument("--scheduler", default=None, help="scale/ablation: Dask scheduler address, e.g. "
+                        "tcp://HOST:8786")
+    parser.add_argument("--fiedler-every", type=int, default=None,
+                        help="scale/ablation: compute λ₂ every this many ticks (default 10)")
     parser.add_argument("--out", default="runs", help="root directory of run records")
     parser.add_argument("--run-id", default=None, help="run record directory name")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+SUITES = ("scale", "ablation", "shift", "emergent", "faults")
+_COMMON = {"out", "run_id", "no_progress"}
+_SUITE = {"preset", "scales", "seeds", "steps", "conditions", "dispatch", "reference_stream", "radius", "jobs",
+          "fiedler_every", "executor", "scheduler"}
+# the flags each study honours; any other optional flag given is refused with a one-line message
+FLAGS = {
+    "scale": _COMMON | _SUITE,
+    "ablation": _COMMON | _SUITE,
+    "shift": _COMMON | {"scales", "seeds", "phase_steps", "demand", "loss", "conditions", "radius", "jobs"},
+    "emergent": _COMMON | {"preset", "scales", "seeds", "steps", "loss", "jobs"},
+    "faults": _COMMON | {"quick", "scales", "seeds", "steps", "jobs", "conditions"},
+}
+_WHY = {
+    ("shift", "steps"): "its length is 6 phases × --phase-steps",
+}
+
+
+def refuse_unhonoured(args) -> None:
+    """ValueError naming the first flag given that ``args.suite`` cannot honour."""
+    for name in sorted(vars(args)):
+        if name.startswith("_") or name in ("suite", "command") or name in FLAGS[args.suite]:
+            continue
+        value = getattr(args, name)
+        if value is None or value is False:
+            continue
+        flag = "--" + name.replace("_", "-")
+        honoured = [s for s in SUITES if name in FLAGS[s]]
+        why = _WHY.get((args.suite, name))
+        if why is None and honoured:
+            why = (f"only {honoured[0]} takes it" if len(honoured) == 1 else
+                   f"only {', '.join(honoured[:-1])} and {honoured[-1]} take it")
+        raise ValueError(f"{name}: experiment {args.suite} does not take {flag}" + (f" ({why})" if why else ""))
+
+
+def _one_scale(args) -> str:
+    """The single scale of a study that runs at one (shift, emergent)."""
+    if args.scales is None:
+        return "medium"
+    scales = _csv(args.scales)
+    if len(scales) != 1:
+        raise ValueError(f"scales: experiment {args.suite} runs at one scale, got {args.scales!r} "
+                         "(give one, e.g. --scales tiny)")
+    from services.sim.world.layout import named_sizes
+
+    if scales[0] not in named_sizes():
+        raise ValueError(f"scales: unknown scale {scales[0]!r} (choose from {', '.join(named_sizes())})")
+    return scales[0]
 
 
 def _seeds(value: str | None, default: tuple[int, ...]) -> tuple[int, ...]:
@@ -78,22 +139,26 @@ def _seeds(value: str | None, default: tuple[int, ...]) -> tuple[int, ...]:
 def _validated(model, **kw):
     from pydantic import ValidationError as _VE
 
+    from schemas.errors import explain
+
     try:
         return model(**kw)
     except _VE as exc:
-        err = exc.errors()[0]
-        field = ".".join(str(p) for p in err["loc"]) or "config"
-        raise ValueError(f"{field}: {err['msg']}") from None
+        raise ValueError(explain(exc, first_only=True)) from None
 
 
 def _run_shift(args) -> int:
     from morph_sim.lab.shift import SHIFT_CONDITIONS, SHIFT_SEEDS, ShiftConfig, markdown_shift, run_shift
 
+    if args.radius is not None and not args.radius.strip().isdigit():
+        raise ValueError(f"radius: experiment shift takes one integer radius, got {args.radius!r}")
     cfg = _validated(
-        ShiftConfig, seeds=_seeds(args.seeds, SHIFT_SEEDS), phase_steps=args.phase_steps,
+        ShiftConfig, scale=_one_scale(args), seeds=_seeds(args.seeds, SHIFT_SEEDS),
+        phase_steps=400 if args.phase_steps is None else args.phase_steps,
         conditions=_csv(args.conditions) if args.conditions else tuple(SHIFT_CONDITIONS),
-        demand_mode=args.demand, jobs=args.jobs, loss_percent=args.loss,
-        **({"radius": int(args.radius)} if args.radius and args.radius.isdigit() else {}),
+        demand_mode=args.demand or "requests", jobs=2 if args.jobs is None else args.jobs,
+        loss_percent=args.loss or 0.0,
+        **({"radius": int(args.radius)} if args.radius is not None else {}),
     )
     res = run_shift(cfg, Path(args.out), args.run_id, show_progress=not args.no_progress,
                     argv=["morph-sim", *sys.argv[1:]])
@@ -108,9 +173,10 @@ def _run_emergent(args) -> int:
     from morph_sim.lab.emergent import EmergentConfig, markdown_emergent, run_emergent
 
     cfg = _validated(
-        EmergentConfig, seeds=_seeds(args.seeds, (42, 7, 123, 999, 2024)), steps=args.steps or 1500,
-        presets=_csv(args.preset) if args.preset else ("reference", "paper"), jobs=args.jobs,
-        loss_percent=args.loss,
+        EmergentConfig, scale=_one_scale(args), seeds=_seeds(args.seeds, (42, 7, 123, 999, 2024)),
+        steps=1500 if args.steps is None else args.steps,
+        presets=_csv(args.preset) if args.preset else ("reference", "paper"), jobs=2 if args.jobs is None else args.jobs,
+        loss_percent=args.loss or 0.0,
     )
     res = run_emergent(cfg, Path(args.out), args.run_id, show_progress=not args.no_progress,
                        argv=["morph-sim", *sys.argv[1:]])
@@ -125,8 +191,13 @@ def _run_faults(args) -> int:
 
     from morph_sim.lab.faults_experiment import CONDITIONS, markdown, run_experiment
 
-    scales = tuple(_csv(args.scales))
-    seeds = _seeds(args.seeds, ()) or None
+    scales = tuple(_csv(args.scales or ("tiny" if args.quick else "tiny,small,medium,large")))
+    from services.sim.world.layout import named_sizes
+
+    for sc in scales:
+        if sc not in named_sizes():
+            raise ValueError(f"scales: unknown scale {sc!r} (choose from {', '.join(named_sizes())})")
+    seeds = _seeds(args.seeds, ()) if args.seeds is not None else None
     if args.steps is not None and args.steps < 1:
         raise ValueError("steps: must be >= 1")
     conditions = tuple(_csv(args.conditions)) if args.conditions else None
@@ -136,7 +207,8 @@ def _run_faults(args) -> int:
     out = Path(args.out) / (args.run_id or f"{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%SZ')}-faults")
     out.mkdir(parents=True, exist_ok=True)
     bar = None if args.no_progress else _Progress("faults")
-    res = run_experiment(out, quick=args.quick, scales=scales, seeds=seeds, steps=args.steps, jobs=args.jobs,
+    res = run_experiment(out, quick=args.quick, scales=scales, seeds=seeds, steps=args.steps,
+                         jobs=2 if args.jobs is None else args.jobs,
                          conditions=conditions, progress=None if bar is None else bar.update)
     if bar is not None:
         bar.close()
@@ -165,6 +237,13 @@ class _Progress:
 def run(args) -> int:
     import time
 
+    if args.executor == "dask" and args.suite not in ("scale", "ablation"):
+        raise ValueError(f"executor: the dask executor runs the scale and ablation studies (and sweeps), "
+                         f"not {args.suite}")
+    refuse_unhonoured(args)
+    args.executor = args.executor or "local"
+    if args.executor == "dask" and not args.scheduler:
+        raise ValueError("scheduler: --executor dask needs --scheduler tcp://HOST:8786")
     if args.suite == "shift":
         return _run_shift(args)
     if args.suite == "emergent":
@@ -184,20 +263,25 @@ def run(args) -> int:
     dispatch = args.dispatch or ("sequential" if args.reference_stream else "concurrent")
     try:
         cfg = SuiteConfig(
-            kind=args.suite, preset=preset, scales=_csv(args.scales), seeds=seeds, steps=args.steps,
-            conditions=_csv(args.conditions) if args.conditions else default_conditions,
+            kind=args.suite, preset=preset, scales=_csv(args.scales or "tiny,small,medium,large"), seeds=seeds,
+            steps=args.steps, conditions=_csv(args.conditions) if args.conditions else default_conditions,
             dispatch=dispatch, shared_stream=args.reference_stream,
-            radii=_radii(args.radius) if args.radius else None, jobs=args.jobs, fiedler_every=args.fiedler_every,
+            radii=_radii(args.radius) if args.radius else None, jobs=2 if args.jobs is None else args.jobs,
+            fiedler_every=10 if args.fiedler_every is None else args.fiedler_every,
         )
     except ValidationError as exc:
-        err = exc.errors()[0]
-        field = ".".join(str(p) for p in err["loc"]) or "config"
-        raise ValueError(f"{field}: {err['msg']}") from None
+        from schemas.errors import explain
+
+        raise ValueError(explain(exc, first_only=True)) from None
     from services.agent.presets import load_preset
 
     load_preset(preset)  # fail early, naming the preset
-    result = run_suite(cfg, Path(args.out), args.run_id, show_progress=not args.no_progress,
-                       argv=["morph-sim", *sys.argv[1:]])
+    try:
+        result = run_suite(cfg, Path(args.out), args.run_id, show_progress=not args.no_progress,
+                           argv=["morph-sim", *sys.argv[1:]], executor=args.executor, scheduler=args.scheduler)
+    except ImportError as exc:  # the dask executor without the [cluster] extra
+        print(f"morph-sim experiment: error: {exc}", file=sys.stderr)
+        return 2
     rows = summarise(cfg, result.episodes)
     print(markdown_table(cfg, rows, result.wall_s, result.radii))
     print(f"study wall time: {result.wall_s:.1f} s for {len(result.episodes)} episodes"

@@ -1,10 +1,12 @@
 """``morph-sim faults set|list|reset``: runtime fault control of a running run over ``morph/<run>/ctl/faults``.
 
-The command is sent as a query, so every process of the run (each holds its own fault layer: the sim, every agent;
-the supervisor for crash faults) applies it and answers. Processes that answer alike are merged into one JSON line
-with their ``sources`` (a run of 100 agents that all agree prints one line); ``--each`` prints one line per process.
-A spec is validated here first, so a bad one is rejected with the field that is wrong before anything is sent
-(exit 2); a process that rejects it answers ``ok: false`` with the reason (exit 1).
+The command is sent as a query, so every process of the run that carries the fault out applies it and answers (each
+holds its own fault layer: the sim, every agent; the supervisor of ``morph-sim up`` for crash faults; a process a
+command does not concern stays silent). Processes that answer alike are merged into one JSON line with their
+``sources`` (a run of 100 agents that all agree prints one line); ``--each`` prints one line per process. A spec is
+validated here first, so a bad one is rejected with the field that is wrong before anything is sent (exit 2); a
+process that rejects it answers ``ok: false`` with the reason (exit 1), and a crash fault that no supervisor took on
+is reported as not carried out (exit 1).
 
     morph-sim faults set --run r1 --endpoint tcp/127.0.0.1:7447 --loss 20 --burst 4 --key 'agent/*/ack'
     morph-sim faults set --run r1 --endpoint … --spec '{"latency": {"delay": 0.5, "jitter": 0.2}}'
@@ -113,8 +115,8 @@ def build_command(args: argparse.Namespace):
     spec.setdefault("id", time.strftime("op-%H%M%S", time.gmtime()))
     try:
         return FaultCommand(op="set", spec=spec, at_tick=at_tick)
-    except ValidationError as exc:
-        raise _explain(exc, "spec") from None
+    except ValidationError as exc:  # the location already starts at spec (spec.loss.percent: …)
+        raise _explain(exc) from None
 
 
 async def send(endpoint: str, run: str, command, timeout: float = 2.0, bus=None) -> list:
@@ -145,16 +147,39 @@ def merge(replies: list) -> list[dict]:
         body = reply.model_dump(mode="json", exclude_none=True)
         source = body.pop("source", None)
         key = json.dumps(body, sort_keys=True)
-        groups.setdefault(key, {**body, "sources": []})["sources"].append(source)
+        group = groups.setdefault(key, {**body, "sources": []})
+        if source is not None:  # (a verdict of the command itself, e.g. nobody answered, has no source)
+            group["sources"].append(source)
     return list(groups.values())
+
+
+SUPERVISOR = "supervisor"  # the bus identity of `morph-sim up`'s supervisor, which carries out crash faults
+
+
+def verdict(command, replies: list, run: str, endpoint: str) -> list:
+    """The replies plus what is missing from them: a crash fault no supervisor answered for is not carried out."""
+    from schemas.messages import FaultReply
+
+    crash = command.op == "set" and command.spec is not None and command.spec.crash is not None
+    if not replies and not crash:
+        return [FaultReply(ok=False, error=f"no process of run {run!r} answered on {endpoint}")]
+    if command.op == "reset" and command.fault_id is not None and any(r.ok for r in replies):
+        # the fault is gone everywhere: removed where it was active; a process that never held it (an agent
+        # restarted since it was set) has nothing to remove, which is no failure of the reset
+        absent = f"fault_id: no active fault {command.fault_id!r}"
+        replies = [FaultReply(ok=True, active=r.active, source=r.source) if not r.ok and r.error == absent else r
+                   for r in replies]
+    if crash and not any(r.source == SUPERVISOR for r in replies):
+        replies = replies + [FaultReply(ok=False, error=f"crash: no supervisor of run {run!r} answered on "
+                                        f"{endpoint}, so nobody would carry the crash out (crash faults need a run "
+                                        "started with `morph-sim up`)")]
+    return replies
 
 
 def run(args: argparse.Namespace) -> int:
     command = build_command(args)
-    replies = asyncio.run(send(args.endpoint, args.run, command, args.timeout))
-    if not replies:
-        print(json.dumps({"ok": False, "error": f"no process of run {args.run!r} answered on {args.endpoint}"}))
-        return 1
+    replies = verdict(command, asyncio.run(send(args.endpoint, args.run, command, args.timeout)), args.run,
+                      args.endpoint)
     if getattr(args, "each", False):
         for reply in replies:
             print(reply.model_dump_json(exclude_none=True))

@@ -22,6 +22,13 @@ def run(args: argparse.Namespace) -> int:
     from services.supervisor.local import run_local
 
     config = config_from_args(args)
+    if config.fault_schedule:
+        from services.faults.schedule import load_schedule
+
+        crashes = [i for i, c in enumerate(load_schedule(config.fault_schedule).at) if c.spec and c.spec.crash]
+        if crashes:  # nobody here kills and restarts processes: say so instead of running without the crash
+            raise ValueError(f"fault_schedule: at[{crashes[0]}] is a crash fault, which needs agent processes and "
+                             "a supervisor to kill and restart them: use `morph-sim up`")
     started = time.monotonic()
     result = asyncio.run(run_local(config, record=not args.no_record))
     wall = time.monotonic() - started

@@ -92,25 +92,21 @@ def run(args: argparse.Namespace) -> int:
     out.print(f"  return      {result.global_return:.1f}  (sum over agents and steps)")
     out.print(f"  speed       {result.steps / sim_seconds:,.0f} steps/s  (simulation + controller)")
     if args.png:
-        from services.sim.world.render import save_png
+        from services.sim.world.render import WAREHOUSE_LEGEND, save_png
 
-        save_png(frames_last[0], args.png, cell_px=args.cell_px)
+        save_png(frames_last[0], args.png, cell_px=args.cell_px, legend=WAREHOUSE_LEGEND)
         out.print(f"  png         {args.png}")
     if args.gif:
-        from services.sim.world.render import write_gif
+        from services.sim.world.render import WAREHOUSE_LEGEND, write_gif
 
-        n = write_gif(frames, args.gif, fps=args.fps, cell_px=args.cell_px)
+        n = write_gif(frames, args.gif, fps=args.fps, cell_px=args.cell_px, legend=WAREHOUSE_LEGEND)
         out.print(f"  gif         {args.gif} ({n} frames)")
     return 0
 
 
 def _short(exc: Exception) -> str:
-    errors = getattr(exc, "errors", None)
-    if callable(errors):
-        parts = []
-        for e in errors():
-            loc = ".".join(str(p) for p in e.get("loc", ()))
-            msg = str(e.get("msg", "")).removeprefix("Value error, ")
-            parts.append(f"{loc}: {msg}" if loc else msg)
-        return "; ".join(parts)
-    return str(exc)
+    from pydantic import ValidationError
+
+    from schemas.errors import explain
+
+    return explain(exc) if isinstance(exc, ValidationError) else str(exc)

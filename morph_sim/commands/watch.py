@@ -65,7 +65,7 @@ class WatchState:
 
     def on_event(self, event) -> None:
         self.events += 1
-        if event.kind.startswith(("fault", "crash", "agent.restart", "monitor.")):
+        if event.kind.startswith(("fault", "agent.crash", "agent.restart", "monitor.")):
             self.faults[event.kind] = self.faults.get(event.kind, 0) + 1
         if event.kind == "run.finished":
             self.finished = True

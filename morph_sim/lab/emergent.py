@@ -297,16 +297,16 @@ def plot_emergent(res: EmergentResult, out_dir: Path) -> list[Path]:
                 ax.plot(y, lw=0.4, alpha=0.4, color="#888")
             if k == "eta":
                 kern = np.ones(25) / 25
-                ax.plot(np.convolve(ys.mean(axis=0), kern, mode="same"), lw=1.4, color="#2a7ab9",
-                        label="mean, 25-step smoothed")
+                ax.plot(np.convolve(ys.mean(axis=0), kern, mode="same"), lw=1.4, color="#2a7ab9")
                 ax.axhline(0, color="k", lw=0.6)
-                ax.legend(fontsize=7)
+                label = "η (neuromodulation);\nblue: mean, 25-step smoothed"
             else:
                 ax.plot(ys.mean(axis=0), lw=1.4, color="#2a7ab9")
             ax.set_ylabel(label, fontsize=8)
             ax.grid(alpha=0.3)
             if i == 0:
-                ax.set_title(f"preset {preset} ({len(eps)} seeds: grey each, blue mean)", fontsize=9)
+                ax.set_title(f"preset {preset} ({len(eps)} seed{'s' if len(eps) != 1 else ''}: grey each, blue "
+                             "mean)", fontsize=9)
         axes[-1][j].set_xlabel("step")
     fig.tight_layout()
     p = out_dir / "dynamics.png"
@@ -335,8 +335,13 @@ def plot_emergent(res: EmergentResult, out_dir: Path) -> list[Path]:
         ax.set_xticks(range(len(eps)), [str(x["seed"]) for x in eps], fontsize=7)
         ax.axhline(0, color="k", lw=0.6)
         ax.set_ylabel("Spearman ρ(final W, mean distance)")
-        ax.set_xlabel("seed (red: permutation p < 0.05)")
-    fig.tight_layout()
+        ax.set_xlabel("seed")
+    from matplotlib.patches import Patch
+
+    fig.legend(handles=[Patch(color="#c0392b", label="ρ: permutation p < 0.05"),
+                        Patch(color="#7f7f7f", label="ρ: not significant")], loc="upper right", fontsize=7,
+               bbox_to_anchor=(1.0, 1.0), ncol=2)
+    fig.tight_layout(rect=(0, 0, 1, 0.93))
     p = out_dir / "lifetimes_spearman.png"
     fig.savefig(p, dpi=100)
     plt.close(fig)

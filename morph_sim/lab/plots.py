@@ -19,13 +19,21 @@ _COLOURS = {
 }
 
 
+def _seeds(cfg) -> str:
+    n = len(cfg.seeds)
+    return f"{n} seed{'s' if n != 1 else ''}"
+
+
 def plot_suite(result, rows: list[dict], out_dir: Path) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     cfg = result.config
     paths = []
     for what, ylabel, fname in (("deliveries", "cumulative deliveries", "cumulative_deliveries.png"),
                                 ("links", "active links", "link_usage.png")):
-        fig, axes = plt.subplots(1, len(cfg.scales), figsize=(4.2 * len(cfg.scales), 3.4), squeeze=False)
+        # constrained layout keeps the suptitle and the legend (outside the axes, never over a curve) in the figure,
+        # whatever the number of scales
+        fig, axes = plt.subplots(1, len(cfg.scales), figsize=(2.4 + 4.2 * len(cfg.scales), 3.6), squeeze=False,
+                                 layout="constrained")
         for ax, s in zip(axes[0], cfg.scales):
             for c in cfg.conditions:
                 y = result.series[(s, c)][what]
@@ -34,16 +42,16 @@ def plot_suite(result, rows: list[dict], out_dir: Path) -> list[Path]:
             ax.set_xlabel("step")
             ax.set_ylabel(ylabel)
             ax.grid(alpha=0.3)
-        axes[0][-1].legend(fontsize=7, loc="upper left")
-        fig.suptitle(f"{cfg.kind} study, preset {cfg.preset}: {ylabel} (mean over {len(cfg.seeds)} seeds)")
-        fig.tight_layout()
+        fig.legend(*axes[0][0].get_legend_handles_labels(), loc="outside right upper", fontsize=7,
+                   title="condition", title_fontsize=7)
+        fig.suptitle(f"{cfg.kind} study, preset {cfg.preset}: {ylabel} (mean over {_seeds(cfg)})", fontsize=10)
         p = out_dir / fname
         fig.savefig(p, dpi=110)
         plt.close(fig)
         paths.append(p)
 
     # grouped bars: deliveries (mean ± std) per scale, one bar per condition
-    fig, ax = plt.subplots(figsize=(2.2 + 2.4 * len(cfg.scales), 3.8))
+    fig, ax = plt.subplots(figsize=(4.2 + 2.4 * len(cfg.scales), 3.8), layout="constrained")
     k = len(cfg.conditions)
     width = 0.8 / k
     x = np.arange(len(cfg.scales))
@@ -52,14 +60,11 @@ def plot_suite(result, rows: list[dict], out_dir: Path) -> list[Path]:
         stds = [next(r for r in rows if r["scale"] == s and r["condition"] == c)["std"] for s in cfg.scales]
         ax.bar(x - 0.4 + width * (m + 0.5), means, width, yerr=stds, capsize=2, label=CONDITIONS[c][0],
                color=_COLOURS.get(c))
-    top = max((r["mean"] + r["std"]) for r in rows) if rows else 1.0
-    ax.set_ylim(0, max(top, 1.0) * 1.35)  # room for the legend above the bars
     ax.set_xticks(x, [f"{s}" for s in cfg.scales])
     ax.set_ylabel(f"deliveries in {cfg.steps} steps")
-    ax.legend(fontsize=7, ncol=3)
+    fig.legend(loc="outside right upper", fontsize=7, title="condition (mean ± std)", title_fontsize=7)
     ax.grid(axis="y", alpha=0.3)
-    ax.set_title(f"{cfg.kind} study, preset {cfg.preset}")
-    fig.tight_layout()
+    ax.set_title(f"{cfg.kind} study, preset {cfg.preset}, {_seeds(cfg)}")
     p = out_dir / "deliveries_bars.png"
     fig.savefig(p, dpi=110)
     plt.close(fig)

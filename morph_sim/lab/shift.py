@@ -255,7 +255,7 @@ def plot_shift(result: ShiftResult, out_dir: Path) -> list[Path]:
     cfg = result.config
     out_dir.mkdir(parents=True, exist_ok=True)
     L = cfg.phase_steps
-    fig, ax = plt.subplots(figsize=(11, 4))
+    fig, ax = plt.subplots(figsize=(12.5, 4), layout="constrained")
     for p, side in enumerate(cfg.phases):
         ax.axvspan(p * L, (p + 1) * L, color="#f3e9d2" if side == "left" else "#dfeaf3", alpha=0.6, lw=0)
         ax.text(p * L + L / 2, 1.0, f"P{p + 1} {side[0].upper()}", ha="center", va="bottom",
@@ -269,17 +269,23 @@ def plot_shift(result: ShiftResult, out_dir: Path) -> list[Path]:
     ax.set_ylabel(f"deliveries per {cfg.window} steps (trailing window)")
     ax.set_xlim(0, len(cfg.phases) * L)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, ncol=3, loc="lower left")
+    from matplotlib.patches import Patch
+
+    handles, _ = ax.get_legend_handles_labels()
+    handles += [Patch(color="#f3e9d2", label="demand on the left half"),
+                Patch(color="#dfeaf3", label="demand on the right half")]
+    fig.legend(handles=handles, loc="outside right upper", fontsize=7)  # outside the axes: never over a curve
     loss = f", {cfg.loss_percent:g}% bursty dispatch loss" if cfg.loss_percent else ""
-    ax.set_title(f"Demand shift ({cfg.demand_mode}{loss}), {cfg.scale}, mean over {len(cfg.seeds)} seeds", pad=14)
-    fig.tight_layout()
+    n = len(cfg.seeds)
+    ax.set_title(f"Demand shift ({cfg.demand_mode}{loss}), {cfg.scale}, mean over {n} seed{'s' if n != 1 else ''}",
+                 pad=14)
     p1 = out_dir / "delivery_rate.png"
     fig.savefig(p1, dpi=110)
     plt.close(fig)
 
     rcols = [c for c in table_columns(cfg) if c.startswith("r")]
     pcols = [c for c in table_columns(cfg) if c.startswith("P")]
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4))
+    fig, axes = plt.subplots(1, 2, figsize=(13.5, 4), layout="constrained")
     k = len(cfg.conditions)
     width = 0.8 / k
     for ax, cols, ylabel in ((axes[0], pcols, "deliveries per phase"), (axes[1], rcols, "recovery time (steps)")):
@@ -296,13 +302,14 @@ def plot_shift(result: ShiftResult, out_dir: Path) -> list[Path]:
         ax.set_xticks(x, cols)
         ax.set_ylabel(ylabel)
         ax.grid(axis="y", alpha=0.3)
-    axes[1].axhline(L, color="k", lw=0.6, ls=":")
+    axes[1].axhline(L, color="k", lw=0.6, ls=":", label=f"phase length ({L} steps): never recovered")
     axes[1].set_title(f"recovery to {cfg.fraction:.0%} of same-side baseline (white digits: censored seeds)",
                       fontsize=9)
     axes[0].set_title("deliveries per phase", fontsize=9)
-    axes[0].set_ylim(0, max(r[c] + r[c + "_std"] for r in result.rows for c in pcols) * 1.35)
-    axes[0].legend(fontsize=7, ncol=3, loc="upper center")
-    fig.tight_layout()
+    handles, _ = axes[0].get_legend_handles_labels()
+    cap = [h for h, label in zip(*axes[1].get_legend_handles_labels()) if label.startswith("phase length")]
+    fig.legend(handles=handles + cap, loc="outside right upper", fontsize=7, title="mean ± std over seeds",
+               title_fontsize=7)
     p2 = out_dir / "recovery_bars.png"
     fig.savefig(p2, dpi=110)
     plt.close(fig)

@@ -144,6 +144,48 @@ class _Scheduler:
         return out
 
 
+class _DaskScheduler:
+    """The same interface on a Dask cluster (``scheduler``: tcp://HOST:8786, a Client or a LocalCluster): each episode
+    is one task; episodes are deterministic in their spec, so the study equals the local one episode for episode."""
+
+    def __init__(self, scheduler) -> None:
+        from morph_sim.lab.executors import DaskExecutor
+
+        self._executor = DaskExecutor(scheduler)
+        self.pending = 0
+        self._done = None
+        self._futures: list = []
+
+    def __enter__(self) -> _DaskScheduler:
+        from distributed import as_completed
+
+        self._done = as_completed([], loop=self._executor.client.loop)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._executor.client.cancel([f for f in self._futures if not f.done()])
+        self._executor.close()
+
+    def submit(self, spec: EpisodeSpec) -> None:
+        self.pending += 1
+        future = self._executor.client.submit(_work, spec, pure=False)
+        self._futures.append(future)
+        self._done.add(future)
+
+    def results(self) -> list[EpisodeResult]:
+        out = [next(self._done).result()]
+        self.pending -= 1
+        return out
+
+
+def _scheduler(jobs: int, executor: str, scheduler) -> _Scheduler | _DaskScheduler:
+    if executor == "local":
+        return _Scheduler(jobs)
+    if executor == "dask":
+        return _DaskScheduler(scheduler)
+    raise ValueError(f"executor: unknown {executor!r} (local, dask)")
+
+
 def _cost(spec: EpisodeSpec) -> float:
     size = {"tiny": 1.0, "small": 1.4, "medium": 2.0, "large": 2.8}.get(spec.scale, 2.0)
     plastic = 1.6 if CONDITIONS[spec.condition][1] == "morph" else 1.0
@@ -151,7 +193,9 @@ def _cost(spec: EpisodeSpec) -> float:
 
 
 def run_suite(cfg: SuiteConfig, out_root: Path | None = Path("runs"), run_id: str | None = None,
-              show_progress: bool = True, argv: list[str] | None = None) -> SuiteResult:
+              show_progress: bool = True, argv: list[str] | None = None, executor: str = "local",
+              scheduler=None) -> SuiteResult:
+    """Run the study on ``cfg.jobs`` local processes, or on a Dask cluster (``executor="dask"``, ``scheduler``)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     t0 = time.perf_counter()
@@ -179,7 +223,7 @@ def run_suite(cfg: SuiteConfig, out_root: Path | None = Path("runs"), run_id: st
     first = list(cal_morph.values()) + list(cal_prox.values())
     first += sorted((sp for sp in main_specs(False) if sp.condition != "proximity"), key=_cost, reverse=True)
     first += [sp for sp in main_specs(True) if sp.condition == "proximity"]
-    with progress, _Scheduler(cfg.jobs) as pool:
+    with progress, _scheduler(cfg.jobs, executor, scheduler) as pool:
         task = progress.add_task(f"{cfg.kind} study", total=None)
         submitted = set()
 

@@ -1,8 +1,8 @@
 """``morph-sim agent [--id N]`` / ``python -m services.agent``: one robot's coordination brain as its own process.
 
 Without ``--id`` the agent claims an id from the sim's registry (``morph/<run>/registry``) under its instance name
-(``--instance``, ``MORPH_INSTANCE``, else the host name), so identical containers can be scaled up without
-numbering them; a restarted instance gets its old id back.
+(``--instance``, ``MORPH_INSTANCE``, else the host name and pid), so identical containers, or processes on one host,
+can be started without numbering them; a restarted agent gets its robot back in a running run.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="robot id (AGVs first, then pickers); default: claim one from the sim's registry")
     parser.add_argument("--instance", default=None,
                         help="name this agent registers under when it claims an id (default: MORPH_INSTANCE, "
-                             "else the host name)")
+                             "else HOSTNAME-PID)")
     parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
     add_config_arguments(parser, skip=("listen",))
     apply_env_defaults(parser)

@@ -6,12 +6,16 @@
 * a subscriber on the same key: a put reaches every process the same way (no reply);
 * a schedule (:mod:`.schedule`) applied locally at sim-time boundaries through :meth:`FaultController.advance`.
 
-Crash faults are not the bus's business: they go to ``on_crash`` (the supervisor's hook) and are rejected with the
-reason in a process that has none. ``reset`` always heals every network fault of the process, whatever else fails.
+Only a process with a stake in a command answers it, so the operator's verdict is the verdict of the processes that
+carry the fault out: crash faults are not the bus's business, they go to ``on_crash`` (the supervisor's planner) and
+a process without that hook stays silent on them (it applies only the network part of a spec that has one); a process
+without fault layers (the supervisor) stays silent on network faults. ``reset`` always heals every network fault of
+the process, whatever else fails. A spec naming a robot outside the fleet (``fleet``) is refused, naming the field.
 
 The process that owns the run record (the sim, ``events=True``) publishes each change as an ``Event`` on
 ``events/<source>`` with its tick and sim time — ``fault.set``, ``fault.reset``, ``fault.healed`` — so plots can
-shade fault windows.
+shade fault windows; the supervisor publishes ``fault.crash_planned`` when it accepts a crash spec (the crash itself
+is its ``agent.crash`` event, at the tick it happened).
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from pydantic import ValidationError
 
 from schemas.base import DecodeError
 from schemas.codec import decode
+from schemas.errors import explain
 from schemas.faults import FaultSpec
 from schemas.keys import RunKeys
 from schemas.messages import Event, FaultCommand, FaultReply
@@ -36,6 +41,7 @@ from services.faults.schedule import FaultSchedule
 log = logging.getLogger("morph_sim.faults")
 
 CrashHook = Callable[[FaultSpec], str | None]  # returns an error message, or None when accepted
+CrashResetHook = Callable[[str | None], None]  # forget one crash spec (by id) or all of them
 
 
 def _network_part(spec: FaultSpec) -> bool:
@@ -47,8 +53,13 @@ class FaultController:
 
     def __init__(self, bus: Bus, run: str, layers: list[FaultLayer], *, clock: Callable[[], float],
                  dt: float = 1.0, events: bool = False, on_crash: CrashHook | None = None,
-                 schedule: FaultSchedule | None = None, lock=None, hold_events: bool = False):
+                 schedule: FaultSchedule | None = None, lock=None, hold_events: bool = False,
+                 on_crash_reset: CrashResetHook | None = None, fleet: int | None = None):
         self.bus = bus
+        self.on_crash_reset = on_crash_reset
+        self.fleet = fleet  # number of robots (ids 0..fleet-1), to refuse a spec naming one outside the run
+        # ids of crash specs this process left to the supervisor: a reset of one of them is not this process's to judge
+        self._crash_ids_elsewhere: set[str] = set()
         # the process's fault lock (FaultRuntime): commands arrive on the loop while transport threads decide fates
         self.lock = lock if lock is not None else contextlib.nullcontext()
         # hold_events: events of changes before the run starts are kept and published by publish_held() at tick 0,
@@ -81,14 +92,53 @@ class FaultController:
         await self.bus.subscribe(self.keys.faults, self._on_put)
 
     # -- commands ------------------------------------------------------------------------------------------------------
-    def handle(self, command: FaultCommand, at: float | None = None) -> FaultReply:
+    def handle(self, command: FaultCommand, at: float | None = None) -> FaultReply | None:
         """Apply one command to every layer of this process; never raises. ``at``: the sim time it takes effect
         (a scheduled command's own time, so every process starts the fault at the same instant); default now.
-        A command with ``at_tick`` joins this process's timeline and is applied at that tick's start."""
+        A command with ``at_tick`` joins this process's timeline and is applied at that tick's start.
+        None: the command is not this process's to judge (it gives no verdict)."""
         with self.lock:
+            if not self._concerns(command):
+                return None
             if command.at_tick is not None and at is None:
                 return self._schedule(command)
             return self._handle(command, at)
+
+    def _concerns(self, command: FaultCommand) -> bool:
+        """Whether this process carries out (part of) ``command``, so that its answer is a verdict."""
+        if command.op == "set" and command.spec is not None:
+            spec = command.spec
+            crash_here = spec.crash is not None and self.on_crash is not None
+            network_here = _network_part(spec) and bool(self.layers)
+            if spec.crash is not None and not crash_here and spec.id is not None:
+                self._crash_ids_elsewhere.add(spec.id)
+            return crash_here or network_here
+        if command.op == "reset" and command.fault_id is not None:
+            fid = command.fault_id
+            if any(fid == s.id for s in self.crashes):
+                return True
+            if not self.layers:
+                return False  # a network fault: the processes with layers answer
+            held = any(fid in {s.id for s in layer.active()} for layer in self.layers)
+            return held or fid not in self._crash_ids_elsewhere
+        return True
+
+    def _fleet_error(self, spec: FaultSpec) -> str | None:
+        """The field naming a robot that is not in this run, if any."""
+        if self.fleet is None:
+            return None
+        named = [("scope.agents", spec.scope.agents or [])]
+        if spec.partition is not None:
+            named += [("partition.from_agents", spec.partition.from_agents),
+                      ("partition.to_agents", spec.partition.to_agents)]
+        if spec.crash is not None and spec.crash.agent is not None:
+            named.append(("crash.agent", [spec.crash.agent]))
+        for field, refs in named:
+            for ref in refs:
+                if isinstance(ref, int) and not 0 <= ref < self.fleet:
+                    return (f"{field}: agent {ref} is not in this run (robot ids 0..{self.fleet - 1}; "
+                            f"or a service: sim, monitor)")
+        return None
 
     def _schedule(self, command: FaultCommand) -> FaultReply:
         """Put a runtime command with ``at_tick`` into the timeline, as if it had been in the schedule file. Only a
@@ -104,6 +154,10 @@ class FaultController:
         if timed.op == "set" and timed.spec is not None and timed.spec.id is None:
             # the same id in every process (hence the same seeded streams), whatever else each one has seen
             timed = timed.model_copy(update={"spec": timed.spec.model_copy(update={"id": f"tick{command.at_tick}"})})
+        if timed.op == "set" and timed.spec is not None:
+            error = self._fleet_error(timed.spec)
+            if error:
+                return FaultReply(ok=False, error=error, active=self._active(), source=source)
         index = len(self._timeline)
         while index > self._next and self._timeline[index - 1][0] > at + 1e-9:
             index -= 1  # after every command due at the same time: arrival order, like a schedule file's order
@@ -118,28 +172,43 @@ class FaultController:
                     healed = [fid for layer in self.layers for fid in layer.reset(at=at)]
                     for fid in dict.fromkeys(healed):
                         self._event("fault.reset", fid, None, at)
+                    for crash in self.crashes:
+                        self._event("fault.reset", crash.id or "crash", None, at)
                     self.crashes.clear()
+                    if self.on_crash_reset is not None:
+                        self.on_crash_reset(None)
                     return FaultReply(ok=True, active=[], source=source)
-                if not any(command.fault_id in {s.id for s in layer.active()} for layer in self.layers):
-                    return FaultReply(ok=False, error=f"no active fault {command.fault_id!r}",
+                fid = command.fault_id
+                crash_held = any(fid == s.id for s in self.crashes)
+                layer_held = any(fid in {s.id for s in layer.active()} for layer in self.layers)
+                if not crash_held and not layer_held:
+                    return FaultReply(ok=False, error=f"fault_id: no active fault {fid!r}",
                                       active=self._active(), source=source)
+                if crash_held:
+                    self.crashes = [s for s in self.crashes if s.id != fid]
+                    if self.on_crash_reset is not None:
+                        self.on_crash_reset(fid)
                 for layer in self.layers:
-                    layer.reset(command.fault_id, at=at)
-                self._event("fault.reset", command.fault_id, None, at)
+                    layer.reset(fid, at=at)
+                self._event("fault.reset", fid, None, at)
             elif command.op == "set":
                 spec = command.spec
                 assert spec is not None  # FaultCommand guarantees it
-                if spec.crash is not None:
-                    if self.on_crash is None:
-                        return FaultReply(ok=False, error="crash: this process has no supervisor to carry it out",
-                                          active=self._active(), source=source)
+                error = self._fleet_error(spec)
+                if error:
+                    return FaultReply(ok=False, error=error, active=self._active(), source=source)
+                if spec.crash is not None and self.on_crash is not None:
+                    if spec.id is None:  # the planner and this list name it alike (reset --id, retirement)
+                        spec = spec.model_copy(update={"id": f"crash-{len(self.log) + 1}"})
                     error = self.on_crash(spec)
                     if error:
-                        return FaultReply(ok=False, error=f"crash: {error}", active=self._active(), source=source)
+                        return FaultReply(ok=False, error=error if error.startswith("crash") else f"crash: {error}",
+                                          active=self._active(), source=source)
                     self.crashes.append(spec)
-                    if not _network_part(spec):
-                        self._event("fault.crash", spec.id or "crash", spec, at)
-                        return FaultReply(ok=True, active=self._active(), source=source)
+                    self._event("fault.crash_planned", spec.id or "crash", spec, at)
+                if not _network_part(spec) or not self.layers:
+                    return FaultReply(ok=True, active=self._active(), source=source)
+                if spec.crash is not None:  # carried out by the supervisor; the network part is this process's
                     spec = spec.model_copy(update={"crash": None})
                 if spec.id is None:  # one id for the fault in every layer (and in the event log)
                     when = self.clock() if at is None else at
@@ -147,13 +216,19 @@ class FaultController:
                 for layer in self.layers:
                     layer.set(spec, at=at)
                 self._event("fault.set", spec.id or "", spec, at)
-        except (ValueError, ValidationError) as exc:
-            return FaultReply(ok=False, error=str(exc), active=self._active(), source=source)
+        except (ValueError, ValidationError) as exc:  # (a ValidationError is a ValueError: worded for the operator)
+            error = explain(exc) if isinstance(exc, ValidationError) else str(exc)
+            return FaultReply(ok=False, error=error, active=self._active(), source=source)
         return FaultReply(ok=True, active=self._active(), source=source)
 
+    def retire_crash(self, fault_id: str) -> None:
+        """A one-shot crash was carried out: it is no longer an active fault (its record is the agent.crash event)."""
+        with self.lock:
+            self.crashes = [s for s in self.crashes if s.id != fault_id]
+
     def _active(self) -> list[FaultSpec]:
-        # a process without fault layers (the supervisor) lists the crash faults it carries out
-        return self.layers[0].active() if self.layers else list(self.crashes)
+        # a process lists what it carries out: its network faults, and (the supervisor) its crash faults
+        return (self.layers[0].active() if self.layers else []) + list(self.crashes)
 
     def advance(self, now: float) -> list[FaultReply]:
         """Apply the scheduled commands due by sim time ``now`` (call at each tick start, or register on a
@@ -162,8 +237,10 @@ class FaultController:
         with self.lock:
             self._reached = max(self._reached, now)
             while self._next < len(self._timeline) and self._timeline[self._next][0] <= now + 1e-9:
-                out.append(self._scheduled(self._next))
+                reply = self._scheduled(self._next)
                 self._next += 1
+                if reply is not None:
+                    out.append(reply)
         return out
 
     @staticmethod
@@ -175,8 +252,10 @@ class FaultController:
             command = command.model_copy(update={"spec": command.spec.model_copy(update={"id": f"at{index}"})})
         return at, command
 
-    def _scheduled(self, index: int) -> FaultReply:
+    def _scheduled(self, index: int) -> FaultReply | None:
         at, command = self._timeline[index]
+        if not self._concerns(command):
+            return None
         reply = self._handle(command, at)
         if not reply.ok:
             log.warning("fault schedule at %.3f s: %s", at, reply.error)
@@ -195,7 +274,8 @@ class FaultController:
         command = self._decode(query.payload)
         reply = (FaultReply(ok=False, error=command, active=self._active(), source=self.bus.identity)
                  if isinstance(command, str) else self.handle(command))
-        query.reply(self.keys.faults, reply)
+        if reply is not None:  # no verdict from a process the command does not concern
+            query.reply(self.keys.faults, reply)
 
     def _on_put(self, sample: Sample) -> None:
         command = self._decode(sample.payload)
@@ -203,7 +283,7 @@ class FaultController:
             log.warning("ctl/faults from %r: %s", sample.sender, command)
             return
         reply = self.handle(command)
-        if not reply.ok:
+        if reply is not None and not reply.ok:
             log.warning("ctl/faults %s from %r rejected: %s", command.op, sample.sender, reply.error)
 
     def _event(self, kind: str, fault_id: str, spec: FaultSpec | None, at: float | None = None) -> None:

@@ -40,22 +40,36 @@ class CrashPlanner:
         self.n_agents = n_agents
         self.seed = seed
         self._specs: list[tuple[str, FaultSpec]] = []
+        # the last tick whose actions were asked for (due): a crash at or before it can no longer happen at its tick
+        self.reached = -1
 
     def add(self, spec: FaultSpec) -> str | None:
-        """Accept a crash spec (the controller's ``on_crash`` hook); returns an error message or None."""
+        """Accept a crash spec (the controller's ``on_crash`` hook); returns an error message naming the field, or
+        None. A crash at a tick already reached is refused: accepting it would promise a crash that never comes."""
         crash = spec.crash
         if crash is None:
-            return "not a crash spec"
+            return "crash: not a crash spec"
         if crash.agent is not None and not 0 <= crash.agent < self.n_agents:
-            return f"agent {crash.agent} outside 0..{self.n_agents - 1}"
+            return f"crash.agent: agent {crash.agent} is not in this run (robot ids 0..{self.n_agents - 1})"
+        if crash.at_tick is not None and crash.at_tick <= self.reached:
+            return (f"crash.at_tick: tick {crash.at_tick} has passed (the run is at tick {self.reached}); "
+                    f"give a later tick")
         self._specs.append((spec.id or f"crash-{len(self._specs) + 1}", spec))
         return None
 
-    def reset(self) -> None:
-        self._specs.clear()
+    def spent(self) -> list[str]:
+        """Ids of one-shot crash specs whose tick has been reached: carried out, no longer active."""
+        return [f for f, spec in self._specs
+                if spec.crash is not None and spec.crash.every is None and spec.crash.at_tick is not None
+                and spec.crash.at_tick <= self.reached]
+
+    def reset(self, fault_id: str | None = None) -> None:
+        """Forget the crash spec ``fault_id``, or every one."""
+        self._specs = [] if fault_id is None else [(f, s) for f, s in self._specs if f != fault_id]
 
     def due(self, t: int) -> list[CrashAction]:
         """Actions at tick ``t`` in the order the specs were added."""
+        self.reached = max(self.reached, t)
         out = []
         for fault_id, spec in self._specs:
             c = spec.crash

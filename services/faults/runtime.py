@@ -46,8 +46,9 @@ FAULT_TIMES = ("virtual", "wall")
 class FaultRuntime:
     def __init__(self, run: str, *, seed: int = 0, dt: float = 1.0, virtual: bool = True, events: bool = False,
                  schedule: FaultSchedule | None = None, on_crash: CrashHook | None = None,
-                 phase_owner: bool | None = None):
+                 phase_owner: bool | None = None, fleet: int | None = None):
         self.run = run
+        self.fleet = fleet  # robots in the run: a fault naming another is refused
         # phase_owner: this process runs the phase loop (the sim): it receives the agents' skips. Default: the
         # process that owns the run record (events=True) is the sim.
         self.phase_owner = events if phase_owner is None else phase_owner
@@ -81,12 +82,12 @@ class FaultRuntime:
             schedule = load_schedule(config.fault_schedule)
         sim = role == "sim"
         return cls(config.run_id, seed=config.seed, dt=config.dt, virtual=config.fault_time == "virtual",
-                   events=sim, schedule=schedule, on_crash=on_crash)
+                   events=sim, schedule=schedule, on_crash=on_crash, fleet=config.n_agents)
 
     def like(self) -> FaultRuntime:
         """A runtime for another process of the same run (same seed, Δ, time and schedule; no events)."""
         return FaultRuntime(self.run, seed=self.seed, dt=self.dt, virtual=self.vtime is not None,
-                            schedule=self.schedule)
+                            schedule=self.schedule, fleet=self.fleet)
 
     def attach(self, bus: Bus, *, meter: bool = True, receiver: int | str | None = None) -> FaultLayer:
         """Install a fault layer (with a link meter unless ``meter=False``) on ``bus`` (several buses in one process
@@ -117,7 +118,7 @@ class FaultRuntime:
             raise RuntimeError("attach a bus before start()")
         self.controller = FaultController(self._bus, self.run, self.layers, clock=self.now, dt=self.dt,
                                           events=self.events, on_crash=self.on_crash, schedule=self.schedule,
-                                          lock=self.lock, hold_events=self.events)
+                                          lock=self.lock, hold_events=self.events, fleet=self.fleet)
         await self.controller.start()
         if self.phase_owner:
             await self._bus.subscribe(self.keys.skips, self._on_skip, inline=True)

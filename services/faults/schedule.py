@@ -27,6 +27,7 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from schemas.errors import explain
 from schemas.faults import FaultOp, FaultSpec
 from schemas.messages import FaultCommand
 
@@ -66,12 +67,8 @@ class FaultSchedule(BaseModel):
         return [(c.at(dt), c.command()) for _, c in indexed]
 
 
-def _explain(exc: ValidationError, where: str) -> ValueError:
-    parts = []
-    for err in exc.errors():
-        loc = "".join(f"[{x}]" if isinstance(x, int) else f".{x}" for x in err["loc"]).lstrip(".")
-        parts.append(f"{loc or '<root>'}: {err['msg']}")
-    return ValueError(f"{where}: " + "; ".join(parts))
+def _explain(exc: ValidationError, where: str | None = None) -> ValueError:
+    return ValueError(explain(exc, where=where))
 
 
 def parse_schedule(data: dict, where: str = "schedule") -> FaultSchedule:

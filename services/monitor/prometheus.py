@@ -57,6 +57,23 @@ class MonitorCollector:
         drops.add_metric([run, "sequence_gap"], stats.gaps)
         drops.add_metric([run, "rejected"], stats.rejected)
         yield drops
+        faults = GaugeMetricFamily("morph_faults_active", "Faults in force (set and not yet healed or reset)",
+                                   labels=["run"])
+        faults.add_metric([run], mon.fault_windows.active)
+        yield faults
+        # per key class (request, ack, tick, …) and receiver, as the monitor's link meter reports every k ticks
+        links = CounterMetricFamily("morph_link_messages", "Messages per key class by outcome (sent, delivered, "
+                                    "dropped, duplicated, late)", labels=["run", "key", "receiver", "outcome"])
+        latency = GaugeMetricFamily("morph_link_latency_seconds", "Observed latency per key class since the start",
+                                    labels=["run", "key", "receiver", "stat"])
+        for s in list(mon.latest_links):
+            key, receiver = s.labels.get("key", ""), s.labels.get("receiver", "")
+            if s.name.startswith("link/latency/"):
+                latency.add_metric([run, key, receiver, s.name.rsplit("/", 1)[1]], s.value)
+            else:
+                links.add_metric([run, key, receiver, s.name.split("/", 1)[1]], s.value)
+        yield links
+        yield latency
         for hist, name, doc in ((stats.latency, "morph_bus_latency_seconds", "Publish to monitor latency"),
                                 (stats.dispatch, "morph_dispatch_delay_seconds",
                                  "Sim seconds from an AGV's first help request to a picker's commit")):

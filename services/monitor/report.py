@@ -45,29 +45,16 @@ class Record:
 
     def fault_windows(self) -> list[tuple[float, float, str]]:
         """(start tick, end tick, label) of every fault window, from the events (open windows end with the run)."""
-        end = float(self.t[-1] + 1) if self.rows else 0.0
-        open_: dict[str, tuple[float, str]] = {}
-        out = []
-        for e in self.events:
-            kind, t = e.get("kind", ""), e.get("t")
-            if t is None:
-                continue
-            fid = str((e.get("details") or {}).get("fault_id") or (e.get("details") or {}).get("id") or kind)
-            if kind == "fault.set":
-                open_[fid] = (float(t), fid)
-            elif kind in ("fault.healed", "fault.reset") and fid in open_:
-                start, label = open_.pop(fid)
-                out.append((start, float(t), label))
-            elif kind == "fault.reset":
-                for start, label in open_.values():
-                    out.append((start, float(t), label))
-                open_.clear()
-        out += [(start, end, label) for start, label in open_.values()]
-        return out
+        from services.monitor.faultwindows import FaultWindows
 
-    def crashes(self) -> list[float]:
-        return [float(e["t"]) for e in self.events if e.get("kind") in ("fault.crash", "agent.restart")
-                and e.get("t") is not None]
+        end = float(self.t[-1] + 1) if self.rows else 0.0
+        return FaultWindows(self.events).windows(end)
+
+    def crashes(self) -> list[tuple[float, str]]:
+        """(tick, agent) of every crash that happened: the supervisor's ``agent.crash`` events, one per kill or pause
+        (a planned crash that never came, or the restart that follows one, is not a crash)."""
+        return [(float(e["t"]), str((e.get("details") or {}).get("agent", "?"))) for e in self.events
+                if e.get("kind") == "agent.crash" and e.get("t") is not None]
 
     def positions(self) -> dict[int, np.ndarray]:
         path = self.dir / "positions.csv"
@@ -138,13 +125,32 @@ def numbers(rec: Record) -> dict:
 
 
 # -- figures --------------------------------------------------------------------------------------------------------
-def _shade(ax, rec: Record) -> None:
-    for i, (a, b, label) in enumerate(rec.fault_windows()):
-        ax.axvspan(a, b, color="tab:red", alpha=0.15, label="fault window" if i == 0 else None)
-    for i, (a, b) in enumerate(rec.gaps):
-        ax.axvspan(a, b + 1, color="grey", alpha=0.3, label="record gap" if i == 0 else None)
-    for t in rec.crashes():
-        ax.axvline(t, color="tab:red", lw=0.8, ls=":")
+# Fault windows get colours of their own (not the runs' line colours) and one legend entry each, so overlapping
+# windows stay apart; crashes are black dotted lines marked with the agent that was killed.
+_WINDOW_COLOURS = ("#e41a1c", "#ff7f00", "#984ea3", "#4daf4a", "#a65628", "#f781bf", "#377eb8", "#999999")
+
+
+def _shade(ax, recs: list[Record]) -> None:
+    many = len(recs) > 1
+    k = 0
+    for rec in recs:
+        who = f"{rec.name}: " if many else ""
+        for a, b, label in rec.fault_windows():
+            colour = _WINDOW_COLOURS[k % len(_WINDOW_COLOURS)]
+            ax.axvspan(a, b, facecolor=colour, alpha=0.18, edgecolor=colour, lw=0.8,
+                       label=f"{who}fault {label} [{a:g}, {b:g})")
+            k += 1
+        for i, (a, b) in enumerate(rec.gaps):
+            ax.axvspan(a, b + 1, color="grey", alpha=0.3, hatch="//", label=f"{who}record gap" if i == 0 else None)
+        for i, (t, agent) in enumerate(rec.crashes()):
+            ax.axvline(t, color="black", lw=0.9, ls=":", label=f"{who}agent crash" if i == 0 else None)
+            ax.annotate(f"agent {agent}", (t, 1.0), xycoords=("data", "axes fraction"), fontsize=6, rotation=90,
+                        ha="right", va="top")
+
+
+def _legend(ax) -> None:
+    """The legend beside the axes (never over a curve); savefig(bbox_inches="tight") keeps it in the image."""
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
 
 
 def figures(recs: list[Record], out: Path) -> dict[str, Path]:
@@ -157,33 +163,33 @@ def figures(recs: list[Record], out: Path) -> dict[str, Path]:
 
     def save(fig, name: str) -> None:
         p = out / f"{name}.png"
-        fig.tight_layout()
-        fig.savefig(p, dpi=110)
+        fig.savefig(p, dpi=110, bbox_inches="tight")
         plt.close(fig)
         paths[name] = p
 
     fig, ax = plt.subplots(figsize=(7, 3.5))
     for rec in recs:
         ax.plot(rec.t, np.nancumsum(rec.column("deliveries")), label=rec.name)
+    _shade(ax, recs)
     ax.set(xlabel="tick", ylabel="deliveries", title="Cumulative deliveries")
-    ax.legend(fontsize=7)
+    _legend(ax)
     save(fig, "deliveries")
 
     fig, ax = plt.subplots(figsize=(7, 3.5))
     for rec in recs:
         d = np.nan_to_num(rec.column("deliveries"))
         ax.plot(rec.t, M.rolling_rate(d, RATE_WINDOW), label=rec.name)
-        _shade(ax, rec)
+    _shade(ax, recs)
     ax.set(xlabel="tick", ylabel=f"deliveries / step ({RATE_WINDOW}-step window)", title="Delivery rate")
-    ax.legend(fontsize=7)
+    _legend(ax)
     save(fig, "delivery_rate")
 
     fig, ax = plt.subplots(figsize=(7, 3.5))
     for rec in recs:
         ax.plot(rec.t, rec.column("links"), label=rec.name)
-        _shade(ax, rec)
+    _shade(ax, recs)
     ax.set(xlabel="tick", ylabel="undirected links", title="Coordination links")
-    ax.legend(fontsize=7)
+    _legend(ax)
     save(fig, "links")
 
     for k, rec in enumerate(recs):
@@ -191,26 +197,33 @@ def figures(recs: list[Record], out: Path) -> dict[str, Path]:
         if snaps:
             ts = sorted(snaps)
             pick = sorted({ts[0], ts[len(ts) // 3], ts[2 * len(ts) // 3], ts[-1]})
-            fig, axes = plt.subplots(1, len(pick), figsize=(3.2 * len(pick), 3.2), squeeze=False)
+            # one colour scale for every panel (the colourbar is theirs); no state received yet: light grey
+            vmax = max([1e-9] + [float(np.nanmax(snaps[t]["W"])) for t in pick if np.isfinite(snaps[t]["W"]).any()])
+            cmap = matplotlib.colormaps["viridis"].with_extremes(bad="#d9d9d9")
+            fig, axes = plt.subplots(1, len(pick), figsize=(3.2 * len(pick) + 1.0, 3.4), squeeze=False,
+                                     layout="constrained")
             for ax, t in zip(axes[0], pick):
                 W = snaps[t]["W"]
-                im = ax.imshow(W, cmap="viridis", vmin=0, vmax=max(1e-9, float(np.nanmax(W))))
+                im = ax.imshow(W, cmap=cmap, vmin=0, vmax=vmax)
                 b = rec.n_agvs - 0.5
                 ax.axhline(b, color="white", lw=1)
                 ax.axvline(b, color="white", lw=1)
                 ax.set_title(f"W at t={t}", fontsize=9)
-                ax.set_xticks([rec.n_agvs / 2, rec.n_agvs + (rec.n_agents - rec.n_agvs) / 2], ["AGV", "picker"])
-                ax.set_yticks([rec.n_agvs / 2, rec.n_agvs + (rec.n_agents - rec.n_agvs) / 2],
-                              ["AGV", "picker"] if ax is axes[0][0] else ["", ""])
-            fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8)
-            fig.suptitle(f"{rec.name}: W snapshots (AGV / picker blocks)", fontsize=10)
+                centres = [(rec.n_agvs - 1) / 2, rec.n_agvs + (rec.n_agents - rec.n_agvs - 1) / 2]  # of the blocks
+                ax.set_xticks(centres, ["AGV", "picker"])
+                ax.set_yticks(centres, ["AGV", "picker"] if ax is axes[0][0] else ["", ""])
+                ax.set_xlabel("to agent", fontsize=8)
+            axes[0][0].set_ylabel("from agent", fontsize=8)
+            fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label="W (coordination weight)")
+            fig.suptitle(f"{rec.name}: W snapshots (white lines: AGV / picker blocks; grey: no state yet)",
+                         fontsize=10)
             p = out / f"w_heatmaps_{k}.png"
             fig.savefig(p, dpi=110)
             plt.close(fig)
             paths[f"w_heatmaps_{k}"] = p
 
     fig, ax = plt.subplots(figsize=(7, 3.5))
-    any_links = False
+    lifetimes = []
     for rec in recs:
         links = rec.links()
         if not links:
@@ -220,20 +233,33 @@ def figures(recs: list[Record], out: Path) -> dict[str, Path]:
             tracker.update(links[t], tick=t)
         life, censored = tracker.lifetimes()
         if life.size:
-            any_links = True
-            ax.hist([life[~censored], life[censored]], bins=30, stacked=True,
-                    label=[f"{rec.name} pruned", f"{rec.name} alive at end"])
+            lifetimes.append((rec.name, life, censored))
+    if lifetimes:
+        # one set of bins for every run, and outlines for several runs, so no run's bars hide another's
+        top = max(float(life.max()) for _, life, _ in lifetimes)
+        bins = np.linspace(0, max(top, 1.0), 31)
+        many = len(lifetimes) > 1
+        for i, (name, life, censored) in enumerate(lifetimes):
+            colour = f"C{i}"
+            for part, what, hatch in ((life[~censored], "pruned", None), (life[censored], "alive at end", "//")):
+                ax.hist(part, bins=bins, histtype="step" if many else "bar", color=colour, hatch=hatch, lw=1.2,
+                        alpha=1.0 if many else (0.9 if hatch is None else 0.45),
+                        label=f"{name}: {what}" if many else what)
     ax.set(xlabel="link lifetime (ticks)", ylabel="links", title="Link lifetimes", yscale="log")
-    if any_links:
-        ax.legend(fontsize=7)
+    if lifetimes:
+        _legend(ax)
     save(fig, "link_lifetimes")
     return paths
 
 
-def warehouse_gif(rec: Record, path: Path, *, max_frames: int = 200, cell_px: int = 12) -> int | None:
-    """GIF of the robots with their coordination links, from ``positions.csv`` and ``links.csv``; None if absent."""
+GIF_MIN_WIDTH = 640  # px: a warehouse GIF a person can read without zooming (cells of a large layout stay >= 12 px)
+
+
+def warehouse_gif(rec: Record, path: Path, *, max_frames: int = 200, cell_px: int | None = None) -> int | None:
+    """GIF of the robots with their coordination links, from ``positions.csv`` and ``links.csv``, with a legend of
+    the glyphs and colours; ``cell_px`` defaults to what makes it at least GIF_MIN_WIDTH wide. None if absent."""
     from services.sim.world.layout import layout_for, named_sizes
-    from services.sim.world.render import Frame, link_statuses, write_gif
+    from services.sim.world.render import RECORD_LEGEND, Frame, link_statuses, write_gif
 
     positions, links = rec.positions(), rec.links()
     ticks = sorted(set(positions) & set(links))
@@ -241,6 +267,8 @@ def warehouse_gif(rec: Record, path: Path, *, max_frames: int = 200, cell_px: in
         return None
     config = rec.manifest.get("config", {})
     lay = layout_for(named_sizes()[config.get("scale", "tiny")][0])
+    if cell_px is None:
+        cell_px = max(12, math.ceil((GIF_MIN_WIDTH - 1) / lay.W) - 1)
     stride = max(1, math.ceil(len(ticks) / max_frames))
     shown = ticks[::stride]
     is_agv = np.arange(rec.n_agents) < rec.n_agvs
@@ -257,7 +285,7 @@ def warehouse_gif(rec: Record, path: Path, *, max_frames: int = 200, cell_px: in
                         links=link_statuses(A, prev))
             prev = A
 
-    return write_gif(frames(), path, fps=8, cell_px=cell_px)
+    return write_gif(frames(), path, fps=8, cell_px=cell_px, legend=RECORD_LEGEND)
 
 
 def write_report(run_dirs: list[Path], out: Path, *, gif: bool = True) -> Path:
@@ -296,7 +324,7 @@ def write_report(run_dirs: list[Path], out: Path, *, gif: bool = True) -> Path:
                              "(recorded before issue 6)")
             else:
                 lines += [f"![{rec.name}]({g.name})", "",
-                          f"{count} frames; links: stable green, new, pruned red dashed."]
+                          f"{count} frames; the legend under the map names every glyph and colour."]
         lines.append("")
     md = out / "report.md"
     md.write_text("\n".join(lines) + "\n", encoding="utf-8")

@@ -109,6 +109,9 @@ class MonitorService:
         from services.faults.linkstats import LinkMeter
 
         self.link_meter = LinkMeter(f"morph/{config.run_id}")
+        from services.monitor.faultwindows import FaultWindows
+
+        self.fault_windows = FaultWindows()  # faults in force, from the events (Prometheus morph_faults_active)
         self.latest_links: list[MetricSample] = []
         self._links_due = False
 
@@ -305,6 +308,7 @@ class MonitorService:
                     kind="ready.ack", source="monitor", details={"round": event.details.get("round", 0)})),
                     "probe")
             return
+        self.fault_windows.add({"kind": event.kind, "t": event.t, "details": event.details})
         if event.kind == "run.finished":
             self.result.finished = {**(self.result.finished or {}), **event.details}
             self._stop.set()

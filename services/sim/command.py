@@ -42,9 +42,8 @@ def run(args: argparse.Namespace) -> int:
 def _faults(config):
     """The sim's fault runtime (issue 5): ``morph-sim faults set|list|reset`` reaches it on ctl/faults; in the run's
     fault time (``--fault-time``, virtual by default: every agent process runs its own clock, docs/faults.md)."""
-    from services.faults.crash import CrashPlanner
     from services.faults.runtime import FaultRuntime
 
-    # Crash faults are carried out by the supervisor; the sim only validates them (agent id in the fleet) so that
-    # `faults set` gets one verdict from both and the run record gets the fault.crash event with its sim time.
-    return FaultRuntime.for_service(config, "sim", on_crash=CrashPlanner(config.n_agents, config.seed).add)
+    # Crash faults are the supervisor's alone (it carries them out and records each crash at its tick): the sim gives
+    # no verdict on them, so `faults set` never reports a crash the sim accepted but nobody carried out.
+    return FaultRuntime.for_service(config, "sim")

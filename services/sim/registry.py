@@ -2,8 +2,8 @@
 
 Why: ``docker compose up --scale agent=8`` starts eight identical containers and Compose gives a container no replica
 index, so an agent cannot know which robot it drives. It asks the sim instead, on the registry queryable
-``morph/<run>/registry`` (:attr:`RunKeys.registry`), sending a :class:`RegistrationRequest` that names a stable
-*instance* (the container hostname by default). The sim answers with the robot id and its role.
+``morph/<run>/registry`` (:attr:`RunKeys.registry`), sending a :class:`RegistrationRequest` that names an
+*instance* (``--instance``/``MORPH_INSTANCE``, else host name and pid, so processes on one host differ). The sim answers with the robot id and its role.
 
 Allocation rules (:class:`IdAllocator`, pure, no clock and no I/O; the caller passes ``now`` and the live ids):
 
@@ -227,9 +227,13 @@ async def mount_registry(bus, keys: RunKeys, n_agvs: int, n_pickers: int, *, hol
     return await Registry(bus, keys, n_agvs, n_pickers, hold=hold, clock=clock).start()
 
 
-def default_instance(environ: dict[str, str] | os._Environ = os.environ) -> str:
-    """The stable name an agent registers under: ``MORPH_INSTANCE``, else the host name (a container's id)."""
-    return environ.get("MORPH_INSTANCE") or socket.gethostname()
+def default_instance(environ: dict[str, str] | os._Environ = os.environ, pid: int | None = None) -> str:
+    """The name an agent registers under: ``MORPH_INSTANCE``, else ``<host name>-<pid>``.
+
+    The pid is part of it because processes on one host share the host name, and two claims under one name are one
+    instance to the allocator: both would get its id. A restarted agent (a new pid, or a new container) still gets
+    its robot back in a running run, where every other id is held and the departed one is the only id free."""
+    return environ.get("MORPH_INSTANCE") or f"{socket.gethostname()}-{os.getpid() if pid is None else pid}"
 
 
 async def claim_id(bus, keys: RunKeys, instance: str | None = None, *, want_id: int | None = None,

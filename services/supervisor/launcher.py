@@ -84,7 +84,7 @@ class Child:
         return len(self.failures) < MAX_RESTARTS
 
     def start(self, extra: tuple[str, ...] = ()) -> None:
-        """``extra`` flags go after the spec's (argparse: the last one wins), e.g. ``--cold-restart True``."""
+        """``extra`` flags go after the spec's (argparse: the last one wins), e.g. ``--cold-restart``."""
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         with open(self.log_path, "ab") as out:
             out.write(f"--- start {' '.join(self.spec.argv + extra)} at {time.time():.3f}\n".encode())
@@ -171,6 +171,10 @@ class Supervisor:
         self.faulter = ProcessFaulter(self._agent_pid,
                                       time_scale=config.period / config.dt if config.mode == "paced" else 1.0)
         self._crash_t = -1  # last tick whose crash actions were carried out
+        self._controller = None  # the supervisor's ctl/faults controller (crash faults), once the watch starts
+        self._bus = None
+        self._keys = None
+        self._tasks: set[asyncio.Task] = set()
 
     # -- bookkeeping -------------------------------------------------------------------------------------------------
     @property
@@ -181,9 +185,11 @@ class Supervisor:
         child = self.children.get(f"agent-{agent}")
         return child.pid if child is not None and child.alive() else None
 
-    async def _crashes(self, bus, keys, controller) -> None:
-        """Carry out the crash actions of every tick reached since the last call (the metric stream may skip)."""
-        while self._crash_t < self.progress.t:
+    def _crashes(self, upto: int) -> None:
+        """Carry out the crash actions of every tick up to ``upto`` not yet handled, in tick order. Called as each
+        Tick arrives (the kill lands in the tick it was due, not a polling period later) and from the watch loop."""
+        controller = self._controller
+        while controller is not None and self._crash_t < upto:
             self._crash_t += 1
             t = self._crash_t
             controller.advance(t * self.config.dt)  # scheduled commands of this tick (crash specs reach the planner)
@@ -193,8 +199,17 @@ class Supervisor:
                 if pid is not None and child is not None and action.signal == "kill":
                     child.planned[pid] = action.cold_restart or self.config.cold_restart
                 self._event("crash", f"{action.signal} agent {action.agent} (pid {pid}) at tick {t}")
-                await self._publish_event(bus, keys, "agent.crash", agent=action.agent, signal=action.signal,
-                                          pid=pid, fault_id=action.fault_id, tick=t, at_tick=t)
+                self._later(self._publish_event(self._bus, self._keys, "agent.crash", agent=action.agent,
+                                                signal=action.signal, pid=pid, fault_id=action.fault_id, tick=t,
+                                                at_tick=t))
+            for fault_id in self.planner.spent():  # one-shot crashes done: `faults list` no longer shows them
+                self.planner.reset(fault_id)
+                controller.retire_crash(fault_id)
+
+    def _later(self, coro) -> None:
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)  # a reference until done (the loop keeps only weak ones)
+        task.add_done_callback(self._tasks.discard)
 
     def _event(self, kind: str, what: str) -> None:
         self.events.append((time.time(), kind, what))
@@ -315,14 +330,21 @@ class Supervisor:
                 return
             if self.progress.t < t < self.config.steps:  # (a final Tick t = steps closes the run)
                 self.progress.update("tick", t, float("nan"))
+                if self._controller is not None:
+                    self._controller.publish_held()  # the run has started: the monitor listens
+                    self._crashes(t)
 
+        self._bus, self._keys = bus, keys
         await bus.subscribe(keys.tick, on_tick)
         from services.faults.controller import FaultController
 
-        controller = FaultController(  # no fault layers here: the supervisor only carries out crash faults
+        # No fault layers here: the supervisor carries out crash faults, and is the only process that judges them
+        # (it records fault.crash_planned when it accepts one, agent.crash when it happens).
+        self._controller = FaultController(
             bus, self.config.run_id, [], clock=lambda: max(self.progress.t, 0) * self.config.dt, dt=self.config.dt,
-            on_crash=self.planner.add, schedule=self.schedule)
-        await controller.start()
+            on_crash=self.planner.add, on_crash_reset=self.planner.reset, schedule=self.schedule,
+            events=True, hold_events=True, fleet=self.config.n_agents)
+        await self._controller.start()
         ready_deadline = time.monotonic() + self.ready_timeout
         last_shown = 0.0
         last_tick, last_tick_at = self.progress.t, time.monotonic()
@@ -345,7 +367,7 @@ class Supervisor:
                 return 0
             running = self.progress.t >= 0
             if running:
-                await self._crashes(bus, keys, controller)
+                self._crashes(self.progress.t)
             for child in self.children.values():
                 if child.spec.role == "sim" or child.alive() or child.pid in child.reaped:
                     continue
@@ -363,7 +385,7 @@ class Supervisor:
                     if not planned:
                         child.failures.append(time.monotonic())
                     child.restarts += 1
-                    child.start(("--cold-restart", "True") if cold else ())
+                    child.start(("--cold-restart",) if cold else ())
                     self._event("restart", f"{child.spec.name} exited with {code}; restarted as pid {child.pid}")
                     await self._publish_event(bus, keys, "agent.restart", agent=child.spec.agent, exit_code=code,
                                               old_pid=old_pid, pid=child.pid, restarts=child.restarts,

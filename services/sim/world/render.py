@@ -46,6 +46,10 @@ __all__ = [
     "save_png",
     "write_gif",
     "image_size",
+    "legend_height",
+    "LEGEND_TEXT",
+    "WAREHOUSE_LEGEND",
+    "RECORD_LEGEND",
 ]
 
 # Headings as in TA-RWARE's Direction enum.
@@ -76,6 +80,24 @@ COLORS: dict[str, tuple[int, int, int]] = {
     "text": (20, 20, 20),
 }
 _IDX = {name: i for i, name in enumerate(COLORS)}
+
+# What a legend band can explain (key -> words), drawn with the same glyphs and colours as the frame. A caller names
+# the entries its frames show: WAREHOUSE_LEGEND for the simulation's own frames, RECORD_LEGEND for a run record's
+# (which knows positions and links but not which shelves are requested).
+LEGEND_TEXT = {
+    "agv": "AGV (tick: heading)",
+    "agv_loaded": "AGV carrying a shelf",
+    "picker": "picker",
+    "shelf": "shelf",
+    "shelf_requested": "requested shelf",
+    "rack_floor": "empty shelf slot",
+    "goal": "goal (drop-off)",
+    "link_stable": "stable link",
+    "link_new": "new link",
+    "link_pruned": "pruned link",
+}
+WAREHOUSE_LEGEND = ("agv", "agv_loaded", "picker", "shelf", "shelf_requested", "rack_floor", "goal")
+RECORD_LEGEND = ("agv", "agv_loaded", "picker", "shelf", "goal", "link_stable", "link_new", "link_pruned")
 _PALETTE = [c for rgb in COLORS.values() for c in rgb]
 _PALETTE += _PALETTE[-3:] * (256 - len(COLORS))
 
@@ -213,9 +235,40 @@ def _header_px(cell_px: int) -> int:
     return max(14, int(round(cell_px * 0.8)))
 
 
-def image_size(height: int, width: int, cell_px: int = 24, header: bool = False) -> tuple[int, int]:
-    """(image width, image height) in pixels for an H×W grid."""
-    return 1 + width * (cell_px + 1), 1 + height * (cell_px + 1) + (_header_px(cell_px) if header else 0)
+def image_size(height: int, width: int, cell_px: int = 24, header: bool = False,
+               legend: Sequence[str] = ()) -> tuple[int, int]:
+    """(image width, image height) in pixels for an H×W grid (with a legend band of ``legend`` entries below)."""
+    w = 1 + width * (cell_px + 1)
+    return w, 1 + height * (cell_px + 1) + (_header_px(cell_px) if header else 0) + legend_height(legend, w, cell_px)
+
+
+def _legend_glyph_px(cell_px: int) -> int:
+    return max(12, min(cell_px, 22))
+
+
+def _legend_layout(legend: Sequence[str], width: int, cell_px: int) -> list[tuple[str, int, int]]:
+    """(entry, x, row) of each legend entry, flowed into rows of the image's width."""
+    g = _legend_glyph_px(cell_px)
+    font = _font(max(10, int(g * 0.75)))
+    probe = ImageDraw.Draw(Image.new("P", (1, 1)))
+    out, x, row = [], 4, 0
+    for key in legend:
+        if key not in LEGEND_TEXT:
+            raise ValueError(f"legend: unknown entry {key!r} (known: {', '.join(LEGEND_TEXT)})")
+        w = g + 4 + int(math.ceil(probe.textlength(LEGEND_TEXT[key], font=font))) + 12
+        if x > 4 and x + w > width:
+            x, row = 4, row + 1
+        out.append((key, x, row))
+        x += w
+    return out
+
+
+def legend_height(legend: Sequence[str], width: int, cell_px: int) -> int:
+    """Pixels of the legend band under an image ``width`` pixels wide (0 without a legend)."""
+    if not legend:
+        return 0
+    rows = 1 + max(row for _, _, row in _legend_layout(legend, width, cell_px))
+    return rows * (_legend_glyph_px(cell_px) + 6) + 6
 
 
 @lru_cache(maxsize=8)
@@ -230,15 +283,21 @@ class Renderer:
     """Draws frames of one cell size; caches the static background per layout.
 
     ``draw_targets`` adds a thin grey line from each agent to its target cell.  ``labels`` writes each agent's index
-    beside its glyph (useful next to the W heatmaps, whose rows are agent indices).
+    beside its glyph (useful next to the W heatmaps, whose rows are agent indices).  ``legend`` adds a band under the
+    grid that names each glyph and colour the frames use (e.g. :data:`WAREHOUSE_LEGEND`).
     """
 
-    def __init__(self, cell_px: int = 24, draw_targets: bool = False, labels: bool = False):
+    def __init__(self, cell_px: int = 24, draw_targets: bool = False, labels: bool = False,
+                 legend: Sequence[str] = ()):
         if not isinstance(cell_px, (int, np.integer)) or cell_px < 4:
             raise ValueError(f"cell_px: must be an integer ≥ 4, got {cell_px!r}")
         self.cell_px = int(cell_px)
         self.draw_targets = bool(draw_targets)
         self.labels = bool(labels)
+        self.legend = tuple(legend)  # entries of the legend band under the grid (LEGEND_TEXT keys); () = none
+        for key in self.legend:
+            if key not in LEGEND_TEXT:
+                raise ValueError(f"legend: unknown entry {key!r} (known: {', '.join(LEGEND_TEXT)})")
         self._backgrounds: OrderedDict[tuple, Image.Image] = OrderedDict()
 
     # -- geometry -----------------------------------------------------------------------------------------------------
@@ -263,7 +322,9 @@ class Renderer:
             self._backgrounds.move_to_end(key)
             return bg
         c = self.cell_px
-        w, h = image_size(f.height, f.width, c, f.has_header)
+        w, h = image_size(f.height, f.width, c, f.has_header, self.legend)
+        band = legend_height(self.legend, w, c)
+        h -= band
         oy = self._origin(f.has_header)
         # Grid via numpy: cells filled by kind, grid lines left in between.
         cells = np.where(f.highway, _IDX["background"], _IDX["rack_floor"]).astype(np.uint8)
@@ -275,8 +336,8 @@ class Renderer:
         block = np.repeat(np.repeat(cells, c, axis=0), c, axis=1)
         inner = big[1:, 1:].reshape(f.height, c + 1, f.width, c + 1)
         inner[:, :c, :, :c] = block.reshape(f.height, c, f.width, c)
-        arr = np.full((h, w), _IDX["header"], np.uint8)
-        arr[oy:] = big
+        arr = np.full((h + band, w), _IDX["header"], np.uint8)
+        arr[oy:h] = big
         img = Image.fromarray(arr, mode="P")
         img.putpalette(_PALETTE)
         d = ImageDraw.Draw(img)
@@ -284,10 +345,45 @@ class Renderer:
         for gx, gy in f.goals:
             x0, y0, x1, y1 = self._cell_box(int(gx), int(gy), oy, pad=max(2, c // 4))
             d.polygon([(x0, y0), (x1, y0), ((x0 + x1) / 2, y1)], fill=_IDX["goal_mark"])
+        if band:
+            self._draw_legend(d, w, h)
         self._backgrounds[key] = img
         if len(self._backgrounds) > 8:
             self._backgrounds.popitem(last=False)
         return img
+
+    def _draw_legend(self, d: ImageDraw.ImageDraw, width: int, top: int) -> None:
+        """The legend band from pixel row ``top``: each entry's glyph in the frame's colours, then its words."""
+        g = _legend_glyph_px(self.cell_px)
+        font = _font(max(10, int(g * 0.75)))
+        d.fontmode = "1"
+        for key, x, row in _legend_layout(self.legend, width, self.cell_px):
+            y = top + 6 + row * (g + 6)
+            x0, y0, x1, y1 = x, y, x + g - 1, y + g - 1
+            cx, cy, r = (x0 + x1) / 2, (y0 + y1) / 2, g * 0.38
+            if key in ("agv", "agv_loaded"):
+                if key == "agv_loaded":
+                    d.rectangle((x0, y0, x1, y1), fill=_IDX["shelf"])
+                pts = [(cx + r * math.cos(math.pi / 3 * a), cy + r * math.sin(math.pi / 3 * a)) for a in range(6)]
+                d.polygon(pts, fill=_IDX[key], outline=_IDX["outline"])
+                d.line([(cx, cy), (cx, cy - r)], fill=_IDX["heading"], width=max(1, g // 10))
+            elif key == "picker":
+                pts = [(cx + r * math.cos(math.pi / 2 * a), cy + r * math.sin(math.pi / 2 * a)) for a in range(4)]
+                d.polygon(pts, fill=_IDX["picker"], outline=_IDX["outline"])
+                d.line([(cx, cy), (cx, cy - r)], fill=_IDX["heading"], width=max(1, g // 10))
+            elif key in ("shelf", "shelf_requested", "rack_floor"):
+                d.rectangle((x0, y0, x1, y1), fill=_IDX[key], outline=_IDX["grid"])
+            elif key == "goal":
+                d.rectangle((x0, y0, x1, y1), fill=_IDX["goal"])
+                p = max(2, g // 4)
+                d.polygon([(x0 + p, y0 + p), (x1 - p, y0 + p), (cx, y1 - p)], fill=_IDX["goal_mark"])
+            elif key == "link_stable":
+                d.line([(x0, cy), (x1, cy)], fill=_IDX[key], width=max(2, g // 6))
+            elif key == "link_new":
+                d.line([(x0, cy), (x1, cy)], fill=_IDX[key], width=max(1, g // 12))
+            else:  # link_pruned
+                _dashed(d, (x0, cy), (x1, cy), _IDX[key], width=max(1, g // 10), dash=max(3, g // 4))
+            d.text((x1 + 5, cy), LEGEND_TEXT[key], fill=_IDX["text"], font=font, anchor="lm")
 
     # -- dynamic layers -----------------------------------------------------------------------------------------------
     def render_indexed(self, f: Frame) -> Image.Image:
@@ -375,23 +471,26 @@ def _dashed(d: ImageDraw.ImageDraw, p, q, fill: int, width: int, dash: int) -> N
 
 
 @lru_cache(maxsize=8)
-def _renderer(cell_px: int, draw_targets: bool, labels: bool) -> Renderer:
-    return Renderer(cell_px, draw_targets, labels)
+def _renderer(cell_px: int, draw_targets: bool, labels: bool, legend: tuple[str, ...] = ()) -> Renderer:
+    return Renderer(cell_px, draw_targets, labels, legend)
 
 
 # ---------------------------------------------------------------------------------------------------------------------
 # Public one-call API
 
 
-def render_frame(frame: Frame, cell_px: int = 24, draw_targets: bool = False, labels: bool = False) -> Image.Image:
+def render_frame(frame: Frame, cell_px: int = 24, draw_targets: bool = False, labels: bool = False,
+                 legend: Sequence[str] = ()) -> Image.Image:
     """Draw one frame; returns an RGB :class:`PIL.Image.Image`."""
-    return _renderer(cell_px, draw_targets, labels).render(frame)
+    return _renderer(cell_px, draw_targets, labels, tuple(legend)).render(frame)
 
 
-def save_png(frame: Frame, path, cell_px: int = 24, draw_targets: bool = False, labels: bool = False) -> Path:
+def save_png(frame: Frame, path, cell_px: int = 24, draw_targets: bool = False, labels: bool = False,
+             legend: Sequence[str] = ()) -> Path:
     """Draw one frame to a PNG file; returns the path."""
     path = Path(path)
-    _renderer(cell_px, draw_targets, labels).render_indexed(frame).save(path, format="PNG", optimize=False)
+    _renderer(cell_px, draw_targets, labels, tuple(legend)).render_indexed(frame).save(path, format="PNG",
+                                                                                       optimize=False)
     return path
 
 
@@ -403,6 +502,7 @@ def write_gif(
     draw_targets: bool = False,
     labels: bool = False,
     loop: int = 0,
+    legend: Sequence[str] = (),
 ) -> int:
     """Write an animated GIF of ``frames`` (Frames, or ready images of one size) and return the frame count.
 
@@ -415,7 +515,7 @@ def write_gif(
     if not (isinstance(loop, int) and 0 <= loop <= 0xFFFF):
         raise ValueError(f"loop: must be an integer in 0..65535, got {loop!r}")
     delay = max(1, int(round(100.0 / fps)))
-    ren = _renderer(cell_px, draw_targets, labels)
+    ren = _renderer(cell_px, draw_targets, labels, tuple(legend))
     path = Path(path)
     count = 0
     size = None

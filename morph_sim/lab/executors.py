@@ -1,0 +1,118 @@
+"""Where episodes run: this machine's processes (default) or a Dask cluster.
+
+An executor maps a picklable, module-level function over a list of picklable tasks and yields the results as they
+finish (any order; callers key results by task). Both executors run the same function on the same tasks, so a
+result does not depend on where it was computed: every episode seeds its own streams from its task.
+
+* :class:`LocalExecutor` — ``jobs`` forked worker processes (``jobs=1``: in this process, no pool). Workers ignore
+  SIGINT so Ctrl-C reaches only the parent, which terminates the pool; nothing keeps running after an interrupt.
+* :class:`DaskExecutor` — a ``dask.distributed`` client on a scheduler address (``tcp://HOST:8786``) or an existing
+  client/cluster; needs the optional extra ``pip install 'morph-sim[cluster]'``. The workers need morph-sim
+  installed at the same version (see docs/sweep.md, two-machine recipe).
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import signal
+import sys
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, Protocol
+
+EXECUTORS = ("local", "dask")
+CLUSTER_HINT = "pip install 'morph-sim[cluster]'"
+
+
+class Executor(Protocol):
+    def map_unordered(self, fn: Callable[[Any], Any], tasks: Sequence[Any]) -> Iterator[Any]: ...
+
+    def close(self) -> None: ...
+
+
+def _ignore_sigint() -> None:
+    # Ctrl-C goes to the whole process group; only the parent decides what an interrupt means.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+class LocalExecutor:
+    def __init__(self, jobs: int = 2):
+        if jobs < 1:
+            raise ValueError(f"jobs: must be at least 1, got {jobs}")
+        self.jobs = jobs
+        self._pool = None
+
+    def map_unordered(self, fn, tasks):
+        tasks = list(tasks)
+        if self.jobs == 1 or len(tasks) <= 1:
+            for task in tasks:
+                yield fn(task)
+            return
+        ctx = mp.get_context("fork" if sys.platform != "win32" else "spawn")
+        self._pool = ctx.Pool(processes=min(self.jobs, len(tasks)), initializer=_ignore_sigint)
+        try:
+            yield from self._pool.imap_unordered(fn, tasks)
+            self._pool.close()
+        except BaseException:
+            self._pool.terminate()
+            raise
+        finally:
+            self._pool.join()
+            self._pool = None
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.terminate()
+            self._pool.join()
+            self._pool = None
+
+
+class DaskExecutor:
+    """Runs tasks on a Dask cluster. ``scheduler``: an address like ``tcp://HOST:8786``, a ``distributed.Client``
+    or anything with a ``scheduler_address`` (a LocalCluster)."""
+
+    def __init__(self, scheduler: Any, *, timeout: float = 30.0):
+        try:
+            from distributed import Client
+        except ImportError:
+            raise ImportError(f"executor dask: dask.distributed is not installed; {CLUSTER_HINT}") from None
+        if scheduler is None or scheduler == "":
+            raise ValueError("scheduler: the dask executor needs --scheduler tcp://HOST:8786")
+        self._own = not isinstance(scheduler, Client)
+        if isinstance(scheduler, Client):
+            self.client = scheduler
+        else:
+            address = getattr(scheduler, "scheduler_address", scheduler)
+            if not isinstance(address, str) or "://" not in address:
+                raise ValueError(f"scheduler: {address!r} is not an address like tcp://HOST:8786")
+            try:
+                self.client = Client(address, timeout=timeout, set_as_default=False)
+            except OSError as exc:
+                raise ValueError(f"scheduler: cannot reach {address}: {exc}") from None
+        self._futures: list = []
+
+    def map_unordered(self, fn, tasks):
+        from distributed import as_completed
+
+        tasks = list(tasks)
+        if not tasks:
+            return
+        # pure=False: two equal tasks are still two episodes to run (never deduplicated by the scheduler)
+        self._futures = self.client.map(fn, tasks, pure=False)
+        try:
+            for future in as_completed(self._futures, loop=self.client.loop):
+                yield future.result()
+        finally:
+            self.client.cancel([f for f in self._futures if not f.done()])
+            self._futures = []
+
+    def close(self) -> None:
+        if self._own:
+            self.client.close()
+
+
+def make_executor(kind: str = "local", *, jobs: int = 2, scheduler: Any = None) -> Executor:
+    if kind == "local":
+        return LocalExecutor(jobs)
+    if kind == "dask":
+        return DaskExecutor(scheduler)
+    raise ValueError(f"executor: unknown {kind!r} (choose from {', '.join(EXECUTORS)})")

@@ -1,0 +1,328 @@
+"""`morph-sim sweep` from the user's side: real CLI processes, interrupted and resumed, on local processes and on a
+Dask cluster (dask.distributed's LocalCluster in this process, loopback only), the services engine, bad input."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from _procs import kill_tree
+from morph_sim.lab.sweep import SweepPlan, run_sweep
+
+# The acceptance sweep: 3 policies × 3 loss levels × 2 scales × 5 seeds = 90 episodes. The default suite runs it with
+# short episodes; the slow version at the studies' length.
+# short episodes and two seeds; the slow versions run it whole at the studies' length.
+GRID = ["--grid", "policy=morph,full,tsg", "--grid", "faults.loss=0,10,30", "--grid", "scale=tiny,small"]
+ACCEPTANCE = [*GRID, "--seeds", "1-5"]
+REDUCED = [*GRID, "--seeds", "1-2"]
+SHORT = ["--set", "steps=50"]
+LONG = ["--set", "steps=400"]
+
+
+def _cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "morph_sim.cli", "sweep", *args], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def _main(*args: str, capsys) -> tuple[int, str, str]:
+    """The CLI in this process (same parser, same error handling) for checks that need no process of their own."""
+    from morph_sim.cli import main
+
+    code = main(["sweep", *args])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def _lines(path: Path) -> int:
+    return len(path.read_text().splitlines()) if path.exists() else 0
+
+
+def _interrupt_at_half(args: list[str], log: Path, sig: int, total: int) -> subprocess.CompletedProcess:
+    proc = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "sweep", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 240
+        while _lines(log) < total // 2:
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "the sweep did not reach half"
+            time.sleep(0.01)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=60)
+        return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+    finally:
+        kill_tree(proc)
+
+
+def _check_interrupted_then_resumed(tmp_path: Path, grid: list[str], total: int, sig: int, jobs: str
+                                    ) -> subprocess.CompletedProcess:
+    common = [*grid, "--out", str(tmp_path), "--no-progress", "--jobs", jobs]
+    whole = _cli(*common, "--run-id", "whole")
+    assert whole.returncode == 0, whole.stderr
+    assert f"{total} episodes run, 0 already in the record" in whole.stdout.splitlines()[-1]
+
+    log = tmp_path / "cut" / "episodes.jsonl"
+    cut = _interrupt_at_half([*common, "--run-id", "cut"], log, sig, total)
+    done = _lines(log)
+    assert 0 < done < total, f"interrupted with {done} of {total}"
+    if sig == signal.SIGINT:
+        assert cut.returncode == 130
+        assert cut.stderr.strip().splitlines()[-1] == (
+            f"sweep cut: interrupted with {done} of {total} episodes in the record; the same command with "
+            "--run-id cut resumes it")
+    assert not (tmp_path / "cut" / "results.csv").exists()
+
+    resumed = _cli(*common, "--run-id", "cut")
+    assert resumed.returncode == 0, resumed.stderr
+    assert resumed.stdout.splitlines()[-1].startswith(f"sweep cut: {total - done} episodes run, {done} already in "
+                                                      "the record")
+    for name in ("results.csv", "comparison.csv", "comparison.md"):
+        assert (tmp_path / "cut" / name).read_text() == (tmp_path / "whole" / name).read_text(), name
+    assert _lines(log) == total  # nothing ran twice
+    rows = list(csv.DictReader(open(tmp_path / "whole" / "results.csv")))
+    assert len(rows) == total
+    return whole
+
+
+def test_interrupted_at_half_and_resumed_equals_an_uninterrupted_sweep(tmp_path):
+    whole = _check_interrupted_then_resumed(tmp_path, [*REDUCED, "--set", "steps=80"], 36, signal.SIGINT, "2")
+    _check_tidy(tmp_path / "whole", whole.stdout)
+
+
+def test_a_killed_sweep_resumes_too(tmp_path):
+    """SIGKILL may cut a line of the record in half: the resumed sweep drops it and runs that episode again."""
+    grid = ["--grid", "policy=morph,tsg", "--seeds", "1-5", "--set", "steps=80"]
+    _check_interrupted_then_resumed(tmp_path, grid, 10, signal.SIGKILL, "1")
+
+
+@pytest.mark.slow
+def test_acceptance_sweep_interrupted_and_resumed_at_full_length(tmp_path):
+    _check_interrupted_then_resumed(tmp_path, [*ACCEPTANCE, *LONG], 90, signal.SIGINT, "2")
+
+
+def _check_tidy(run_dir: Path, stdout: str) -> None:
+    rows = list(csv.DictReader(open(run_dir / "results.csv")))
+    assert list(rows[0]) == ["policy", "faults.loss.percent", "scale", "seed", "deliveries", "mean_links",
+                             "committed", "dispatch_decisions", "mean_p_respond", "median_lifetime", "eta_mean"]
+    by: dict = {}
+    for r in rows:
+        by.setdefault((r["policy"], r["faults.loss.percent"], r["scale"]), []).append(int(r["seed"]))
+    # common random numbers: every condition ran the same seeds, in order
+    assert len(by) == 18 and all(s == [1, 2] for s in by.values())
+    import pandas as pd
+
+    pq = pd.read_parquet(run_dir / "results.parquet")
+    assert len(pq) == 36 and list(pq.columns) == list(rows[0])
+    assert pq["deliveries"].tolist() == [int(r["deliveries"]) for r in rows]
+    # the comparison table: one row per condition, Welch p against MORPH with the other axes equal
+    comp = list(csv.DictReader(open(run_dir / "comparison.csv")))
+    assert len(comp) == 18
+    assert {r["baseline"] for r in comp if r["policy"] != "morph"} == {"policy=morph"}
+    assert all(r["p_vs_baseline"] == "" for r in comp if r["policy"] == "morph")
+    assert "| policy | faults.loss.percent | scale | n | deliveries | links | baseline | Welch p |" in stdout
+
+
+def _local_cluster():
+    from distributed import LocalCluster
+
+    return LocalCluster(processes=False, n_workers=1, threads_per_worker=2, protocol="tcp", host="127.0.0.1",
+                        dashboard_address=None)
+
+
+def test_dask_local_cluster_equals_local_processes_episode_for_episode(tmp_path):
+    """The CLI in its own process sends the acceptance grid (short episodes, two seeds) to a LocalCluster's
+    scheduler; the slow test below runs all five seeds at length."""
+    local = _cli(*REDUCED, *SHORT, "--out", str(tmp_path), "--run-id", "local", "--no-progress")
+    assert local.returncode == 0, local.stderr
+    with _local_cluster() as cluster:
+        res = _cli(*REDUCED, *SHORT, "--out", str(tmp_path), "--run-id", "dask", "--no-progress",
+                   "--executor", "dask", "--scheduler", cluster.scheduler_address)
+    assert res.returncode == 0, res.stderr
+    assert "(lab engine, dask executor)" in res.stderr
+    for name in ("results.csv", "comparison.csv"):
+        assert (tmp_path / "dask" / name).read_text() == (tmp_path / "local" / name).read_text()
+    a = [json.loads(x) for x in (tmp_path / "local" / "episodes.jsonl").read_text().splitlines()]
+    b = {r["key"]: r["metrics"] for r in map(json.loads, (tmp_path / "dask" / "episodes.jsonl").read_text().splitlines())}
+    assert len(a) == 36 and all(b[r["key"]] == r["metrics"] for r in a)
+
+
+@pytest.mark.slow
+def test_dask_acceptance_sweep_at_full_length(tmp_path):
+    plan = SweepPlan.build(grid={"policy": ["morph", "full", "tsg"], "faults.loss": [0, 10, 30],
+                                 "scale": ["tiny", "small"]}, seeds="1-5", base={"steps": 400})
+    local = run_sweep(plan, tmp_path, "local", progress=False)
+    with _local_cluster() as cluster:
+        dask = run_sweep(plan, tmp_path, "dask", executor="dask", scheduler=cluster, progress=False)
+    assert dask.rows == local.rows and len(local.rows) == 90
+
+
+def test_a_dask_sweep_interrupted_resumes_locally_to_the_same_table(tmp_path):
+    """The record does not care where an episode ran: half on the cluster, the rest on local processes."""
+    plan = SweepPlan.build(grid={"policy": ["morph", "tsg"], "scale": ["tiny", "small"]}, seeds="1-3",
+                           base={"steps": 40})
+    seen = []
+
+    def stop_at_half(done, total):
+        seen.append(done)
+        if done >= total // 2:
+            raise KeyboardInterrupt
+
+    with _local_cluster() as cluster:
+        with pytest.raises(KeyboardInterrupt):
+            run_sweep(plan, tmp_path, "mixed", executor="dask", scheduler=cluster, progress=stop_at_half)
+    resumed = run_sweep(plan, tmp_path, "mixed", progress=False, jobs=1)
+    assert resumed.skipped == 6 and resumed.ran == 6
+    whole = run_sweep(plan, tmp_path, "whole", progress=False, jobs=1)
+    assert resumed.rows == whole.rows
+
+
+def test_services_engine_episodes_equal_morph_sim_run(tmp_path):
+    """The services engine runs the real services over the in-process bus: each episode has a run record, and the
+    zero-fault episode equals `morph-sim run` with the same config; loss is applied from tick 0 by a schedule."""
+    res = _cli("--engine", "services", "--grid", "policy=morph,tsg", "--grid", "faults.loss=0,30", "--seeds", "3",
+               "--set", "steps=40", "--set", "mode=lockstep", "--out", str(tmp_path), "--run-id", "svc",
+               "--no-progress")
+    assert res.returncode == 0, res.stderr
+    rows = list(csv.DictReader(open(tmp_path / "svc" / "results.csv")))
+    assert len(rows) == 4
+    records = sorted((tmp_path / "svc" / "episodes").glob("ep-*/summary.json"))
+    assert len(records) == 4
+    twin = subprocess.run([sys.executable, "-m", "morph_sim.cli", "run", "--policy", "morph", "--seed", "3",
+                           "--steps", "40", "--output-dir", str(tmp_path), "--run-id", "twin"],
+                          capture_output=True, text=True, timeout=120)
+    assert twin.returncode == 0, twin.stderr
+    total = json.loads((tmp_path / "twin" / "summary.json").read_text())
+    clean = next(r for r in rows if r["policy"] == "morph" and r["faults.loss.percent"] == "0")
+    assert int(clean["deliveries"]) == total["deliveries_total"]
+    assert float(clean["mean_links"]) == total["mean_links"]
+    lossy = [p for p in (tmp_path / "svc" / "episodes").glob("*.faults.toml")]
+    assert len(lossy) == 2 and "percent = 30" in lossy[0].read_text()
+    events = [json.loads(x) for p in (tmp_path / "svc" / "episodes").glob("ep-*/events.jsonl")
+              for x in p.read_text().splitlines()]
+    assert sum(e["kind"] == "fault.set" for e in events) >= 2
+
+
+def test_a_sweep_file_equals_the_same_grid_on_the_command_line(tmp_path, capsys):
+    f = tmp_path / "sweep.toml"
+    f.write_text('seeds = "1-3"\n[grid]\npolicy = ["morph", "tsg"]\n"faults.loss" = [0, 20]\n'
+                 '[base]\nsteps = 40\n[run]\njobs = 1\n')
+    a = _main(str(f), "--out", str(tmp_path), "--run-id", "file", "--no-progress", capsys=capsys)
+    b = _main("--grid", "policy=morph,tsg", "--grid", "faults.loss=0,20", "--seeds", "1-3", "--set", "steps=40",
+              "--out", str(tmp_path), "--run-id", "flags", "--no-progress", "--jobs", "1", capsys=capsys)
+    assert a[0] == 0 and b[0] == 0, a[2] + b[2]
+    assert (tmp_path / "file" / "results.csv").read_text() == (tmp_path / "flags" / "results.csv").read_text()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--grid", "policy=morph,bogus"], "policy: Input should be 'full', 'constant', 'tsg', 'proximity', 'none' or "
+                                       "'morph'"),
+    (["--grid", "scale=tiny,huge"], "scale: unknown size 'huge'"),
+    (["--grid", "faults.loss=0,abc"], "faults.loss.percent: Input should be a valid number"),
+    (["--grid", "faults.loss=0,150"], "faults.loss.percent: Input should be less than or equal to 100"),
+    (["--grid", "warp=1,2"], "warp: not a RunConfig field or a faults.* parameter"),
+    (["--grid", "policy"], "grid: 'policy' is not like field=v1,v2,…"),
+    (["--grid", "mode=lockstep,paced"], "mode: the lab engine does not model it"),
+    (["--grid", "faults.latency.delay=0,1"], "faults.latency.delay: the lab engine models message loss only"),
+    (["--grid", "steps=10,0"], "steps: Input should be greater than or equal to 1"),
+    (["--grid", "policy=tsg", "--seeds", "5-1"], "seeds: '5-1' is not a seed or a range like 1-20"),
+    (["--grid", "policy=tsg", "--seeds", "x"], "seeds: 'x' is not a seed or a range like 1-20"),
+    (["--grid", "seed=1,2"], "seed: sweep seeds with --seeds"),
+    (["--grid", "policy=tsg,tsg"], "policy: a value is given twice"),
+    (["--grid", "ablation=v1"], ""),  # valid: an ablation of MORPH (the default policy)
+    (["--grid", "policy=tsg", "--executor", "dask"], "scheduler: --executor dask needs --scheduler"),
+    (["--grid", "policy=tsg", "--jobs", "0"], "jobs: must be at least 1"),
+    (["--grid", "policy=tsg", "--baseline", "policy=full"], "baseline: policy='full' is not one of the grid's"),
+])
+def test_bad_grid_values_fail_with_one_line_naming_the_field(tmp_path, args, message, capsys):
+    fixed = [] if any(a.startswith("steps=") for a in args) else ["--set", "steps=5"]
+    code, out, err = _main(*args, *fixed, "--out", str(tmp_path), "--run-id", "bad", "--no-progress", "--jobs", "1",
+                           capsys=capsys) if "--jobs" not in args else _main(
+        *args, *fixed, "--out", str(tmp_path), "--run-id", "bad", "--no-progress", capsys=capsys)
+    if not message:
+        assert code == 0, err
+        return
+    assert code == 2, (out, err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"morph-sim sweep: error: {message}"), lines
+    assert not (tmp_path / "bad" / "episodes.jsonl").exists()
+
+
+def test_a_bad_value_from_a_real_process_is_one_line_and_exit_2(tmp_path):
+    res = _cli("--grid", "policy=morph,bogus", "--out", str(tmp_path))
+    assert res.returncode == 2 and res.stdout == ""
+    assert res.stderr.strip().splitlines() == [
+        "morph-sim sweep: error: policy: Input should be 'full', 'constant', 'tsg', 'proximity', 'none' or 'morph'"]
+
+
+def test_a_record_of_another_sweep_is_not_resumed(tmp_path, capsys):
+    assert _main("--grid", "policy=tsg", "--set", "steps=5", "--out", str(tmp_path), "--run-id", "x",
+                 "--no-progress", capsys=capsys)[0] == 0
+    code, _, err = _main("--grid", "policy=full", "--set", "steps=5", "--out", str(tmp_path), "--run-id", "x",
+                         "--no-progress", capsys=capsys)
+    assert code == 2
+    assert err.strip().splitlines()[-1] == f"morph-sim sweep: error: sweep: {tmp_path / 'x'} holds a different sweep; give " \
+                                 "another --run-id or --out"
+
+
+def test_dask_executor_without_the_extra_says_how_to_install(tmp_path, monkeypatch):
+    from morph_sim.lab import executors
+
+    monkeypatch.setitem(sys.modules, "distributed", None)
+    with pytest.raises(ImportError, match=r"pip install 'morph-sim\[cluster\]'"):
+        executors.make_executor("dask", scheduler="tcp://127.0.0.1:8786")
+
+
+def test_an_unreachable_scheduler_is_one_error_line(tmp_path):
+    from morph_sim.lab.executors import DaskExecutor
+    from services.bus.zenoh_bus import free_port
+
+    with pytest.raises(ValueError, match=r"^scheduler: cannot reach tcp://127.0.0.1:\d+"):
+        DaskExecutor(f"tcp://127.0.0.1:{free_port()}", timeout=1)
+
+
+def test_the_scale_study_on_dask_equals_it_on_local_processes(tmp_path):
+    """The existing studies take the same executor: the scale study (with the Proximity calibration that gates some
+    episodes) from the CLI in its own process, on a LocalCluster, gives the same episodes as on local processes."""
+    study = ["experiment", "scale", "--scales", "tiny", "--seeds", "1,2", "--steps", "25", "--conditions",
+             "morph,proximity", "--out", str(tmp_path), "--no-progress"]
+    cli = [sys.executable, "-m", "morph_sim.cli"]
+    local = subprocess.run([*cli, *study, "--run-id", "local"], capture_output=True, text=True, timeout=300)
+    assert local.returncode == 0, local.stderr
+    with _local_cluster() as cluster:
+        dask = subprocess.run([*cli, *study, "--run-id", "dask", "--executor", "dask", "--scheduler",
+                               cluster.scheduler_address], capture_output=True, text=True, timeout=300)
+    assert dask.returncode == 0, dask.stderr
+
+    def episodes(run: str) -> dict:
+        out = {}
+        for p in sorted((tmp_path / run / "episodes").glob("*/summary.json")):
+            summary = json.loads(p.read_text())
+            summary.pop("wall_s")
+            out[p.parent.name] = (summary, (p.parent / "ticks.csv").read_text())
+        return out
+
+    a, b = episodes("local"), episodes("dask")
+    assert len(a) == 4 and a == b
+    assert (tmp_path / "dask" / "summary.csv").read_text() == (tmp_path / "local" / "summary.csv").read_text()
+    bad = subprocess.run([*cli, "experiment", "shift", "--executor", "dask", "--scheduler", "tcp://127.0.0.1:1"],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and bad.stderr.strip() == (
+        "morph-sim experiment: error: executor: the dask executor runs the scale and ablation studies (and sweeps), "
+        "not shift")
+
+
+def test_progress_counts_every_episode_and_the_bar_ends_full(tmp_path, capsys):
+    plan = SweepPlan.build(grid={"policy": ["tsg", "full"]}, seeds="1-3", base={"steps": 10})
+    seen = []
+    run_sweep(plan, tmp_path, "cb", progress=lambda done, total: seen.append((done, total)), jobs=1)
+    assert seen == [(k, 6) for k in range(1, 7)]
+    code, out, err = _main("--grid", "policy=tsg,full", "--seeds", "1-3", "--set", "steps=10", "--out", str(tmp_path),
+                           "--run-id", "bar", "--jobs", "1", capsys=capsys)
+    assert code == 0 and "6/6" in err and "sweep: 2 conditions × 3 seeds = 6 episodes" in err
