@@ -72,6 +72,9 @@ class RunConfig(BaseModel):
     fault_time: Literal["virtual", "wall"] = Field(
         default="virtual", description="fault latency and heals in sim seconds at phase boundaries (virtual: "
         "reproducible) or in real seconds (wall: real sleeps, for paced demos)")
+    network: str | None = Field(
+        default=None, description="network profile (lan, wifi-fast-roaming, wifi-legacy-roaming, lossy-mesh, ... or "
+        "a .toml file; docs/faults.md): position-dependent Wi-Fi under the fault specs; None = ideal network")
     endpoint: str | None = Field(
         default=None, description="Zenoh endpoint to connect to (e.g. tcp/127.0.0.1:7447); None = LocalBus/listen")
     listen: str | None = Field(default=None, description="Zenoh endpoint the sim listens on (supervisor sets it)")
@@ -90,6 +93,32 @@ class RunConfig(BaseModel):
         if value not in named_sizes():
             raise ValueError(f"unknown size {value!r}; choose one of {', '.join(named_sizes())}")
         return value
+
+    @field_validator("network")
+    @classmethod
+    def _network(cls, value: str | None) -> str | None:
+        if value is None or value == "":
+            return None
+        from schemas.network import load_profile
+
+        try:
+            profile = load_profile(value)
+        except ValueError as exc:
+            raise ValueError(str(exc).removeprefix("network: ")) from None
+        if profile.link_rate is not None or profile.ap_rate is not None:
+            # A shared queue is only deterministic where one process sees the queue's traffic in send order; in the
+            # services each receiver judges its own arrivals, in wall order.
+            raise ValueError(f"profile {value!r} limits rates (link_rate/ap_rate), which the services cannot apply "
+                             "deterministically (each process sees only its own arrivals, in wall order): a shared queue "
+                             "needs one discrete-event driver that sees every message in send order")
+        return value
+
+    @model_validator(mode="after")
+    def _network_time(self) -> RunConfig:
+        if self.network is not None and self.fault_time != "virtual":
+            raise ValueError("network: a network profile needs --fault-time virtual (positions and hand-overs are "
+                             "in sim time)")
+        return self
 
     @field_validator("endpoint", "listen")
     @classmethod
@@ -139,7 +168,7 @@ class RunConfig(BaseModel):
         if self.policy == "proximity":
             return {"radius": self.radius}
         if self.policy == "morph":
-            return {"preset": self.preset, "ablation": self.ablation}
+            return {"preset": self.preset, "ablation": self.ablation, "episode_steps": self.steps}
         return {}
 
     def make_policy(self):

@@ -29,7 +29,7 @@ def test_help_lists_the_choices_of_policy_preset_mode_and_scale(command, capsys)
     assert "--preset {reference,paper}" in out
     assert "--mode {lockstep,paced}" in out
     assert "--scale {tiny,small,medium,large,extralarge}" in out
-    assert "--ablation {full,v1,no_threshold,no_reward,no_neuromod,reset_at_boundary}" in out
+    assert "--ablation {full,v1,v1_paper,no_threshold,no_reward,no_neuromod,reset_at_boundary}" in out
 
 
 def test_bench_distributed_help_lists_the_choices(capsys):

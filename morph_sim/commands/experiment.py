@@ -1,9 +1,11 @@
-"""``morph-sim experiment scale|ablation|shift|emergent|faults``: the in-process lab.
+"""``morph-sim experiment scale|ablation|shift|emergent|faults|audit``: the in-process lab.
 
 scale/ablation: conditions × scales × seeds (the reference's study); shift: the paper's six-phase demand-shift
 experiment with recovery times; emergent: W snapshots, Spearman, link lifetimes, η and λ₂ over long episodes;
-faults: the loss/latency sweep (morph_sim/lab/faults_experiment.py). A flag the chosen study cannot honour is
-refused with a one-line message naming it (``FLAGS``), never silently ignored.
+faults: the loss/latency sweep (morph_sim/lab/faults_experiment.py); audit: the paper preset's departures from the
+paper, each measured (morph_sim/lab/audit.py; --conditions picks variants, default scales small,medium and seeds
+11..15). A flag the chosen study cannot honour is refused with a one-line message naming it (``FLAGS``), never
+silently ignored.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 NAME = "experiment"
-HELP = "run an in-process study: scale, ablation, shift, emergent or faults (parallel, with run records)"
+HELP = "run an in-process study: scale, ablation, shift, emergent, faults or audit (parallel, with run records)"
 
 
 def _csv(value: str) -> tuple[str, ...]:
@@ -75,7 +77,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-SUITES = ("scale", "ablation", "shift", "emergent", "faults")
+SUITES = ("scale", "ablation", "shift", "emergent", "faults", "audit")
 _COMMON = {"out", "run_id", "no_progress"}
 _SUITE = {"preset", "scales", "seeds", "steps", "conditions", "dispatch", "reference_stream", "radius", "jobs",
           "fiedler_every", "executor", "scheduler"}
@@ -86,6 +88,8 @@ FLAGS = {
     "shift": _COMMON | {"scales", "seeds", "phase_steps", "demand", "loss", "conditions", "radius", "jobs"},
     "emergent": _COMMON | {"preset", "scales", "seeds", "steps", "loss", "jobs"},
     "faults": _COMMON | {"quick", "scales", "seeds", "steps", "jobs", "conditions"},
+    # audit: --conditions names the variants (morph_sim/lab/audit.py)
+    "audit": _COMMON | {"scales", "seeds", "steps", "conditions", "jobs"},
 }
 _WHY = {
     ("shift", "steps"): "its length is 6 phases × --phase-steps",
@@ -234,6 +238,21 @@ class _Progress:
         sys.stderr.write("\n")
 
 
+def _run_audit(args) -> int:
+    from datetime import datetime, timezone
+
+    from morph_sim.lab.audit import VARIANTS, run_audit
+
+    run_id = args.run_id or f"{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%SZ')}-audit"
+    scales = _csv(args.scales) if args.scales else ("small", "medium")
+    res = run_audit(Path(args.out) / run_id, scales=scales, seeds=_seeds(args.seeds, (11, 12, 13, 14, 15)),
+                    steps=args.steps or 800, variants=_csv(args.conditions) if args.conditions else tuple(VARIANTS),
+                    jobs=args.jobs or 2, show_progress=not args.no_progress, argv=["morph-sim", *sys.argv[1:]])
+    print((res.run_dir / "audit.md").read_text(encoding="utf-8"))
+    print(f"run record: {res.run_dir}")
+    return 0
+
+
 def run(args) -> int:
     import time
 
@@ -244,6 +263,8 @@ def run(args) -> int:
     args.executor = args.executor or "local"
     if args.executor == "dask" and not args.scheduler:
         raise ValueError("scheduler: --executor dask needs --scheduler tcp://HOST:8786")
+    if args.suite == "audit":
+        return _run_audit(args)
     if args.suite == "shift":
         return _run_shift(args)
     if args.suite == "emergent":

@@ -29,8 +29,13 @@ def run(args: argparse.Namespace) -> int:
         if crashes:  # nobody here kills and restarts processes: say so instead of running without the crash
             raise ValueError(f"fault_schedule: at[{crashes[0]}] is a crash fault, which needs agent processes and "
                              "a supervisor to kill and restart them: use `morph-sim up`")
+    faults = None
+    if config.network is not None or config.fault_schedule:
+        from services.faults.runtime import FaultRuntime
+
+        faults = FaultRuntime.for_service(config, "sim")
     started = time.monotonic()
-    result = asyncio.run(run_local(config, record=not args.no_record))
+    result = asyncio.run(run_local(config, record=not args.no_record, faults=faults))
     wall = time.monotonic() - started
     rows = result.monitor.rows
     links = rows[-1]["links"] if rows else 0
@@ -38,6 +43,19 @@ def run(args: argparse.Namespace) -> int:
           f"{'/' + config.preset if config.policy == 'morph' else ''} seed {config.seed}: "
           f"{result.sim.steps} ticks, {result.sim.deliveries} deliveries, {links} links at the end, "
           f"{result.sim.steps / wall:.0f} ticks/s")
+    comm = result.monitor.communication(result.sim.steps, config.n_agents)
+    print(f"communication: {comm['messages']} protocol messages, {comm['bytes'] / 1000:.1f} kB"
+          + (f"; per delivery {comm['messages_per_delivery']:.1f} messages, {comm['bytes_per_delivery']:.0f} B"
+             if comm["messages_per_delivery"] is not None else "; no delivery")
+          + f"; per agent per tick {comm['messages_per_agent_tick']:.2f} messages, "
+            f"{comm['bytes_per_agent_tick']:.0f} B")
+    if faults is not None and faults.network is not None:
+        lost = faults.network_losses()
+        print(f"network {config.network}: {len(faults.network.events)} hand-overs, "
+              f"{faults.network.stats.outage_seconds:.1f} robot-seconds of outage, "
+              f"{result.sim.network_stops} robot-steps stopped by silence; "
+              + ("lost " + ", ".join(f"{n} to {cause}" for cause, n in lost.items() if n) if any(lost.values())
+                 else "nothing lost"))
     if not args.no_record:
         print(f"record: {config.record_dir}")
     return 0

@@ -56,6 +56,7 @@ CONDITIONS: dict[str, tuple[str, str, str | None]] = {
     "proximity": ("Proximity", "proximity", None),
     "tsg": ("TSG", "tsg", None),
     "v1": ("MORPH v1", "morph", "v1"),
+    "v1_paper": ("MORPH v1 (paper: −R4)", "morph", "v1_paper"),
     "no_threshold": ("v2 − threshold", "morph", "no_threshold"),
     "no_reward": ("v2 − reward", "morph", "no_reward"),
     "no_neuromod": ("v2 − neuromod", "morph", "no_neuromod"),
@@ -83,13 +84,13 @@ def check_nonempty(values, what: str):
 
 
 def make_condition_policy(condition: str, preset: str = "reference", radius: int | None = None,
-                          reset_every: int | None = None) -> CoordinationPolicy:
+                          reset_every: int | None = None, steps: int | None = None) -> CoordinationPolicy:
     if condition not in CONDITIONS:
         raise ValueError(f"condition: unknown {condition!r} (known: {', '.join(CONDITIONS)})")
     _, kind, ablation = CONDITIONS[condition]
     if kind == "morph":
         return MorphPolicy(preset=preset, ablation=ablation,
-                           reset_every=reset_every if ablation == "reset_at_boundary" else None)
+                           reset_every=reset_every if ablation == "reset_at_boundary" else None, episode_steps=steps)
     if kind == "proximity":
         if radius is None:
             raise ValueError("radius: the proximity condition needs a radius (or calibration)")
@@ -135,7 +136,7 @@ class EpisodeSpec(BaseModel):
     def policy(self) -> CoordinationPolicy:
         # MORPH-reset clears its state at every phase boundary of a shift episode
         reset = self.phase_steps if self.demand_phases else None
-        return make_condition_policy(self.condition, self.preset, self.radius, reset_every=reset)
+        return make_condition_policy(self.condition, self.preset, self.radius, reset_every=reset, steps=self.steps)
 
     def boundaries(self) -> list[int]:
         return [p * self.phase_steps for p in range(len(self.demand_phases))] if self.demand_phases else [0]
@@ -373,6 +374,8 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
         "n_agents": n,
         "deliveries": int(cta.deliveries),
         "mean_links": float(cols["links"].mean()),
+        # the second half of the episode: the link count MORPH has converged to (the paper calibrates Proximity to it)
+        "mean_links_converged": float(cols["links"][T // 2:].mean()),
         "max_links": n * (n - 1) // 2,
         "mean_links_directed": float(cols["links_directed"].mean()),
         "dispatch_decisions": stats.decisions,

@@ -205,6 +205,9 @@ def run_suite(cfg: SuiteConfig, out_root: Path | None = Path("runs"), run_id: st
     progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                         disable=not show_progress, transient=False)
     seed0 = cfg.calibration_seed if cfg.calibration_seed is not None else cfg.seeds[0]
+    from services.agent.presets import load_preset
+
+    paper_rules = load_preset(cfg.preset).rules == "paper"
     todo = [sc for sc in cfg.scales if sc not in radii] if need_calib else []
     cal_morph = {sc: cfg.spec(sc, "morph", seed0) for sc in todo}
     cal_prox = {(sc, r): cfg.spec(sc, "proximity", seed0, radius=r) for sc in todo for r in PROXIMITY_RADII}
@@ -243,7 +246,11 @@ def run_suite(cfg: SuiteConfig, out_root: Path | None = Path("runs"), run_id: st
             for sc in [sc for sc in todo if sc not in radii]:
                 keys = [cal_morph[sc]] + [cal_prox[(sc, r)] for r in PROXIMITY_RADII]
                 if all(k.model_dump_json() in done for k in keys):
-                    target = done[cal_morph[sc].model_dump_json()].summary["mean_links"]
+                    summary = done[cal_morph[sc].model_dump_json()].summary
+                    # the reference calibrates to MORPH's whole-episode mean link count; the paper "to match MORPH's
+                    # converged mean link count", which the paper rules follow (second half of the episode)
+                    target_kind = "converged" if paper_rules else "episode"
+                    target = summary["mean_links_converged" if paper_rules else "mean_links"]
                     by_r = {r: done[cal_prox[(sc, r)].model_dump_json()].summary["mean_links"]
                             for r in PROXIMITY_RADII}
                     best_r, best = PROXIMITY_RADII[0], float("inf")
@@ -251,7 +258,9 @@ def run_suite(cfg: SuiteConfig, out_root: Path | None = Path("runs"), run_id: st
                         if abs(by_r[r] - target) < best:
                             best_r, best = r, abs(by_r[r] - target)
                     radii[sc] = best_r
-                    calib[sc] = {"target_links": target, "links_by_radius": by_r, "radius": best_r}
+                    calib[sc] = {"target_links": target, "target": target_kind, "links_by_radius": by_r,
+                                 "radius": best_r, "episode_links": summary["mean_links"],
+                                 "converged_links": summary["mean_links_converged"]}
                     submit([sp for sp in main_specs(True) if sp.scale == sc and sp.condition == "proximity"])
     specs = main_specs(False) + main_specs(True)
     order = {(c, sc, seed): k for k, (sc, c, seed) in enumerate(

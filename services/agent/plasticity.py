@@ -40,7 +40,7 @@ def neuromodulation(params: MorphParams, dhat: float, delivery: float, d_exp: fl
     eta = float(min(max((dhat - d_exp) / (d_exp + _EPS), -1.0), 1.0))
     alpha_eff = params.alpha * (1.0 + params.neuromod_gain * max(eta, 0.0))
     theta_adj = theta_form(params, t) - params.neuromod_explore * max(-eta, 0.0)
-    theta_adj = max(theta_adj, 0.8 * params.theta_form_end)
+    theta_adj = max(theta_adj, params.theta_adj_floor * params.theta_form_end)
     return dhat, eta, alpha_eff, theta_adj
 
 

@@ -458,6 +458,8 @@ class MorphPolicy(CoordinationPolicy):
     share_replicas: bool = True
     #: override of the preset's reset period (the shift experiment's phase length for MORPH-reset); None: keep
     reset_every: int | None = None
+    #: the episode length T, for a preset that anneals θ_form over the episode (paper); None: the preset's fallback
+    episode_steps: int | None = None
 
     def __post_init__(self):
         loaded = load_preset(self.preset)
@@ -465,6 +467,8 @@ class MorphPolicy(CoordinationPolicy):
             raise ValueError(f"ablation: unknown {self.ablation!r} (known: {', '.join(ABLATIONS)})")
         if self.reset_every is not None and self.reset_every < 0:
             raise ValueError(f"reset_every: must be >= 0, got {self.reset_every}")
+        if self.episode_steps is not None and self.episode_steps < 1:
+            raise ValueError(f"episode_steps: must be >= 1, got {self.episode_steps}")
         loaded.resolve(self.ablation)
 
     @property
@@ -472,6 +476,8 @@ class MorphPolicy(CoordinationPolicy):
         params = load_preset(self.preset).resolve(self.ablation)
         if self.reset_every is not None:
             params = params.model_copy(update={"reset_every": self.reset_every})
+        if params.theta_form_anneal_over == "episode" and self.episode_steps is not None:
+            params = params.model_copy(update={"theta_form_anneal": self.episode_steps})
         return params
 
     def brains(self, fleet, owners, seed):

@@ -14,7 +14,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-ABLATIONS = ("v1", "no_threshold", "no_reward", "no_neuromod", "reset_at_boundary")
+ABLATIONS = ("v1", "v1_paper", "no_threshold", "no_reward", "no_neuromod", "reset_at_boundary")
 
 
 class MorphParams(BaseModel):
@@ -28,6 +28,13 @@ class MorphParams(BaseModel):
     theta_form_start: float = Field(ge=0)
     theta_form_end: float = Field(ge=0)
     theta_form_anneal: int = Field(ge=1, description="steps over which θ_form anneals")
+    theta_form_anneal_over: Literal["updates", "episode"] = Field(
+        default="updates", description="anneal θ_form over theta_form_anneal updates (reference), or over the "
+        "episode, 0 → T (paper's Table 2, θ_form^{0/T}; theta_form_anneal is then the fallback T when the policy "
+        "is not told the episode length)")
+    theta_adj_floor: float = Field(
+        default=0.8, ge=0, le=1, description="θ_form,adj is floored at this fraction of θ_form's end value "
+        "(reference: 0.8 → 0.36; the paper states no floor)")
     theta_prune: float = Field(ge=0)
     rho_target: float = Field(ge=0, le=1, description="target degree fraction")
     grace: int = Field(ge=0, description="grace period g (steps)")

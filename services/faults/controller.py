@@ -299,6 +299,19 @@ class FaultController:
         elif self.events:
             self._publish(event)
 
+    def note(self, kind: str, at: float, **details) -> None:
+        """An event of the network itself (a hand-over) in the run record, at sim time ``at``, if this controller
+        reports events."""
+        if not self.events:
+            return
+        event = Event(kind=kind, source=self.bus.identity, t=max(0, math.floor(at / self.dt + 1e-9)),
+                      sim_time=at, wall_time=time.time(), details=details)
+        self.log.append(event)
+        if self._held_events is not None:
+            self._held_events.append(event)
+        else:
+            self._publish(event)
+
     def publish_held(self) -> None:
         """The run has started (the monitor listens): publish the events kept so far, and the next ones at once."""
         held, self._held_events = self._held_events, None

@@ -33,6 +33,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from statistics import NormalDist
+from typing import TYPE_CHECKING
 
 from schemas.faults import FaultSpec, Latency, Loss
 from schemas.messages import FaultCommand, FaultReply
@@ -40,6 +41,9 @@ from schemas.keys import RunKeys, matches, parse_agent_id
 from services.bus.base import Bus, Sample
 from services.faults.linkstats import LinkMeter
 from services.faults.vtime import EPS as _VT_EPS, VirtualTime
+
+if TYPE_CHECKING:
+    from services.faults.network import HandoverEvent, NetworkModel
 
 _STD_NORMAL = NormalDist()
 _EPS = 1e-12
@@ -174,6 +178,11 @@ class FaultLayer:
         self._faults: dict[str, ActiveFault] = {}
         self._links: dict[tuple, _Link] = {}
         self._auto_ids = itertools.count(1)
+        # the run's network profile (services/faults/network.py), judged before the fault specs in virtual time; it
+        # learns where the robots are from every Tick of the sim this layer sees (sent or received)
+        self.network: NetworkModel | None = None
+        self.on_handover: Callable[[HandoverEvent], None] | None = None
+        self._tick_key = self.keys.tick
 
     # -- control -----------------------------------------------------------------------------------------------
     def set(self, spec: FaultSpec, at: float | None = None) -> str:
@@ -262,13 +271,15 @@ class FaultLayer:
             link = self._links[key] = _Link(random.Random(name))
         return link
 
-    def fate(self, key: str, sender: object, receiver: object, at: float | None = None) -> list[float]:
+    def fate(self, key: str, sender: object, receiver: object, at: float | None = None, *,
+             msg: object = None, size: int = 0) -> list[float]:
         """Delivery delays for one message on link sender → receiver: [] dropped, [d] once, [d1, d2] duplicated.
 
-        ``at`` (virtual time): the message's send time; the faults active then decide, healed ones included."""
+        ``at`` (virtual time): the message's send time; the faults active then decide, healed ones included.
+        ``msg`` (its identity, e.g. (sender, seq); the key is added) and ``size`` (bytes) feed the network model."""
         self._expire()
         self.stats.seen += 1
-        if not self._faults and (at is None or not self._history):
+        if not self._faults and (at is None or not self._history) and self.network is None:
             return [0.0]
         try:
             chunks = self.keys.relative(key)
@@ -283,6 +294,14 @@ class FaultLayer:
         if chunks[0] == "sim" and chunks[1:] == ["resolve"]:
             return [0.0]  # the picker's decision point is synchronisation too
         rel = "/".join(chunks)
+        delay = 0.0
+        if self.network is not None and at is not None:
+            # the radio legs first (the robots' Wi-Fi), then the fault specs on top, as netem on a real interface
+            net = self.network.fate(at, sender, receiver, (msg, rel), size=size)
+            if net.delivered_at is None:
+                self.stats.dropped += 1
+                return []
+            delay = net.delivered_at - at
         if at is None:
             faults: list[ActiveFault] = list(self._faults.values())
         else:
@@ -321,7 +340,25 @@ class FaultLayer:
 
     # -- the bus seam ------------------------------------------------------------------------------------------
     def on_publish(self, sample: Sample, send: Callable[[Sample], None]) -> None:
+        if self.network is not None and sample.key == self._tick_key:
+            with self.lock:
+                self._observe_tick(sample)  # the sim's own Tick: its network model follows the robots too
         send(sample)  # faults are applied per link at the receiver
+
+    def _observe_tick(self, sample: Sample) -> None:
+        """Feed the robots' cells of a Tick of the sim to the network model (every process sees every Tick
+        physically, whatever its fate, so every process's model follows the same trajectories)."""
+        from schemas.hot import decode_tick
+
+        assert self.network is not None and self.vtime is not None
+        try:
+            tick = decode_tick(sample.payload)
+        except ValueError:
+            return  # the handler rejects it
+        cells = zip(tick.row("x").tolist(), tick.row("y").tolist())
+        for event in self.network.observe_tick(tick.t, self.vtime.dt, list(cells)):
+            if self.on_handover is not None:
+                self.on_handover(event)
 
     def sent_at(self, sample: Sample) -> float:
         """A sample's send time in this layer's time: its stamp, or now for a wall-stamped sample in virtual time."""
@@ -360,7 +397,9 @@ class FaultLayer:
             at = self.sent_at(sample)
             if self.before_fate is not None:
                 self.before_fate(at)  # the schedule up to the send time: a fault starts at its time everywhere
-        fate = self.fate(sample.key, sender, rcv, at)
+        if self.network is not None and sample.key == self._tick_key and sample.sender == "sim":
+            self._observe_tick(sample)  # only the sim's own Ticks say where the robots are (not a stray publisher's)
+        fate = self.fate(sample.key, sender, rcv, at, msg=(sender, sample.seq), size=len(sample.payload))
         if self.on_fate is not None:
             self.on_fate(sample, fate)
         if self.meter is not None:

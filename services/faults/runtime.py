@@ -46,9 +46,23 @@ FAULT_TIMES = ("virtual", "wall")
 class FaultRuntime:
     def __init__(self, run: str, *, seed: int = 0, dt: float = 1.0, virtual: bool = True, events: bool = False,
                  schedule: FaultSchedule | None = None, on_crash: CrashHook | None = None,
-                 phase_owner: bool | None = None, fleet: int | None = None):
+                 phase_owner: bool | None = None, fleet: int | None = None,
+                 network: tuple[str, str] | None = None):
         self.run = run
         self.fleet = fleet  # robots in the run: a fault naming another is refused
+        # (profile name or file, scale): the run's Wi-Fi (services/faults/network.py), one model per process, fed by
+        # the Ticks this process sees; every process's model follows the same trajectories with the same seed
+        self.network_spec = network
+        self.network = None
+        if network is not None:
+            if not virtual:
+                raise ValueError("network: a network profile needs virtual fault time")
+            from schemas.network import load_profile
+            from services.faults.network import NetworkModel
+            from services.sim.world.layout import LayoutConfig, layout_for
+
+            self.network = NetworkModel(load_profile(network[0]), layout_for(LayoutConfig.named(network[1])),
+                                        seed=seed)
         # phase_owner: this process runs the phase loop (the sim): it receives the agents' skips. Default: the
         # process that owns the run record (events=True) is the sim.
         self.phase_owner = events if phase_owner is None else phase_owner
@@ -67,6 +81,7 @@ class FaultRuntime:
         self.meters: dict[str, LinkMeter] = {}
         self.controller: FaultController | None = None
         self._bus: Bus | None = None
+        self.likes: list[FaultRuntime] = []
 
     def now(self) -> float:
         """Sim seconds: the last boundary reached (virtual), else wall seconds since start (paced runs)."""
@@ -82,12 +97,25 @@ class FaultRuntime:
             schedule = load_schedule(config.fault_schedule)
         sim = role == "sim"
         return cls(config.run_id, seed=config.seed, dt=config.dt, virtual=config.fault_time == "virtual",
-                   events=sim, schedule=schedule, on_crash=on_crash, fleet=config.n_agents)
+                   events=sim, schedule=schedule, on_crash=on_crash, fleet=config.n_agents,
+                   network=None if config.network is None else (config.network, config.scale))
 
     def like(self) -> FaultRuntime:
-        """A runtime for another process of the same run (same seed, Δ, time and schedule; no events)."""
-        return FaultRuntime(self.run, seed=self.seed, dt=self.dt, virtual=self.vtime is not None,
-                            schedule=self.schedule, fleet=self.fleet)
+        """A runtime for another process of the same run (same seed, Δ, time and schedule; no events). In-process
+        runs (``run_local``) keep them in :attr:`likes`, so a run's totals can be read over all its processes."""
+        made = FaultRuntime(self.run, seed=self.seed, dt=self.dt, virtual=self.vtime is not None,
+                            schedule=self.schedule, fleet=self.fleet, network=self.network_spec)
+        self.likes.append(made)
+        return made
+
+    def network_losses(self) -> dict[str, int]:
+        """Messages the network profile lost, per cause, over this runtime and the ones made by :meth:`like`."""
+        out: dict[str, int] = {}
+        for rt in (self, *self.likes):
+            if rt.network is not None:
+                for cause, n in rt.network.stats.lost.items():
+                    out[cause] = out.get(cause, 0) + n
+        return out
 
     def attach(self, bus: Bus, *, meter: bool = True, receiver: int | str | None = None) -> FaultLayer:
         """Install a fault layer (with a link meter unless ``meter=False``) on ``bus`` (several buses in one process
@@ -104,6 +132,10 @@ class FaultRuntime:
             pass
         if self.vtime is not None:
             layer.before_fate = self._catch_up
+        if self.network is not None:
+            layer.network = self.network
+            if self.events and not any(x.network is self.network for x in self.layers):
+                layer.on_handover = self._on_handover  # reported once per process: by the run record's owner
         install(bus, layer)
         self.layers.append(layer)
         if self._bus is None:
@@ -136,6 +168,11 @@ class FaultRuntime:
                     layer.active()  # heals what expired
                 return 0
             return self.vtime.advance(boundary)
+
+    def _on_handover(self, event) -> None:
+        if self.controller is not None:
+            self.controller.note("net.handover", event.time, robot=event.robot, from_ap=event.from_ap,
+                                 to_ap=event.to_ap, outage=round(event.outage, 6))
 
     def _catch_up(self, sent_at: float) -> None:
         """A message sent at ``sent_at`` is about to be judged: apply the schedule up to then (each command at its

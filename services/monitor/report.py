@@ -10,6 +10,7 @@ coordination links drawn (stable green, new, pruned red dashed — the renderer'
 from __future__ import annotations
 
 import json
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,6 +19,8 @@ import numpy as np
 
 from services.monitor import metrics as M
 from services.monitor.recorder import read_metrics, read_snapshots
+
+log = logging.getLogger("morph_sim.report")
 
 RATE_WINDOW = 50
 
@@ -272,6 +275,16 @@ def warehouse_gif(rec: Record, path: Path, *, max_frames: int = 200, cell_px: in
     stride = max(1, math.ceil(len(ticks) / max_frames))
     shown = ticks[::stride]
     is_agv = np.arange(rec.n_agents) < rec.n_agvs
+    aps = dead = None
+    if config.get("network"):  # the run's Wi-Fi: its access points and dead zones on every frame
+        from schemas.network import load_profile
+        from services.faults.network import NetworkModel
+
+        try:
+            model = NetworkModel(load_profile(config["network"]), lay)
+            aps, dead = model.access_points, model.dead
+        except ValueError as exc:  # a profile file that is gone or changed: the frames without it
+            log.warning("report: network %s not drawn: %s", config["network"], exc)
 
     def frames():
         prev = None
@@ -282,7 +295,7 @@ def warehouse_gif(rec: Record, path: Path, *, max_frames: int = 200, cell_px: in
                         shelves=~lay.highway, requested=np.zeros_like(lay.highway),
                         agent_x=x, agent_y=y, agent_dir=heading, is_agv=is_agv, carrying=carrying > 0,
                         step=t, caption=f"{rec.name}  links {int(np.triu(A, 1).sum())}",
-                        links=link_statuses(A, prev))
+                        links=link_statuses(A, prev), access_points=aps, dead_zone=dead)
             prev = A
 
     return write_gif(frames(), path, fps=8, cell_px=cell_px, legend=RECORD_LEGEND)

@@ -45,6 +45,9 @@ STREAMS = ("deliveries", "deliveries_total", "requests", "commits", "links", "la
 ACK_HAS_LINKS = "links" in Ack.model_fields  # the wire schema's per-tick link report (else: state rows)
 STOP_GRACE = 3.0  # seconds the monitor waits for the sim's end of run after someone else's stop
 QUIET_EVENTS = ("ready.probe", "ready.ack")
+NET_STREAMS = ("handovers", "in_outage", "outage_seconds", "stopped")
+# what the dispatch protocol sends, by the monitor's message kind (the sim's Ticks and Resolves are kind "sim")
+PROTOCOL_KINDS = ("sim", "ack", "request", "reply", "commit")  # what the monitor's own network model can see
 
 
 @dataclass
@@ -66,7 +69,20 @@ class MonitorResult:
     deliveries_total: int = 0
     rejected: int = 0
     messages: dict[str, int] = field(default_factory=dict)
+    bytes: dict[str, int] = field(default_factory=dict)  # payload bytes per kind, as messages
     finished: dict | None = None
+
+    def communication(self, steps: int, n_agents: int) -> dict:
+        """What the dispatch protocol sent (Ticks and Resolves of the sim, acks, requests, replies, commits — not the
+        skips that synchronise virtual time, nor telemetry): totals, per delivery, per agent per tick."""
+        msgs = sum(self.messages.get(k, 0) for k in PROTOCOL_KINDS)
+        size = sum(self.bytes.get(k, 0) for k in PROTOCOL_KINDS)
+        per = max(1, self.deliveries_total)
+        agent_ticks = max(1, steps * n_agents)
+        return {"kinds": list(PROTOCOL_KINDS), "messages": msgs, "bytes": size,
+                "messages_per_delivery": msgs / per if self.deliveries_total else None,
+                "bytes_per_delivery": size / per if self.deliveries_total else None,
+                "messages_per_agent_tick": msgs / agent_ticks, "bytes_per_agent_tick": size / agent_ticks}
 
 
 class MonitorService:
@@ -113,6 +129,16 @@ class MonitorService:
 
         self.fault_windows = FaultWindows()  # faults in force, from the events (Prometheus morph_faults_active)
         self.latest_links: list[MetricSample] = []
+        # the run's Wi-Fi as the robots drive through it (hand-overs, robots in an outage): the same model, seed and
+        # trajectories as every fault layer of the run, observed here, never applied (the monitor is the instrument)
+        self.network = None
+        if config.network is not None:
+            from schemas.network import load_profile
+            from services.faults.network import NetworkModel
+            from services.sim.world.layout import LayoutConfig, layout_for
+
+            self.network = NetworkModel(load_profile(config.network), layout_for(LayoutConfig.named(config.scale)),
+                                        seed=config.seed)
         self._links_due = False
 
     def _reject(self, what: str, why: object) -> None:
@@ -156,6 +182,7 @@ class MonitorService:
         head = rel[0]
         kind = head if head != "agent" or len(rel) < 3 else rel[2]
         self.result.messages[kind] = self.result.messages.get(kind, 0) + 1
+        self.result.bytes[kind] = self.result.bytes.get(kind, 0) + len(sample.payload)
         # a sim-time stamp (virtual time, unfaulted here) means no wall latency: never time.time() - sim seconds
         self.stats.observe(kind, sample.key, sample.sender, sample.seq, sample.sent_at,
                            None if sample.sent_at > 1e8 else sample.sent_at)
@@ -211,6 +238,8 @@ class MonitorService:
                 row.sim_time = tick.sim_time
         if self.recorder is not None:
             self.recorder.positions(tick.t, *(tick.row(name).tolist() for name in ("x", "y", "heading", "carrying")))
+        if self.network is not None:
+            self.network.observe_tick(tick.t, self.config.dt, list(zip(tick.row("x").tolist(), tick.row("y").tolist())))
         # Row t-2 is due once tick t arrives, but its acks (and the link reports of t-1) travel on other paths than
         # the sim's ticks and may reach the monitor after tick t: a row that still misses an agent's report waits
         # up to ROW_GRACE_TICKS more ticks (an absent agent's row is then written without it).
@@ -372,6 +401,10 @@ class MonitorService:
             v = values.get(name)
             if v is not None and not (isinstance(v, float) and not math.isfinite(v)):
                 self._fresh[name] = (t, sim_time, float(v))
+        if self.network is not None:
+            net = self.network.counters(sim_time)
+            for name in NET_STREAMS:
+                self._fresh[f"net/{name}"] = (t, sim_time, net[name])
         self.stats.row(values)
         self._unbuilt = True
         if t % self.config.state_every == 0:
@@ -425,6 +458,8 @@ class MonitorService:
             "rejected": self.result.rejected, "mean_links": self._links_sum / max(1, self._next_row),
             "sequence_gaps": self.stats.gaps,  # messages lost on the way to the monitor (per sender and key)
             "messages": dict(sorted(self.result.messages.items())),
+            "bytes": dict(sorted(self.result.bytes.items())),
+            "communication": self.result.communication(self._next_row, self.n),
             "finished": self.result.finished,
             "final_links": self._last_values.get("links"),
         }

@@ -60,6 +60,11 @@ STREAMS: tuple[Stream, ...] = (
       for c in ("sent", "delivered", "dropped", "duplicated", "late")),
     *(Stream(f"link/latency/{q}", "s", f"observed latency per key class: {q} since the start")
       for q in ("mean", "p50", "p90", "p99", "max")),
+    # with a network profile (--network): the robots' Wi-Fi as they drive through it (docs/faults.md)
+    Stream("net/handovers", "hand-overs", "cumulative access-point hand-overs of all robots"),
+    Stream("net/in_outage", "robots", "robots whose radio is in a hand-over outage at step t"),
+    Stream("net/outage_seconds", "s", "cumulative hand-over outage, all robots"),
+    Stream("net/stopped", "robots", "robots held in place at step t: silent for the profile's silence_stop"),
 )
 STREAM_NAMES = tuple(s.name for s in STREAMS)
 ROW_STREAMS = ("deliveries", "deliveries_total", "links", "lambda2", "eta", "w_agv_agv", "w_agv_picker",

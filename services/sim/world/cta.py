@@ -55,6 +55,8 @@ class CTAController:
         #: the reference's demand-shift variant (shift.py, morph.md §7.2): when set to "left"/"right", queued
         #: items on that half are assigned first and the others only when none of that half is waiting
         self.assignment_side: str | None = None
+        #: robots that stand still in the next step whatever their path (the services' network safety stop)
+        self.held: set[int] = set()
         self._reset_state()
 
     def _reset_state(self) -> None:
@@ -266,7 +268,7 @@ class CTAController:
         mission, target, task = self._targets()
         acts = self.actions()
         carried_before = list(self.wh.carrying[: self.n_agvs])
-        result = self.wh.step(acts)
+        result = self.wh.step(acts, hold=sorted(self.held))
         rewards = np.asarray(result.rewards, dtype=float)
         delivered = np.zeros(self.n, dtype=bool)
         delivered[: self.n_agvs] = rewards[: self.n_agvs] > 0.5  # the reference's delivery count

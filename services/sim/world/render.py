@@ -78,6 +78,8 @@ COLORS: dict[str, tuple[int, int, int]] = {
     "link_pruned": (215, 25, 25),
     "header": (245, 245, 245),
     "text": (20, 20, 20),
+    "dead_zone": (250, 212, 212),  # floor of a network dead zone (--network): a fade among metal racks
+    "access_point": (255, 215, 0),  # a Wi-Fi access point (--network)
 }
 _IDX = {name: i for i, name in enumerate(COLORS)}
 
@@ -141,6 +143,9 @@ class Frame:
     step: int | None = None
     caption: str | None = None
     links: Sequence[tuple[int, int, str]] = field(default_factory=tuple)
+    #: a network profile's access points, (K, 2) of (x, y) cells (may lie between cells), and its dead zones (H, W)
+    access_points: np.ndarray | None = None
+    dead_zone: np.ndarray | None = None
 
     def __post_init__(self):
         H, W = int(self.height), int(self.width)
@@ -181,6 +186,14 @@ class Frame:
         s("links", links)
         if self.step is not None:
             s("step", int(self.step))
+        if self.access_points is not None:
+            aps = np.asarray(self.access_points, dtype=float).reshape(-1, 2)
+            if aps.size and (aps[:, 0].min() < 0 or aps[:, 0].max() > W - 1 or aps[:, 1].min() < 0
+                             or aps[:, 1].max() > H - 1):
+                raise ValueError(f"access_points: must lie inside the {W}×{H} grid")
+            s("access_points", aps)
+        if self.dead_zone is not None:
+            s("dead_zone", _arr("dead_zone", self.dead_zone, bool, (H, W)))
 
     @property
     def n_agents(self) -> int:
@@ -316,7 +329,9 @@ class Renderer:
 
     # -- static layer -------------------------------------------------------------------------------------------------
     def _background(self, f: Frame) -> Image.Image:
-        key = (f.height, f.width, f.has_header, f.highway.tobytes(), f.goals.tobytes())
+        dead = f.dead_zone
+        key = (f.height, f.width, f.has_header, f.highway.tobytes(), f.goals.tobytes(),
+               None if dead is None else dead.tobytes())
         bg = self._backgrounds.get(key)
         if bg is not None:
             self._backgrounds.move_to_end(key)
@@ -332,6 +347,8 @@ class Renderer:
         if f.goals.size:
             goal_mask[f.goals[:, 1], f.goals[:, 0]] = True
         cells[goal_mask] = _IDX["goal"]
+        if dead is not None:
+            cells[dead & ~goal_mask] = _IDX["dead_zone"]
         big = np.full((h - oy, w), _IDX["grid"], np.uint8)
         block = np.repeat(np.repeat(cells, c, axis=0), c, axis=1)
         inner = big[1:, 1:].reshape(f.height, c + 1, f.width, c + 1)
@@ -436,6 +453,13 @@ class Renderer:
             d.polygon(pts, fill=fill, outline=_IDX["outline"])
             hx, hy = _HEADING[int(f.agent_dir[k])]
             d.line([(cx, cy), (cx + hx * r, cy + hy * r)], fill=_IDX["heading"], width=max(1, c // 10))
+
+        if f.access_points is not None:  # on top: an AP hangs above racks and robots
+            ra = max(2.0, c * 0.3)
+            for ax, ay in f.access_points.tolist():
+                cx, cy = self._center(ax, ay, oy)
+                d.ellipse([cx - ra, cy - ra, cx + ra, cy + ra], fill=_IDX["access_point"], outline=_IDX["outline"])
+                d.line([(cx, cy - ra), (cx, cy - 1.8 * ra)], fill=_IDX["outline"], width=max(1, c // 12))
 
         if self.labels:
             font = _font(max(8, c // 2))

@@ -294,14 +294,20 @@ class Warehouse:
         self.stuck_pos[i] = (self.x[i], self.y[i])
 
     # ------------------------------------------------------------------ step
-    def step(self, actions) -> StepResult:
-        """Advance one step. ``actions``: one macro action per agent (0 = none, 1..G goals, then rack cells)."""
+    def step(self, actions, hold=()) -> StepResult:
+        """Advance one step. ``actions``: one macro action per agent (0 = none, 1..G goals, then rack cells).
+        ``hold``: agents (0-based) that stand still this step whatever their path — no move, no load or unload —
+        and keep their path and mission for the next step (a robot stopped from outside, e.g. a safety stop)."""
         if self._rng is None:
             raise RuntimeError("step() before reset()")
         actions = [int(a) for a in actions]
         if len(actions) != self.num_agents:
             raise ValueError(f"actions: expected {self.num_agents} macro actions, got {len(actions)}")
         agv_dist, picker_dist = self._attribute(actions)
+        for i in hold:
+            if not 0 <= i < self.num_agents:
+                raise ValueError(f"hold: agent {i} outside 0..{self.num_agents - 1}")
+            self.req[i] = NOOP
         clashes = self._resolve_conflicts()
         stucks = self._resolve_stuck()
         N = self.num_agents

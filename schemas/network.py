@@ -1,0 +1,143 @@
+"""Network profiles: a warehouse's Wi-Fi as data (docs/faults.md, "Network profiles").
+
+A profile describes the radio side of the fleet: where the access points are, how a robot roams between them
+(hysteresis, hand-over outage), where the racks fade the signal (dead zones), the per-leg latency and loss, and the
+bandwidth of each robot's radio and of each access point (netem ``rate`` / ``limit``). The model that applies it is
+:mod:`services.faults.network`; named profiles live in ``morph_sim/presets/network/<name>.toml``.
+
+Units: times in seconds of sim time, probabilities in percent (as in ``tc netem``), distances in grid cells,
+rates in bytes per second, queue limits in messages (netem ``limit`` counts packets).
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from functools import lru_cache
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from schemas.faults import Latency
+
+Percent = Annotated[float, Field(ge=0.0, le=100.0, allow_inf_nan=False)]
+Seconds = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
+
+PROFILE_NAME = re.compile(r"^[a-z0-9][a-z0-9_\-]{0,63}$")
+
+
+class _Spec(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, use_enum_values=True, validate_default=True)
+
+
+class Placement(_Spec):
+    """Where the access points are: an explicit list of cells, else a regular grid with ``spacing`` cells between
+    neighbours, centred in the tiles it cuts the warehouse into (so every scale gets its own default placement).
+    An empty list means no access points: the robots are as if wired, nobody roams."""
+
+    spacing: float = Field(default=12.0, gt=0.0, allow_inf_nan=False, description="cells between neighbouring APs")
+    cells: list[tuple[float, float]] | None = Field(
+        default=None, description="explicit AP positions (x, y); overrides spacing; [] = no radio cells (wired)")
+
+
+class Handover(_Spec):
+    """Roaming: a robot stays with its access point until another is nearer by more than ``hysteresis`` cells; the
+    hand-over then silences its radio for an outage drawn from ``outage`` (a latency-style distribution: mean
+    ``delay``, spread ``jitter``). During the outage its messages are lost (``during = "lost"``) or wait until the
+    radio is back (``"delayed"``: buffered by the driver)."""
+
+    hysteresis: float = Field(default=2.0, ge=0.0, allow_inf_nan=False, description="cells")
+    outage: Latency = Field(default_factory=lambda: Latency(delay=0.0))
+    during: Literal["lost", "delayed"] = "lost"
+
+
+class DeadZone(_Spec):
+    """Cells with extra loss and latency: ``region = "racks"`` (every rack cell: a robot under a shelf is boxed in
+    by metal) or explicit ``cells``."""
+
+    region: Literal["racks", "cells"] = "racks"
+    cells: list[tuple[int, int]] | None = None
+    loss: Percent = Field(default=0.0, description="extra Bernoulli loss in the zone, percent")
+    delay: Seconds = Field(default=0.0, description="extra latency in the zone (link-layer retries), seconds")
+
+    @model_validator(mode="after")
+    def _cells(self) -> DeadZone:
+        if (self.region == "cells") != (self.cells is not None):
+            raise ValueError("dead zone: give cells exactly when region = \"cells\"")
+        return self
+
+
+class Rate(_Spec):
+    """A bandwidth limit with a finite FIFO queue (netem ``rate RATE limit N``): a message waits while the queue
+    ahead of it drains at ``rate`` bytes/s; one that finds ``limit`` messages queued is dropped."""
+
+    rate: float = Field(gt=0.0, allow_inf_nan=False, description="bytes per second")
+    limit: int = Field(default=1000, ge=1, description="queue capacity, messages (the one in transmission included)")
+
+
+class NetworkProfile(_Spec):
+    """One network: radio legs robot ↔ access point; the wired side (sim, monitor, AP backbone) is ideal."""
+
+    name: str = Field(pattern=PROFILE_NAME.pattern)
+    description: str = ""
+    latency: Latency = Field(default_factory=lambda: Latency(delay=0.0),
+                             description="per radio leg (one for robot→sim, two for robot→robot)")
+    loss: Percent = Field(default=0.0, description="Bernoulli loss per radio leg, percent")
+    access_points: Placement = Field(default_factory=Placement)
+    handover: Handover = Field(default_factory=Handover)
+    dead_zones: list[DeadZone] = Field(default_factory=list)
+    link_rate: Rate | None = Field(default=None, description="each robot's radio (uplink and downlink each)")
+    ap_rate: Rate | None = Field(default=None, description="each access point's shared medium")
+    silence_stop: Seconds | None = Field(
+        default=None, description="AGV software's safety stop: a robot whose radio has been silent this long (in a "
+        "hand-over outage) stands still until it hears again; None = robots never stop")
+
+
+def _explain(exc: ValidationError, where: str) -> ValueError:
+    parts = []
+    for err in exc.errors(include_url=False):
+        loc = "".join(f"[{x}]" if isinstance(x, int) else f".{x}" for x in err["loc"]).lstrip(".")
+        parts.append(f"{loc or '<root>'}: {err['msg']}")
+    return ValueError(f"{where}: " + "; ".join(parts))
+
+
+def parse_profile(data: dict, where: str = "network profile") -> NetworkProfile:
+    try:
+        return NetworkProfile.model_validate(data)
+    except ValidationError as exc:
+        raise _explain(exc, where) from None
+
+
+def _profile_dir():
+    return resources.files("morph_sim.presets").joinpath("network")
+
+
+@lru_cache(maxsize=1)
+def profile_names() -> tuple[str, ...]:
+    """The named profiles shipped in morph_sim/presets/network/."""
+    return tuple(sorted(p.name[:-5] for p in _profile_dir().iterdir() if p.name.endswith(".toml")))
+
+
+@lru_cache(maxsize=32)
+def load_profile(name_or_path: str) -> NetworkProfile:
+    """A named profile (``wifi-legacy-roaming``) or a TOML file path; ValueError naming the profile and field."""
+    if name_or_path.endswith(".toml"):
+        path = Path(name_or_path)
+        try:
+            text = path.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ValueError(f"network: cannot read {path}: {exc.strerror}") from None
+        where = f"network {path}"
+    else:
+        if name_or_path not in profile_names():
+            raise ValueError(f"network: unknown profile {name_or_path!r}; choose one of "
+                             f"{', '.join(profile_names())} or give a .toml file")
+        text = _profile_dir().joinpath(name_or_path + ".toml").read_text(encoding="utf-8")
+        where = f"network profile {name_or_path}"
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{where}: not valid TOML: {exc}") from None
+    return parse_profile(data, where)
