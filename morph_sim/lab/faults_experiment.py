@@ -94,7 +94,6 @@ class FaultEpisode:
 def run_fault_episode(condition: str, kind: str, level: float, seed: int, *, scale: str = "tiny",
                       steps: int = 500, target: str = "dispatch") -> FaultEpisode:
     lab_condition, preset = CONDITIONS[condition]
-<<<<<<< HEAD
     spec = EpisodeSpec(scale=scale, condition=lab_condition, preset=preset, seed=seed, steps=steps,
                        radius=PROXIMITY_RADIUS if lab_condition == "proximity" else None, fiedler_every=10**9,
                        faults=scoped(fault_spec(kind, level, seed), target))
@@ -111,63 +110,6 @@ def run_fault_episode(condition: str, kind: str, level: float, seed: int, *, sca
 
 def _run_point(args) -> FaultEpisode:
     return run_fault_episode(*args[:4], **args[4])
-=======
-    cfg = WarehouseConfig.named(scale, max_steps=steps + 1)
-    cta = CTAController(Warehouse(cfg))
-    cta.reset(seed)
-    fleet = Fleet(cta.n_agvs, cta.n_pickers, scale)
-    policy = make_condition_policy(lab_condition, preset, PROXIMITY_RADIUS if lab_condition == "proximity" else None,
-                                   steps=steps)
-    brains = policy.brains(fleet, range(fleet.n), seed)
-    layer = FaultLayer(RUN, base_seed=seed)  # the one receiver-side decision, per link
-    spec = fault_spec(kind, level, seed)
-    if spec is not None:
-        layer.set(spec)
-    links = np.zeros(steps)
-    waiting_since: dict[int, int] = {}
-    delays: list[int] = []
-    attempts = lost = 0
-    for t in range(steps):
-        obs = cta.begin_tick()
-        brains.learn(obs)
-        A = brains.team_links()
-        on = A != 0
-        links[t] = np.count_nonzero(on | on.T) // 2
-        requesters = obs.requesters().tolist()
-        for agv in set(waiting_since) - set(requesters):
-            waiting_since.pop(agv)  # no longer needs a picker (its mission changed)
-        for agv in requesters:
-            waiting_since.setdefault(agv, t)
-        requests = []
-        for agv in requesters:
-            picker = brains.candidate(agv, obs)
-            if picker < 0:
-                continue
-            u = brains.draw(agv) if brains.draws else None
-            ok, _p = _gate(brains, agv, picker, obs, u)
-            if not ok:
-                continue
-            attempts += 1
-            # both the request (to the picker) and the ack announcing it (to the sim) must be on time
-            if _on_time(layer, K.request(agv, picker), agv, picker) and _on_time(layer, K.ack(agv), agv, "sim"):
-                requests.append((agv, picker))
-            else:
-                lost += 1
-        commits = []
-        for picker, agv in resolve_requests(requests):
-            if _on_time(layer, K.resolve, "sim", picker) and _on_time(layer, K.commit(picker), picker, "sim"):
-                commits.append((picker, agv))
-                layer.fate(K.reply(picker, agv), picker, agv)  # sent; its loss is healed by the next Tick
-            else:
-                lost += 1
-        for picker, agv in cta.commit(commits):
-            start = waiting_since.pop(agv, t)
-            delays.append(t - start)
-        cta.finish_tick()
-    return FaultEpisode(condition, kind, float(level), seed, int(cta.deliveries), float(links.mean()),
-                        float(np.mean(delays)) if delays else float("nan"), attempts, lost,
-                        time.perf_counter() - t0)
->>>>>>> main
 
 
 def sweep(*, seeds=REFERENCE_SEEDS, conditions=tuple(CONDITIONS), loss=LOSS_PCT, latency=LATENCY_TICKS,

@@ -186,11 +186,8 @@ class SimResult:
     absences: int = 0
     wall_seconds: float = 0.0
     stopped_early: str | None = None
-<<<<<<< HEAD
     protocol: dict[str, int] = field(default_factory=dict)  # the dispatch protocol's outcome counters (sim side)
-=======
     network_stops: int = 0  # robot-steps a network profile's silence stop held a robot in place
->>>>>>> main
     # wall seconds spent per part of the tick (where a distributed tick's time goes)
     phase_seconds: dict[str, float] = field(default_factory=lambda: {
         "controller": 0.0, "tick_phase": 0.0, "resolve_phase": 0.0, "step": 0.0})
@@ -492,11 +489,8 @@ class SimService:
         r.protocol = self.outcomes.as_dict()
         await self._event("run.finished", steps=r.steps, deliveries=r.deliveries,
                           stopped_early=r.stopped_early, rejected=r.rejected, absences=r.absences,
-<<<<<<< HEAD
                           protocol=self.outcomes.as_dict(),
-=======
                           **({"network_stops": r.network_stops} if self.config.network is not None else {}),
->>>>>>> main
                           wall_seconds=round(r.wall_seconds, 3),
                           phase_seconds={k: round(v, 3) for k, v in r.phase_seconds.items()})
         await bus.publish(k.stop, Stop(reason="finished" if r.stopped_early is None else r.stopped_early))
@@ -650,11 +644,7 @@ class SimService:
                 self.faults.advance((t + 1) * cfg.dt)  # the step boundary: what is due by now is delivered
             t3 = time.monotonic()
             spent["resolve_phase"] += t3 - t2
-<<<<<<< HEAD
             applied = await self._settle(obs)
-            self.ctl.idle = set(range(self.n)) - self.present()  # an absent agent's robot does not move
-=======
-            applied = self.ctl.commit(commits)
             self.ctl.idle = set(range(self.n)) - self.present()  # an absent agent's robot gets no new target
             net = self.faults.network if self.faults is not None else None
             if net is not None and net.profile.silence_stop is not None:
@@ -662,7 +652,6 @@ class SimService:
                 # in a hand-over outage that long at the step's start stands still for the step (path kept)
                 self.ctl.held = net.silenced(t * cfg.dt, net.profile.silence_stop)
                 self.result.network_stops += len(self.ctl.held)
->>>>>>> main
             self.result.commits_applied += len(applied)
             before = self.ctl.deliveries
             self.ctl.finish_tick()
