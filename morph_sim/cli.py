@@ -56,6 +56,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:  # config validation errors: one clear line, no traceback
         print(f"morph-sim {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except ConnectionError as exc:  # an endpoint that cannot be reached or refuses these credentials
+        print(f"morph-sim {args.command}: error: {exc}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -139,6 +139,23 @@ class RunConfig(BaseModel):
                 raise ValueError(f"ablation: unknown {self.ablation!r} (known: {', '.join(ABLATIONS)})")
         return self
 
+    @model_validator(mode="after")
+    def _fleet_fits(self) -> RunConfig:
+        # Checked here, not only in the sim: `up` would otherwise start one process per robot of a fleet the layout
+        # cannot hold before the sim refuses it.
+        if self.agvs is None and self.pickers is None:
+            return self
+        from services.sim.world.warehouse import WarehouseConfig
+
+        try:
+            WarehouseConfig.named(self.scale, self.n_agvs, self.n_pickers)
+        except ValidationError as exc:
+            why = "; ".join(str(e.get("msg", "")).removeprefix("Value error, ") for e in exc.errors())
+            raise ValueError(f"{why} (scale {self.scale})") from None
+        except ValueError as exc:
+            raise ValueError(f"{exc} (scale {self.scale})") from None
+        return self
+
     # -- derived ---------------------------------------------------------------------------------------------------
     # cached: services read these on every message
     @cached_property

@@ -48,6 +48,8 @@ async def _cli(*argv: str, timeout: float = 30) -> tuple[int, list[str], str]:
 
 
 async def test_faults_cli_verdicts_and_a_crash_carried_out_at_its_tick(tmp_path):
+    from services.supervisor.process import open_bus
+
     port = free_port()
     ep = endpoint(port)
     run_id = "faultcli"
@@ -58,14 +60,16 @@ async def test_faults_cli_verdicts_and_a_crash_carried_out_at_its_tick(tmp_path)
     seen: set[int] = set()
     ticks: list[int] = []
     bus = None
-    ctl = ("--run", run_id, "--endpoint", ep)
+    # a secured run: the CLI finds the operator's credentials in the run directory, this test's session uses them too
+    ctl = ("--run", run_id, "--endpoint", ep, "--output-dir", str(tmp_path))
+    operator = str(tmp_path / run_id / "credentials" / "operator.json5")
     try:
         deadline = time.monotonic() + 60
         while bus is None:
             seen |= descendants(up.pid)
             try:
-                bus = await ZenohBus.open("test-operator", connect=ep)
-            except ConnectionError:
+                bus = await open_bus("test-operator", connect=ep, config_file=operator)
+            except (ConnectionError, ValueError):  # (ValueError: up has not written the credentials yet)
                 assert up.poll() is None and time.monotonic() < deadline, up.communicate(timeout=10)[1][-3000:]
                 await asyncio.sleep(0.3)
         await bus.subscribe(RunKeys(run_id).tick, lambda s: ticks.append(decode_tick(s.payload).t))

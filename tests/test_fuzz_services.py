@@ -105,14 +105,15 @@ async def test_fuzzed_local_run_equals_the_clean_run(tmp_path):
 
 
 def test_fuzzed_distributed_run_equals_the_clean_run(tmp_path):
-    """The same over Zenoh: ``morph-sim up`` while an intruder session floods every key."""
+    """The same over Zenoh: ``morph-sim up --insecure`` (an open endpoint: the services' own checks are all that
+    stands) while an intruder session floods every key."""
     from services.bus.zenoh_bus import ZenohBus, endpoint, free_port
 
     steps = 150
     ep = endpoint(free_port())
     argv = [sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", "tiny", "--policy", "morph",
             "--steps", str(steps), "--seed", "3", "--run-id", "fz", "--output-dir", str(tmp_path / "up"),
-            "--listen", ep]
+            "--listen", ep, "--insecure"]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     keys = RunKeys("fz")
     config = RunConfig(run_id="fz", scale="tiny", policy="morph", steps=steps, seed=3)

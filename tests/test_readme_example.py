@@ -33,7 +33,8 @@ def test_the_readme_shows_the_tested_example():
 def test_the_example_prints_metrics_of_a_live_up_run(tmp_path):
     assert len(README_EXAMPLE.strip().splitlines()) == 5
     port = free_port()
-    code = README_EXAMPLE.replace("7447", str(port))
+    # the example's run id is "demo" under runs/: here the run is "readme" under tmp_path
+    code = README_EXAMPLE.replace("7447", str(port)).replace("runs/demo/", f"{tmp_path}/readme/")
     # up's output goes to a file (an unread pipe can fill and stall the supervisor), and the example runs with the
     # environment a user has: no Zenoh settings inherited from this test process.
     up_log = tmp_path / "up.log"

@@ -64,8 +64,10 @@ def test_record_and_replay_commands_against_a_live_up_run(tmp_path):
         import time
 
         wait_for_port(port, up, time.monotonic() + 60, 0.1)
+        # the operator's credentials: found in the run directory (--output-dir) that `up` wrote them to
         rec = subprocess.run([sys.executable, "-m", "morph_sim.cli", "record", *flags, "--endpoint",
-                              f"tcp/127.0.0.1:{port}", "--out", str(tmp_path / "up.mbr"), "--timeout", "90"],
+                              f"tcp/127.0.0.1:{port}", "--out", str(tmp_path / "up.mbr"), "--timeout", "90",
+                              "--output-dir", str(tmp_path / "live")],
                              capture_output=True, text=True, timeout=120)
         assert rec.returncode == 0, rec.stderr[-2000:]
         assert up.wait(timeout=60) == 0

@@ -35,6 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for answers")
         p.add_argument("--id", dest="fault_id", help="fault id (set: name it; reset: heal only this one)")
         p.add_argument("--each", action="store_true", help="one line per answering process (default: alike merged)")
+        from services.supervisor.process import add_operator_arguments
+
+        add_operator_arguments(p)
         if op in ("set", "reset"):
             p.add_argument("--at-tick", type=int, default=None,
                            help="apply at the start of this (future) tick in every process, not on arrival: the run "
@@ -119,16 +122,16 @@ def build_command(args: argparse.Namespace):
         raise _explain(exc) from None
 
 
-async def send(endpoint: str, run: str, command, timeout: float = 2.0, bus=None) -> list:
+async def send(endpoint: str, run: str, command, timeout: float = 2.0, bus=None, args=None) -> list:
     """Send ``command`` as a query on ``morph/<run>/ctl/faults``; the FaultReply of every process that answered."""
     from schemas.keys import RunKeys
     from schemas.messages import FaultReply
 
     own = bus is None
     if own:
-        from services.supervisor.process import open_bus
+        from services.supervisor.process import open_operator_bus
 
-        bus = await open_bus(f"faults-cli-{int(time.time() * 1000) % 10**9}", connect=endpoint)
+        bus = await open_operator_bus(f"faults-cli-{int(time.time() * 1000) % 10**9}", endpoint, args, run)
     try:
         replies = await bus.get(RunKeys(run).faults, payload=command, timeout=timeout)
         out = []
@@ -178,7 +181,7 @@ def verdict(command, replies: list, run: str, endpoint: str) -> list:
 
 def run(args: argparse.Namespace) -> int:
     command = build_command(args)
-    replies = verdict(command, asyncio.run(send(args.endpoint, args.run, command, args.timeout)), args.run,
+    replies = verdict(command, asyncio.run(send(args.endpoint, args.run, command, args.timeout, args=args)), args.run,
                       args.endpoint)
     if getattr(args, "each", False):
         for reply in replies:

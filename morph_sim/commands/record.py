@@ -14,6 +14,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="file to write (appended if it exists), e.g. runs/r1.mbr")
     parser.add_argument("--timeout", type=float, default=None, help="stop after this many seconds")
     add_config_arguments(parser, skip=("listen",))
+    from services.supervisor.process import add_operator_arguments
+
+    add_operator_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -23,14 +26,14 @@ def run(args: argparse.Namespace) -> int:
 
     from services.monitor.replay import BusRecorder
     from services.runconfig import config_from_args
-    from services.supervisor.process import open_bus
+    from services.supervisor.process import open_operator_bus
 
     config = config_from_args(args)
     if not config.endpoint:
         raise ValueError("endpoint: record needs --endpoint ENDPOINT of the run (e.g. tcp/127.0.0.1:7447)")
 
     async def main() -> int:
-        bus = await open_bus("recorder", connect=config.endpoint)
+        bus = await open_operator_bus("recorder", config.endpoint, args, config.run_id, config.output_dir)
         try:
             rec = BusRecorder(bus, config, Path(args.out))
             loop = asyncio.get_running_loop()

@@ -14,6 +14,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from services.runconfig import add_config_arguments
 
     parser.add_argument("--quiet", action="store_true", help="no live progress line")
+    parser.add_argument("--insecure", action="store_true",
+                        help="open endpoint: no credentials, no access control (anyone who reaches the endpoint "
+                             "can publish anything); default: per-run credentials in <record>/credentials")
     add_config_arguments(parser)
 
 
@@ -36,7 +39,21 @@ def run(args: argparse.Namespace) -> int:
         if progress.finished:
             console.print(line)
 
-    supervisor = Supervisor(config, on_progress=show)
+    try:
+        supervisor = Supervisor(config, on_progress=show, insecure=args.insecure)
+    except StartError as exc:
+        if status is not None:
+            status.stop()
+        print(f"morph-sim up: error: {exc}", file=sys.stderr)
+        return 1
+    if supervisor.credentials is not None:
+        print(f"run {config.run_id}: secured endpoint {supervisor.endpoint}; operator credentials "
+              f"{supervisor.credentials.operator} (watch/faults/record/stop find them with --run {config.run_id})",
+              file=sys.stderr)
+    elif args.insecure and not supervisor.external:
+        print(f"morph-sim up: warning: INSECURE run: the endpoint {supervisor.endpoint} has no credentials and no "
+              "access control; anyone who reaches it can stop the run, inject faults or forge messages",
+              file=sys.stderr)
     try:
         code = asyncio.run(supervisor.run())
     except StartError as exc:

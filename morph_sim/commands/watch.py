@@ -188,19 +188,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="Zenoh endpoint of the run")
     parser.add_argument("--steps", type=int, default=None, help="total ticks, for the progress (default: unknown)")
     parser.add_argument("--duration", type=float, default=None, help="stop watching after this many seconds")
+    from services.supervisor.process import add_operator_arguments
+
+    add_operator_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     from schemas.keys import validate_run_id
     from services.runconfig import RunConfig
-    from services.supervisor.process import open_bus
+    from services.supervisor.process import open_operator_bus
 
     if args.run is not None:
         validate_run_id(args.run)
     RunConfig(endpoint=args.endpoint)  # validates the endpoint, naming the field
 
     async def main() -> WatchState:
-        bus = await open_bus("watch", connect=args.endpoint)
+        bus = await open_operator_bus("watch", args.endpoint, args, args.run)
         try:
             return await watch(bus, args.run, steps=args.steps, duration=args.duration)
         finally:

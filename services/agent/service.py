@@ -34,6 +34,7 @@ from services.rejects import Rejects
 from services.runconfig import RunConfig
 from services.agent.observation import TickObservation
 from services.sim.service import observation_from_arrays
+from services.tickorder import TickOrder
 
 log = logging.getLogger("morph_sim.agent")
 
@@ -69,6 +70,7 @@ class AgentService:
         self.config = config
         self._rejects = Rejects(log, f"agent {agent_id}")
         self.bus = bus
+        bus.reject_hook = self._reject  # oversized messages refused on arrival count here
         self.id = agent_id
         self.keys = RunKeys(config.run_id)
         self.is_agv = agent_id < config.n_agvs
@@ -77,6 +79,7 @@ class AgentService:
         self.brains = config.make_policy().brains(fleet, [agent_id], config.seed)
         self.counters = AgentCounters()
         self.last_t = -1
+        self._ticks = TickOrder(config.steps)  # which ticks this agent takes (services/tickorder.py)
         self._ack_extras = _ack_fields() & {"links", "eta"}
         self._stop = asyncio.Event()
         self._seq = 0
@@ -272,15 +275,17 @@ class AgentService:
         if self._stop.is_set() or self._came_late(sample):
             return  # a stopped agent is gone, even while its session closes
         try:
+            if sample.sender != "sim":
+                raise ValueError(f"tick published by {sample.sender!r}, not the sim")
             tick = decode_tick(sample.payload)  # validated, straight into arrays (schemas/hot.py)
             if tick.n != self.config.n_agents:
                 raise ValueError(f"tick has {tick.n} robots, this fleet {self.config.n_agents}")
             obs = observation_from_arrays(tick, self.config.steps)
+            if not self._ticks.admit(tick.t):
+                return  # a duplicate or stale tick: each tick is learnt from once
         except (ValueError, IndexError) as exc:
             self._reject(sample.key, exc)
             return
-        if tick.t <= self.last_t:
-            return  # a duplicate or stale tick: each tick is learnt from once
         self.last_t = tick.t
         self.counters.ticks += 1
         final = tick.t >= self.config.steps or bool(getattr(obs, "final", False))
@@ -432,6 +437,10 @@ class AgentService:
         if msg.picker != self.id or sender != msg.agv:
             self._reject(sample.key, f"request {msg.agv}->{msg.picker} on key of {sender}")
             return
+        if self.last_t >= 0 and msg.t > self.last_t + self._ticks.max_gap:  # a request for a far future tick is
+            # forged or corrupt: kept, it would wait forever
+            self._reject(sample.key, f"request for tick {msg.t}, this picker is at tick {self.last_t}")
+            return
         # never dropped for being late: it waits in the endpoint's inbox for this picker's next decision point
         req = protocol.Request(msg.agv, msg.picker, (msg.target_x, msg.target_y), msg.t * self.config.dt, msg.seq)
         with self._lock:
@@ -443,7 +452,12 @@ class AgentService:
         if self._stop.is_set() or self._came_late(sample):
             return  # a stopped agent is gone, even while its session closes
         try:
+            if sample.sender != "sim":
+                raise ValueError(f"resolve published by {sample.sender!r}, not the sim")
             msg = sample.decode(Resolve)
+            if self.last_t >= 0 and msg.t > self.last_t + self._ticks.max_gap:  # of the tick just taken (or of one
+                # lost on the way)
+                raise ValueError(f"resolve of tick {msg.t}, this picker is at tick {self.last_t}")
         except ValueError as exc:
             self._reject(sample.key, exc)
             return

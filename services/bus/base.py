@@ -31,6 +31,7 @@ import itertools
 import logging
 import time
 from abc import ABC, abstractmethod
+from functools import lru_cache
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
@@ -41,6 +42,7 @@ import msgpack
 from schemas.base import DecodeError, Message
 from schemas.codec import decode, to_payload
 from schemas.keys import intersects, validate_key, validate_key_expr
+from schemas.limits import max_payload_of_key
 
 log = logging.getLogger("morph_sim.bus")
 
@@ -288,6 +290,9 @@ def unpack_header(data: bytes | None) -> tuple[str, int, float]:
         return "", 0, 0.0
 
 
+_payload_bound = lru_cache(maxsize=4096)(max_payload_of_key)  # few distinct keys; checked on every arrival
+
+
 class Bus(ABC):
     """One participant's session on the run's bus. Use ``async with`` or call :meth:`close`."""
 
@@ -301,6 +306,9 @@ class Bus(ABC):
         self._closed = False
         self._loop: asyncio.AbstractEventLoop | None = None
         self._clock: Callable[[], float] = time.time
+        # The owning service's reject counter (``hook(key, reason)``): refusals made here, before any handler sees
+        # the message, are counted with the service's own rejects.
+        self.reject_hook: Callable[[str, str], None] | None = None
 
     # -- lifecycle ------------------------------------------------------------------------------------------------
     @property
@@ -339,6 +347,16 @@ class Bus(ABC):
                 log.warning("bus %s: rejected payload #%d on %s from %r: %s", self.identity, count, sample.key,
                             sample.sender, exc)
             return None
+
+    def _refuse(self, sample: Sample, why: str) -> None:
+        self.counters.rejected += 1
+        self.counters.per_key_rejects[sample.key] = self.counters.per_key_rejects.get(sample.key, 0) + 1
+        hook = self.reject_hook
+        if hook is not None:
+            hook(sample.key, why)
+        elif self.counters.rejected <= 5 or self.counters.rejected % 100 == 0:
+            log.warning("bus %s: rejected #%d on %s from %r: %s", self.identity, self.counters.rejected, sample.key,
+                        sample.sender, why)
 
     def set_clock(self, clock: Callable[[], float] | None) -> None:
         """The clock that stamps ``sent_at`` on published samples: ``time.time`` (default, wall time) or a virtual-time
@@ -485,6 +503,11 @@ class Bus(ABC):
     def _ingress(self, sub: Subscription[Sample], sample: Sample) -> None:
         """A sample reached this bus for ``sub``: pass it through the fault seam to the handler."""
         if self._closed:
+            return
+        size = len(sample.payload)
+        if size > _payload_bound(sample.key):  # before anything unpacks it (schemas/limits.py)
+            self._refuse(sample, f"payload of {size} bytes exceeds the {_payload_bound(sample.key)}-byte bound of "
+                                 "its kind")
             return
         if self._interposer is not None:
             self._interposer.on_deliver(sample, self.identity, sub._deliver_fn)

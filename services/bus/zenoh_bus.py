@@ -112,6 +112,14 @@ def zenoh_config(*, listen: str | Iterable[str] | None = None, connect: str | It
     if lowlatency:
         cfg.insert_json5("transport/unicast/lowlatency", "true")
         cfg.insert_json5("transport/unicast/qos/enabled", "false")
+    if listen_l:
+        # The process hosting the endpoint refuses oversized messages on arrival, before it reassembles or forwards
+        # them: a lowlatency link cannot carry a message that does not fit one batch, and forwarding one closes the
+        # link of every subscriber (services/credentials.py explains the bound).
+        from services.credentials import MAX_MESSAGE_BYTES, size_limits
+
+        cfg.insert_json5("low_pass_filter", json.dumps(size_limits()))
+        cfg.insert_json5("transport/link/rx/max_message_size", json.dumps(2 * MAX_MESSAGE_BYTES))
     return cfg
 
 

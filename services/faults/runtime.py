@@ -94,7 +94,7 @@ class FaultRuntime:
         if schedule is None and config.fault_schedule:
             from services.faults.schedule import load_schedule
 
-            schedule = load_schedule(config.fault_schedule)
+            schedule = load_schedule(config.fault_schedule, config.n_agents)
         sim = role == "sim"
         return cls(config.run_id, seed=config.seed, dt=config.dt, virtual=config.fault_time == "virtual",
                    events=sim, schedule=schedule, on_crash=on_crash, fleet=config.n_agents,

@@ -78,13 +78,39 @@ def parse_schedule(data: dict, where: str = "schedule") -> FaultSchedule:
         raise _explain(exc, where) from None
 
 
-def load_schedule(path: str | Path) -> FaultSchedule:
-    """Read and validate a schedule file; ValueError naming the file and the bad field."""
+def load_schedule(path: str | Path, n_agents: int | None = None) -> FaultSchedule:
+    """Read and validate a schedule file; ValueError naming the file and the bad field. With ``n_agents``, every
+    agent a command names must be in the fleet (a crash of agent 99 in a fleet of 8 would otherwise never happen)."""
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise ValueError(f"fault schedule {path}: no such file") from None
+    except IsADirectoryError:
+        raise ValueError(f"fault schedule {path}: is a directory, not a TOML file") from None
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"fault schedule {path}: not UTF-8 text (byte {exc.start})") from None
+    except OSError as exc:
+        raise ValueError(f"fault schedule {path}: cannot read it: {exc.strerror}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"fault schedule {path}: not valid TOML: {exc}") from None
-    return parse_schedule(data, f"fault schedule {path}")
+    schedule = parse_schedule(data, f"fault schedule {path}")
+    if n_agents is not None:
+        check_fleet(schedule, n_agents, f"fault schedule {path}")
+    return schedule
+
+
+def check_fleet(schedule: FaultSchedule, n_agents: int, where: str = "schedule") -> None:
+    """ValueError naming the entry whose crash or scope names an agent outside ``0..n_agents-1``."""
+    for i, timed in enumerate(schedule.at):
+        spec = timed.spec
+        if spec is None:
+            continue
+        if spec.crash is not None and spec.crash.agent is not None and not 0 <= spec.crash.agent < n_agents:
+            raise ValueError(f"{where}: at[{i}].spec.crash.agent: agent {spec.crash.agent} outside 0..{n_agents - 1} "
+                             f"(a fleet of {n_agents})")
+        agents = getattr(getattr(spec, "scope", None), "agents", None) or []
+        for a in agents:
+            if isinstance(a, int) and not 0 <= a < n_agents:
+                raise ValueError(f"{where}: at[{i}].spec.scope.agents: agent {a} outside 0..{n_agents - 1} "
+                                 f"(a fleet of {n_agents})")

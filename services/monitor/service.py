@@ -36,6 +36,7 @@ from services.monitor.recorder import Recorder
 from services.monitor.streams import MessageStats
 from services.rejects import Rejects
 from services.runconfig import RunConfig
+from services.tickorder import TickOrder
 
 log = logging.getLogger("morph_sim.monitor")
 
@@ -93,6 +94,7 @@ class MonitorService:
         self.config = config
         self._rejects = Rejects(log, "monitor")
         self.bus = bus
+        bus.reject_hook = self._reject  # oversized messages refused on arrival count here
         self.keys = RunKeys(config.run_id)
         self.n = config.n_agents
         self.is_agv = np.arange(self.n) < config.n_agvs
@@ -103,6 +105,7 @@ class MonitorService:
         self._rows: dict[int, Row] = {}
         self._next_row = 0
         self._last_tick = -1
+        self._ticks = TickOrder(config.steps)  # which ticks the record takes (services/tickorder.py)
         self._total = 0
         self._states: dict[int, dict[int, AgentState]] = {}  # tick -> agent -> state
         self.latest_state: dict[int, AgentState] = {}
@@ -184,14 +187,18 @@ class MonitorService:
         self.result.messages[kind] = self.result.messages.get(kind, 0) + 1
         self.result.bytes[kind] = self.result.bytes.get(kind, 0) + len(sample.payload)
         # a sim-time stamp (virtual time, unfaulted here) means no wall latency: never time.time() - sim seconds
-        self.stats.observe(kind, sample.key, sample.sender, sample.seq, sample.sent_at,
-                           None if sample.sent_at > 1e8 else sample.sent_at)
+        if not self.stats.observe(kind, sample.key, sample.sender, sample.seq, sample.sent_at,
+                                  None if sample.sent_at > 1e8 else sample.sent_at):
+            self._reject(sample.key, f"sequence number {sample.seq} of {sample.sender!r} jumps too far ahead")
+            return
         if sample.sender:
             # wall stamps (paced / up): latency as seen here; sim-time stamps (virtual time) carry no wall latency
             sent = sample.sent_at
             self.link_meter.record(sample.key, sample.sender, sample.seq, sent, time.time() if sent > 1e8 else sent)
         try:
             if head == "sim" and rel[1:] == ["tick"]:
+                if sample.sender != "sim":
+                    raise ValueError(f"tick published by {sample.sender!r}, not the sim")
                 self._on_tick(decode_tick(sample.payload))  # validated, as arrays (schemas/hot.py)
             elif head == "agent" and len(rel) == 3:
                 if rel[2] == "ack":
@@ -201,7 +208,7 @@ class MonitorService:
                 elif rel[2] == "state":
                     self._on_state(sample.decode(AgentState), rel[1])
             elif head == "events" and len(rel) == 2:
-                self._on_event(sample.decode(Event))
+                self._on_event(sample.decode(Event), rel[1])
             elif head == "ctl" and rel[1:] == ["stop"]:
                 sample.decode(Stop)
                 if sample.sender == "sim":
@@ -223,7 +230,7 @@ class MonitorService:
     def _on_tick(self, tick: TickArrays) -> None:
         if tick.n != self.n:
             raise ValueError(f"tick has {tick.n} robots, this fleet {self.n}")
-        if tick.t <= self._last_tick:
+        if not self._ticks.admit(tick.t):
             return
         if self._last_tick < 0 and self.recorder is not None and self.recorder.resume_from is not None:
             self._resume(tick.t)
@@ -291,6 +298,10 @@ class MonitorService:
 
     def _on_commit(self, commit: Commit, chunk: str) -> None:
         self._check_sender(chunk, commit.picker)
+        if commit.picker < self.config.n_agvs or not 0 <= commit.agv < self.config.n_agvs:
+            raise ValueError(f"commit of robot {commit.picker} to robot {commit.agv}: a picker commits to an AGV")
+        if not 0 <= commit.t <= self._last_tick + 1:
+            raise ValueError(f"commit of tick {commit.t}, the run is at tick {self._last_tick}")
         row = self._row(commit.t)
         if row is not None:
             row.commits += 1
@@ -330,7 +341,12 @@ class MonitorService:
                 self.recorder.snapshot(t, W, A)
         del self._states[t]
 
-    def _on_event(self, event: Event) -> None:
+    def _on_event(self, event: Event, chunk: str | None = None) -> None:
+        """``chunk``: the ``events/<chunk>`` key it came on (None: handed over in-process, e.g. by a test)."""
+        if chunk is not None and str(event.source) != chunk:
+            raise ValueError(f"event of {event.source!r} on the key of {chunk}")
+        if event.kind == "run.finished" and chunk not in (None, "sim"):
+            raise ValueError(f"run.finished from {chunk}: only the sim ends a run")
         if event.kind in QUIET_EVENTS:
             if event.kind == "ready.probe":
                 self.bus._spawn(self.bus.publish(self.keys.event("monitor"), Event(

@@ -100,6 +100,12 @@ class Histogram:
         return out
 
 
+# A stream (sender, key) whose sequence number jumps further than this is refused: no run loses that many messages
+# of one stream between two that arrive. Streams are tracked up to MAX_STREAMS (senders are named by the header).
+MAX_SEQ_JUMP = 10_000
+MAX_STREAMS = 65_536
+
+
 class MessageStats:
     """Statistics of the monitor's incoming messages (pure bookkeeping; the monitor feeds it every sample)."""
 
@@ -119,14 +125,18 @@ class MessageStats:
         self._deliveries: deque[int] = deque(maxlen=RATE_WINDOW)
         self._dispatch_row: tuple[int, float, float] | None = None  # (t, sim time, mean delay), not yet published
 
-    def observe(self, kind: str, key: str, sender: str, seq: int, sent_at: float, now: float | None = None) -> None:
+    def observe(self, kind: str, key: str, sender: str, seq: int, sent_at: float, now: float | None = None) -> bool:
+        """Count one message; False (the caller rejects it) when its sequence number jumps further ahead of its
+        stream than any real loss could (a forged header would otherwise turn into millions of "lost" messages)."""
         self.total += 1
         self.by_kind[kind] = self.by_kind.get(kind, 0) + 1
         if sender and seq:
             last = self._last_seq.get((sender, key))
+            if last is not None and seq > last + MAX_SEQ_JUMP:
+                return False
             if last is not None and seq > last + 1:
                 self.gaps += seq - last - 1
-            if last is None or seq > last:
+            if (last is None and len(self._last_seq) < MAX_STREAMS) or (last is not None and seq > last):
                 self._last_seq[(sender, key)] = seq
         if sent_at > 0:
             now = time.time() if now is None else now
@@ -135,6 +145,7 @@ class MessageStats:
             self._latency.append((now, lat))
             while self._latency and self._latency[0][0] < now - 1.0:
                 self._latency.popleft()
+        return True
 
     def requested(self, t: int, agv: int) -> None:
         self._waiting.setdefault(agv, t)
@@ -241,8 +252,8 @@ async def subscribe_metrics(bus, run_id: str, handler: Callable[[MetricSample], 
 
 #: The README's subscriber example (tests/test_readme_example.py runs it against a live ``morph-sim up``).
 README_EXAMPLE = '''\
-import time, msgpack, zenoh  # after: morph-sim up --listen tcp/127.0.0.1:7447 --steps 5000
-conf = zenoh.Config.from_json5('{mode: "client", connect: {endpoints: ["tcp/127.0.0.1:7447"]}}')
+import time, msgpack, zenoh  # after: morph-sim up --run-id demo --listen tcp/127.0.0.1:7447 --steps 5000
+conf = zenoh.Config.from_file("runs/demo/credentials/operator.json5"); conf.insert_json5("mode", '"client"'); conf.insert_json5("connect/endpoints", '["tcp/127.0.0.1:7447"]')
 with zenoh.open(conf) as session:
     session.declare_subscriber("morph/*/metrics/**", lambda s: print(s.key_expr, msgpack.unpackb(s.payload.to_bytes())))
     time.sleep(10)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 NAME = "sim"
 HELP = "run the sim clock service (warehouse + tick protocol) over Zenoh"
@@ -29,6 +30,15 @@ def run(args: argparse.Namespace) -> int:
     if not config.listen and not config.endpoint:
         raise ValueError("listen: the sim needs --listen ENDPOINT (host the run) or --endpoint ENDPOINT (router)")
     setup_logging(args.log_level, "sim")
+    import os
+
+    from services.supervisor.process import ZENOH_CONFIG_ENV
+
+    if config.listen and not os.environ.get(ZENOH_CONFIG_ENV):
+        # hosting an endpoint without a config file means no credentials and no access control (docs/deploy.md)
+        print(f"morph-sim sim: warning: the endpoint {config.listen} is open (no {ZENOH_CONFIG_ENV}): anyone who "
+              "reaches it can stop the run or forge messages; `morph-sim credentials` writes a secured setup",
+              file=sys.stderr)
     result = run_or_exit(NAME, serve(
         "sim", lambda bus: SimService(config, bus, wait_for_monitor=not args.no_wait_monitor, faults=_faults(config)),
         lambda svc: svc.run(), lambda svc, why: svc.stop(why), listen=config.listen, connect=config.endpoint))

@@ -248,6 +248,7 @@ class SimService:
         self.faults = faults
         self._rejects = Rejects(log, "sim")
         self.bus = bus
+        bus.reject_hook = self._reject  # oversized messages refused on arrival count here
         self.keys = RunKeys(config.run_id)
         self.n = config.n_agents
         self.wait_for_monitor = wait_for_monitor

@@ -71,6 +71,8 @@ class Child:
     reaped: set[int] = field(default_factory=set)  # pids whose exit was handled
     failures: list[float] = field(default_factory=list)  # monotonic times of unplanned restarts (crash-loop budget)
     planned: dict[int, bool] = field(default_factory=dict)  # pid killed by a crash fault -> restart it cold?
+    # ZENOH_CONFIG naming this process's credentials file (secure runs): a file name, never the secret itself
+    extra_env: dict[str, str] = field(default_factory=dict)
 
     @property
     def pid(self) -> int | None:
@@ -90,7 +92,8 @@ class Child:
             out.write(f"--- start {' '.join(self.spec.argv + extra)} at {time.time():.3f}\n".encode())
             out.flush()
             self.proc = subprocess.Popen(
-                self.spec.command() + list(extra), env=self.spec.environment(), stdin=subprocess.DEVNULL, stdout=out,
+                self.spec.command() + list(extra), env={**self.spec.environment(), **self.extra_env},
+                stdin=subprocess.DEVNULL, stdout=out,
                 stderr=subprocess.STDOUT, start_new_session=True, preexec_fn=_die_with_parent, close_fds=True)
         self.pids.append(self.proc.pid)
 
@@ -143,8 +146,10 @@ class Supervisor:
 
     def __init__(self, config: RunConfig, *, endpoint: str | None = None,
                  on_progress: Callable[[Progress, str], None] | None = None, ready_timeout: float | None = None,
-                 stall_timeout: float | None = None):
+                 stall_timeout: float | None = None, insecure: bool = False):
         from services.bus.zenoh_bus import endpoint as make_endpoint, free_port
+        from services.credentials import RunCredentials, run_credentials
+        from services.supervisor.process import ZENOH_CONFIG_ENV
 
         self.config = config
         self.external = config.endpoint is not None
@@ -152,6 +157,22 @@ class Supervisor:
         self.specs = process_graph(config, self.endpoint)
         logs = config.record_dir / "logs"
         self.children = {spec.name: Child(spec, logs / f"{spec.name}.log") for spec in self.specs}
+        from services.faults.schedule import load_schedule
+
+        # a bad schedule file fails now, before anything is written or started
+        self.schedule = load_schedule(config.fault_schedule, config.n_agents) if config.fault_schedule else None
+        # Secure by default: the embedded endpoint admits only this run's processes and the operator, each with its
+        # own password, and enforces who may publish what (services/credentials.py). An external router's security
+        # is its deployment's (docs/deploy.md); --insecure keeps the endpoint open.
+        self.insecure = insecure
+        self.credentials: RunCredentials | None = None
+        if not self.external:
+            self._check_port_free()  # StartError naming the port, before anything is written or started
+        if not insecure and not self.external:
+            self.credentials = RunCredentials.create(run_credentials(config.record_dir).directory, config.run_id,
+                                                     config.n_agents, where=self.endpoint)
+            for child in self.children.values():
+                child.extra_env[ZENOH_CONFIG_ENV] = str(self.credentials.for_role(child.spec.role, child.spec.agent))
         self.progress = Progress()
         self.on_progress = on_progress
         self.ready_timeout = config.ready_timeout if ready_timeout is None else ready_timeout
@@ -163,9 +184,7 @@ class Supervisor:
         # Crash faults (issue 5): specs from the schedule file or `morph-sim faults set` land in the planner (the
         # ctl/faults controller's on_crash hook); each tick the due actions are carried out on the agents' pids.
         from services.faults.crash import CrashPlanner, ProcessFaulter
-        from services.faults.schedule import load_schedule
 
-        self.schedule = load_schedule(config.fault_schedule) if config.fault_schedule else None  # bad file: fail now
         self.planner = CrashPlanner(config.n_agents, config.seed)
         # pause_for is in sim seconds: paced runs map it through the period, lock-step runs at 1 wall s per sim s
         self.faulter = ProcessFaulter(self._agent_pid,
@@ -278,6 +297,24 @@ class Supervisor:
         finally:
             await bus.close()
 
+    def _check_port_free(self) -> None:
+        """The endpoint's port must be ours to listen on: if another program holds it, the wait for the sim's port
+        below would connect to that program and the run would fail later with a misleading reason."""
+        import socket
+
+        proto, _, addr = self.endpoint.partition("/")
+        host, _, port = addr.rpartition(":")
+        if proto != "tcp" or not port.isdigit():
+            return
+        family = socket.AF_INET6 if ":" in host.strip("[]") else socket.AF_INET
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                probe.bind((host.strip("[]"), int(port)))
+            except OSError as exc:
+                raise StartError(f"port {port} of {self.endpoint} (--listen) is not free: {exc.strerror}; another "
+                                 "program holds it; choose another port or leave --listen out") from None
+
     async def _wait_endpoint(self, sim: Child) -> None:
         if self.external:
             return
@@ -302,9 +339,10 @@ class Supervisor:
         raise StartError(f"sim did not open {self.endpoint} within {self.ready_timeout:.0f} s:\n{sim.log_tail()}")
 
     async def _open_bus(self):
-        from services.bus.zenoh_bus import ZenohBus
+        from services.supervisor.process import open_bus
 
-        return await ZenohBus.open("supervisor", connect=self.endpoint)
+        operator = None if self.credentials is None else str(self.credentials.operator)
+        return await open_bus("supervisor", connect=self.endpoint, config_file=operator)
 
     async def _watch(self, bus) -> int:
         from schemas import MetricSample, Stop
@@ -318,14 +356,24 @@ class Supervisor:
                 msg = sample.decode(MetricSample)
             except ValueError:
                 return
+            if sample.sender != "monitor" or not 0 <= msg.t <= self.config.steps:
+                return  # progress drives crash faults and the stall watchdog: only the monitor's, within the run
             if msg.value is not None:
                 self.progress.update(msg.name, msg.t, msg.value)
 
         await bus.subscribe(keys.metrics, on_metric)
 
+        from services.tickorder import TickOrder
+
+        ticks = TickOrder(self.config.steps)  # a forged tick must not fire the crash faults of the ticks it skips
+
         def on_tick(sample) -> None:  # every tick (the metric stream is decimated): crash faults hit their tick
             try:
+                if sample.sender != "sim":
+                    return
                 t = decode_tick(sample.payload).t  # validated, without building the model (0.6-0.9 ms a tick)
+                if not ticks.admit(t):
+                    return
             except ValueError:
                 return
             if self.progress.t < t < self.config.steps:  # (a final Tick t = steps closes the run)

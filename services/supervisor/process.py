@@ -52,23 +52,30 @@ def command_main(command, argv=None) -> int:
 ZENOH_CONFIG_ENV = "ZENOH_CONFIG"  # path of a Zenoh config file (zenoh's own convention): credentials, TLS …
 
 
-def base_zenoh_config(environ: dict[str, str] | None = None):
-    """The deployment's Zenoh config named by ``ZENOH_CONFIG`` (e.g. deploy/zenoh/client-agent-0.json5, which
-    carries the user/password an ACL router checks), or None. A bad path or file is a ValueError naming it."""
+def base_zenoh_config(environ: dict[str, str] | None = None, path: str | None = None, what: str = ZENOH_CONFIG_ENV):
+    """The deployment's Zenoh config named by ``path`` or else ``ZENOH_CONFIG`` (e.g. a run's
+    ``credentials/agent-0.json5``, which carries the user/password the endpoint checks), or None. A bad path or file
+    is a ValueError naming it."""
     import os
 
     import zenoh
 
-    path = (os.environ if environ is None else environ).get(ZENOH_CONFIG_ENV)
+    if not path:
+        path = (os.environ if environ is None else environ).get(ZENOH_CONFIG_ENV)
     if not path:
         return None
+    if os.path.isdir(path):
+        raise ValueError(f"{what}: {path!r} is a directory, not a Zenoh config file")
     try:
         return zenoh.Config.from_file(path)
     except Exception as exc:  # zenoh raises its own ZError for a missing or malformed file
-        raise ValueError(f"{ZENOH_CONFIG_ENV}: cannot read Zenoh config {path!r}: {exc}") from None
+        raise ValueError(f"{what}: cannot read Zenoh config {path!r}: {exc}") from None
 
 
-async def open_bus(identity: str, *, listen: str | None = None, connect: str | None = None):
+async def open_bus(identity: str, *, listen: str | None = None, connect: str | None = None,
+                   config_file: str | None = None, what: str = ZENOH_CONFIG_ENV):
+    """A session on the run: ``listen`` hosts the endpoint, ``connect`` joins it. The Zenoh config file (credentials,
+    access control) is ``config_file``, else the one ``ZENOH_CONFIG`` names, else none (an open endpoint)."""
     from services.bus.zenoh_bus import ZenohBus, zenoh_config
 
     if not listen and not connect:
@@ -76,9 +83,50 @@ async def open_bus(identity: str, *, listen: str | None = None, connect: str | N
     # our endpoints, mode and transport settings go on top of the deployment's file (if any)
     mode = "router" if listen else "client"
     config = zenoh_config(listen=listen, connect=None if listen else connect, mode=mode,
-                          base=base_zenoh_config())
+                          base=base_zenoh_config(path=config_file, what=what))
     return await ZenohBus.open(identity, listen=listen, connect=None if listen else connect, mode=mode,
                                config=config)
+
+
+def add_operator_arguments(parser) -> None:
+    """``--credentials`` and ``--output-dir`` of the operator commands (watch, faults, record, stop)."""
+    parser.add_argument("--credentials", default=None, metavar="FILE",
+                        help="Zenoh config with the operator's user/password (default: $ZENOH_CONFIG, else "
+                             "<output-dir>/<run>/credentials/operator.json5 written by `morph-sim up`)")
+    if not any(a.dest in ("output_dir", "cfg_output_dir") for a in parser._actions):
+        parser.add_argument("--output-dir", default="runs", help="parent directory of run records (default runs)")
+
+
+def operator_credentials(args, run_id: str | None, output_dir=None) -> str | None:
+    """The operator's Zenoh config file for ``run_id``: ``--credentials``, ``ZENOH_CONFIG``, the run directory's
+    ``credentials/operator.json5``, or None (an insecure run)."""
+    from pathlib import Path
+
+    from services.credentials import operator_config_path
+
+    if getattr(args, "credentials", None):
+        return args.credentials
+    out = Path(output_dir if output_dir is not None else getattr(args, "output_dir", None) or "runs")
+    if run_id is None:
+        import os
+
+        from services.credentials import find_operator_config
+
+        return os.environ.get(ZENOH_CONFIG_ENV) or find_operator_config(out, getattr(args, "endpoint", "") or "")
+    return operator_config_path(out / run_id)
+
+
+async def open_operator_bus(identity: str, endpoint: str, args, run_id: str | None, output_dir=None):
+    """An operator command's session: with the run's operator credentials when it has them (secure by default)."""
+    path = operator_credentials(args, run_id, output_dir)
+    try:
+        return await open_bus(identity, connect=endpoint, config_file=path,
+                              what="credentials" if path and getattr(args, "credentials", None) else ZENOH_CONFIG_ENV)
+    except ConnectionError as exc:
+        hint = (f" (used credentials {path})" if path else
+                " (no credentials: a secured run needs its operator credentials, --credentials FILE or --run ID "
+                "with --output-dir where `morph-sim up` wrote them)")
+        raise ConnectionError(f"{exc}{hint}") from None
 
 
 async def serve(identity: str, make: Callable[[Any], Any], run: Callable[[Any], Awaitable[Any]],

@@ -1,0 +1,39 @@
+"""``morph-sim credentials --run-id ID --out DIR``: a run's credentials and access control as files, for processes
+that ``morph-sim up`` does not start (compose, Kubernetes, by hand).
+
+Writes what ``up`` writes into ``runs/<id>/credentials/`` (owner-only): ``endpoint.json5`` for the sim that hosts
+the endpoint, ``operator.json5``, ``monitor.json5`` and ``agent-<N>.json5`` for the others, and ``passwords.txt``.
+Start each process with ``ZENOH_CONFIG`` naming its file (docs/deploy.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+NAME = "credentials"
+HELP = "write a run's per-process credentials and the endpoint's access control (for compose / by-hand runs)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from services.runconfig import add_config_arguments
+
+    parser.add_argument("--out", required=True, help="directory to write (created 0700; files 0600)")
+    add_config_arguments(parser, skip=("listen", "endpoint"))
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from services.credentials import RunCredentials
+    from services.runconfig import RunConfig, config_from_args
+
+    if getattr(args, "cfg_run_id", None) is None and not __import__("os").environ.get(RunConfig.env_name("run_id")):
+        raise ValueError("run_id: credentials are per run; pass --run-id (or MORPH_RUN_ID)")
+    config = config_from_args(args)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out: {out} exists and is not a directory")
+    creds = RunCredentials.create(out, config.run_id, config.n_agents)
+    print(f"run {config.run_id}: credentials for the operator, the monitor and {config.n_agents} agents in "
+          f"{creds.directory} (sim: ZENOH_CONFIG={creds.endpoint})")
+    return 0

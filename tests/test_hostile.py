@@ -1,0 +1,183 @@
+"""A hostile client against a live ``morph-sim up``: nothing it sends changes the run, every attempt is refused.
+
+Secure (default) mode: without credentials or with a wrong password the endpoint does not let the client in; with a
+robot's own credentials (a compromised robot: agent 3's file from the run directory) it forges ticks (with and without
+the sim's header), ``ctl/stop``, ``ctl/faults`` (put and query), ``run.finished``, other robots' acks, commits and
+replies, sequence numbers, and payloads of 64 KB to 20 MB on every key. ``--insecure`` mode: everything that the
+services' own checks can stop (ticks, run.finished, other pickers' replies, sequence numbers, sizes), without
+credentials. Either way the run completes with metrics byte-equal to the same run over the in-process bus, and the
+monitor counts the attempts that reached it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from schemas import Ack, Commit, Event, FaultCommand, HelpReply, Stop, encode
+from schemas.hot import encode_tick_body
+from schemas.keys import RunKeys
+from services.bus.base import pack_header
+from services.bus.zenoh_bus import endpoint, free_port, zenoh_config
+from services.monitor.recorder import read_metrics
+from services.runconfig import RunConfig
+from services.sim.service import make_controller, tick_fields, world_fields
+from services.supervisor.local import run_local
+
+import zenoh  # noqa: E402  (after zenoh_bus set the runtime environment)
+
+from _procs import kill_tree
+
+STEPS = 800  # tiny: a few seconds of lockstep, long enough for the attack to land mid-run
+
+
+def _tick_payload(config: RunConfig, t: int) -> bytes:
+    """A well-formed Tick of this fleet, numbered ``t``."""
+    ctl = make_controller(config)
+    obs = ctl.begin_tick()
+    fields = tick_fields(obs, 0.0, world_fields(ctl, obs))
+    fields["t"] = t
+    return encode_tick_body(fields)
+
+
+def _client(ep: str, credentials: Path | None, *, user: str | None = None, password: str | None = None):
+    base = zenoh.Config.from_file(str(credentials)) if credentials is not None else None
+    # a fragmenting (non-lowlatency) client: it can hand the endpoint messages far larger than one batch
+    cfg = zenoh_config(connect=ep, mode="client", lowlatency=False, connect_timeout=3.0, base=base)
+    if user is not None:
+        cfg.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
+        cfg.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
+    return zenoh.open(cfg)
+
+
+def _attack(session, keys: RunKeys, config: RunConfig, ticks: dict[int, bytes], *, secure: bool,
+            running=lambda: True) -> dict[str, int]:
+    """Everything a hostile client tries, in order of harm; returns how many of each were sent. ``ticks``: forged
+    Tick payloads by number, built before the run so the attack lands while it is young."""
+    sent: dict[str, int] = {}
+
+    def put(what: str, key: str, payload: bytes, sender: str | None = "sim", seq: int = 1) -> None:
+        att = None if sender is None else pack_header(sender, seq, time.time())
+        session.put(key, payload, attachment=att)
+        sent[what] = sent.get(what, 0) + 1
+
+    put("tick t=100000 (sim header)", keys.tick, ticks[100_000])
+    put("tick t=100000 (no header)", keys.tick, ticks[100_000], sender=None)
+    put("tick t=steps (no header)", keys.tick, ticks[config.steps], sender=None)
+    finished = Event(kind="run.finished", source=3, t=5, details={"forged": True})
+    put("run.finished on events/3", keys.event(3), encode(finished), sender="agent-3")
+    put("run.finished as another source", keys.event(3), encode(finished.model_copy(update={"source": "sim"})),
+        sender="agent-3")
+    put("reply of picker 7 on picker 6's key", keys.reply(6, 0),
+        encode(HelpReply(t=1, picker=7, agv=0, accepted=True, seq=1)), sender="agent-6")
+    put("forged sequence number", keys.agent_state(3), b"\x00garbage", sender="agent-3", seq=999_999_999)
+    put("forged sequence number", keys.ack(2), b"\x00garbage", sender="agent-2", seq=999_999_999)
+    if secure:  # what only the access control can stop (an open endpoint cannot tell who sent it)
+        put("ctl/stop", keys.stop, encode(Stop(reason="hostile")), sender="operator")
+        put("ctl/faults put", keys.faults, encode(FaultCommand(op="set", spec={
+            "id": "hostile", "loss": {"percent": 100}})), sender="operator")
+        put("run.finished on events/sim", keys.event("sim"), encode(Event(kind="run.finished", source="sim")))
+        put("forged ack", keys.ack(4), encode(Ack(t=1, agent=4, phase=0, requests_sent=[5], seq=1)),
+            sender="agent-4")
+        put("forged commit", keys.commit(5), encode(Commit(t=1, picker=5, agv=0, seq=1)), sender="agent-5")
+        put("forged reply", keys.reply(6, 0), encode(HelpReply(t=1, picker=6, agv=0, accepted=True, seq=1)),
+            sender="agent-6")
+        replies = list(session.get(keys.faults, payload=encode(FaultCommand(op="set", spec={
+            "id": "hostile-q", "loss": {"percent": 100}})), timeout=1.0))
+        assert [r for r in replies if r.ok is not None] == [], "a robot's credentials set faults"
+        sent["ctl/faults query"] = 1
+    # the forged messages must have met a live run, or they prove nothing (the floods below may outlast it)
+    assert running(), "the run ended before the forged messages were sent"
+    every = [keys.tick, keys.resolve, keys.stop, keys.faults, keys.event("sim"), keys.event(3),
+             keys.metric("deliveries")]
+    every += [k for i in range(config.n_agents) for k in (keys.ack(i), keys.agent_state(i))]
+    every += [keys.commit(p) for p in range(config.n_agvs, config.n_agents)]
+    every += [keys.request(0, p) for p in range(config.n_agvs, config.n_agents)]
+    every += [keys.reply(p, 0) for p in range(config.n_agvs, config.n_agents)]
+    for key in every:
+        put("64 KB", key, b"\x00" * (64 * 1024))
+    for key in (keys.ack(3), keys.request(3, config.n_agvs), keys.event(3)):
+        put("12 KB on a small kind", key, b"\x00" * (12 * 1024), sender="agent-3", seq=0)
+    put("1 MB", keys.tick, b"\x00" * (1 << 20))
+    put("20 MB", keys.ack(3), b"\x00" * (20 << 20))
+    return sent
+
+
+def _hostile_run(tmp_path: Path, *, secure: bool) -> None:
+    run_id = "hostile-secure" if secure else "hostile-open"
+    config = RunConfig(run_id=run_id, scale="tiny", policy="morph", steps=STEPS, seed=5)
+    keys = RunKeys(run_id)
+    port = free_port()
+    ep = endpoint(port)
+    out = tmp_path / "up"
+    argv = [sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", "tiny", "--policy", "morph",
+            "--steps", str(STEPS), "--seed", "5", "--run-id", run_id, "--output-dir", str(out), "--listen", ep]
+    if not secure:
+        argv.append("--insecure")
+    forged_ticks = {t: _tick_payload(config, t) for t in (100_000, STEPS)}
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    creds = out / run_id / "credentials"
+    try:
+        deadline = time.monotonic() + 60
+        session = None
+        while session is None:  # the endpoint opens once the sim is up
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read() if proc.poll() else ""
+            try:
+                session = _client(ep, creds / "agent-3.json5" if secure else None)
+            except Exception:
+                time.sleep(0.2)
+        if secure:
+            assert oct(creds.stat().st_mode & 0o777) == "0o700"
+            assert all(oct(f.stat().st_mode & 0o777) == "0o600" for f in creds.iterdir())
+        seen = threading.Event()
+
+        def on_tick(sample) -> None:
+            if sample.attachment is not None:
+                seen.set()
+
+        sub = session.declare_subscriber(keys.tick, on_tick)
+        assert seen.wait(60), "the run never started"
+        sent = _attack(session, keys, config, forged_ticks, secure=secure, running=lambda: proc.poll() is None)
+        if secure and proc.poll() is None:  # (tests/test_secure_defaults.py checks this on an endpoint that stays)
+            for user, password in ((None, None), ("operator", "wrong"), ("agent-3", "wrong")):
+                with pytest.raises(Exception):  # nobody gets in without this run's credentials
+                    _client(ep, None, user=user, password=password).close()
+        sub.undeclare()
+        session.close()
+        _, err = proc.communicate(timeout=120)
+    finally:
+        kill_tree(proc)
+    assert proc.returncode == 0, err
+    assert sent["20 MB"] == 1
+    up = out / run_id
+    assert len(read_metrics(up)) == STEPS
+    asyncio.run(run_local(config.model_copy(update={"output_dir": tmp_path / "local"})))
+    assert (up / "metrics.csv").read_bytes() == (tmp_path / "local" / run_id / "metrics.csv").read_bytes()
+    summary = json.loads((up / "summary.json").read_text())
+    assert summary["finished"]["steps"] == STEPS and summary["finished"]["stopped_early"] is None
+    # what reached the monitor was refused and counted: the forged run.finished events, sequence numbers, ticks
+    # (the insecure run: the endpoint lets them in), oversized small kinds
+    assert summary["rejected"] >= (4 if secure else 6), summary
+    assert summary["sequence_gaps"] < 1000, summary
+    monitor_log = (up / "logs" / "monitor.log").read_text()
+    assert "only the sim ends a run" in monitor_log
+    if not secure:
+        assert "not the sim" in monitor_log or "outside 0.." in monitor_log
+    agent_logs = "".join(p.read_text() for p in (up / "logs").glob("agent-*.log"))
+    assert "Traceback" not in agent_logs + monitor_log
+
+
+def test_a_hostile_client_changes_nothing_in_a_secure_run(tmp_path):
+    _hostile_run(tmp_path, secure=True)
+
+
+@pytest.mark.slow  # the default suite floods an --insecure run in tests/test_fuzz_services.py
+def test_a_hostile_client_changes_nothing_the_services_can_check_in_an_insecure_run(tmp_path):
+    _hostile_run(tmp_path, secure=False)
