@@ -33,8 +33,10 @@ RUN groupadd --system --gid 10001 morph \
  && mkdir -p /data/runs \
  && chown morph:morph /data/runs
 COPY --from=build /wheels /tmp/wheels
-# Install the wheel with its pinned dependencies (eclipse-zenoh==1.10.2 …), then drop the installers: the runtime
-# image needs neither pip nor setuptools.
+# Install the wheel with its base dependencies only (numpy, scipy, msgpack, pydantic, prometheus-client and the
+# pinned eclipse-zenoh==1.10.2): what the sim, an agent and the monitor need. The tool's extras (plots, reports,
+# terminal views, benchmarks) stay out of the image; `morph-sim up` without them prints its final line only. Then
+# drop the installers: the runtime image needs neither pip nor setuptools.
 RUN python -m pip install /tmp/wheels/*.whl \
  && rm -rf /tmp/wheels \
  && python -m pip uninstall --yes setuptools wheel pip

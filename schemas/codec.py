@@ -15,6 +15,7 @@ import msgpack
 from pydantic import ValidationError
 
 from schemas.base import DecodeError, Message
+from schemas.errors import error_field, error_message
 from schemas.messages import MESSAGES
 
 M = TypeVar("M", bound=Message)
@@ -74,14 +75,6 @@ def unpack_envelope(data: bytes | bytearray | memoryview) -> tuple[str, dict[str
     return kind, body
 
 
-def _error_field(err: dict[str, Any]) -> str:
-    loc = [str(p) for p in err.get("loc", ())]
-    if not loc:
-        ctx = err.get("ctx") or {}
-        return str(ctx.get("field", "<root>"))
-    return ".".join(loc)
-
-
 @overload
 def decode(data: bytes | bytearray | memoryview, expect: type[M]) -> M: ...
 @overload
@@ -122,7 +115,7 @@ def decode(data, expect=None):
         errors = exc.errors(include_url=False)
         first = errors[0]
         more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
-        raise DecodeError(_error_field(first), f"{first.get('msg', 'invalid')}{more}", kind=kind) from None
+        raise DecodeError(error_field(first) or "<root>", f"{error_message(first)}{more}", kind=kind) from None
     except (TypeError, ValueError, RecursionError) as exc:  # defensive: never let garbage crash a service
         raise DecodeError("<root>", f"{type(exc).__name__}: {exc}", kind=kind) from None
 

@@ -1,4 +1,4 @@
-"""Fault specification models (DESIGN §4, issue 5). Names follow netem / Chaos Mesh so experiments carry over.
+"""Fault specification models (docs/faults.md). Names follow netem / Chaos Mesh so experiments carry over.
 
 Units: times are seconds of sim time (virtual-time runs) or wall time (paced runs); probabilities are percent
 (0–100) as in ``tc netem``; correlation is percent as in netem and Chaos Mesh.

@@ -18,7 +18,7 @@ Everything of a run lives under ``morph/<run>/``::
     registry                      (queryable)     sim: RegistrationRequest -> RegistrationReply
     alive/<id>                    liveliness token of a service or agent
 
-Why every agent-sent key starts with ``agent/<sender>/``: issue 7's access control lets an agent publish only under
+Why every agent-sent key starts with ``agent/<sender>/``: Zenoh access control (docs/deploy.md) lets an agent publish only under
 its own prefix, and the fault layer reads the link (sender, receiver) of a message off its key. So a help request is
 addressed ``agent/<agv>/request/<picker>`` (the picker subscribes to ``agent/*/request/<picker>``) and a commit is
 ``agent/<picker>/commit`` rather than a shared ``sim/commit``.
@@ -281,10 +281,6 @@ class RunKeys:
     def stop(self) -> str:
         return self._k("ctl", "stop")
 
-    @property
-    def control(self) -> str:
-        return self._k("ctl", "**")
-
     def event(self, source: int | str) -> str:
         return self._k("events", _agent_chunk(source))
 
@@ -324,7 +320,7 @@ class RunKeys:
 
     def check_author(self, key: str, author: int | str, what: str) -> None:
         """ValueError unless ``key`` lies under ``author``'s own prefix: a message that names its author (an ack's
-        agent, a commit's picker) must come from that author (issue 7's access control, enforced in the services)."""
+        agent, a commit's picker) must come from that author (as the access control of docs/deploy.md wants; enforced in the services)."""
         sender = self.sender_of(key)
         if sender != author:
             raise ValueError(f"{what} {author} on the key of {sender}")

@@ -1,4 +1,4 @@
-"""Every wire message of a run (DESIGN §3 tick protocol, §4 faults, §6 records).
+"""Every wire message of a run: the tick protocol, faults, records (docs/services.md).
 
 Per-robot data travels as parallel arrays indexed by robot id (0..N−1), never as per-robot dicts: a Tick of 128
 robots stays a few kilobytes of msgpack. ``-1`` means "none" in id and cell arrays.
@@ -51,7 +51,7 @@ class Role(str, Enum):
 
 
 class Phase(IntEnum):
-    """Which phase of the two-phase tick an Ack closes (DESIGN §3 steps 2 and 3)."""
+    """Which phase of the two-phase tick an Ack closes (the tick and the resolve round, docs/services.md)."""
 
     TICK = 0
     RESOLVE = 1
@@ -72,7 +72,7 @@ def _out_of_range(field: str, value: int, n: int) -> PydanticCustomError:
 
 
 # ------------------------------------------------------------------------------------------------------------------
-# Tick protocol (DESIGN §3)
+# Tick protocol (docs/services.md)
 # ------------------------------------------------------------------------------------------------------------------
 class Tick(Message):
     """Phase 1 of tick ``t``: the world snapshot after step t−1, published by the sim on ``sim/tick``.
@@ -359,7 +359,7 @@ class Stop(Message):
 
 
 # ------------------------------------------------------------------------------------------------------------------
-# Faults (issue 5) and registration (issue 7)
+# Faults and robot-id registration
 # ------------------------------------------------------------------------------------------------------------------
 class FaultCommand(Message):
     """``set`` a fault, ``list`` the active ones, ``reset`` one (``fault_id``) or all of them."""
@@ -398,7 +398,7 @@ class FaultReply(Message):
 
 
 class RegistrationRequest(Message):
-    """An agent started without an id asks the sim's registry for one (issue 7)."""
+    """An agent started without an id asks the sim's registry for one."""
 
     KIND = "registration_request"
 

@@ -4,7 +4,7 @@ A :class:`RunConfig` travels three ways, all derived from the field list below s
 
 * CLI flags: ``--scale medium --policy morph --seed 42`` (``add_config_arguments`` / ``from_args``);
 * environment variables with the same names: ``MORPH_SCALE=medium MORPH_POLICY=morph`` (``from_env`` / ``to_env``),
-  what the docker-compose file of issue 7 sets;
+  what docker-compose.yml sets;
 * argv for a child process (``to_argv``), what the supervisor passes to ``morph-sim sim|agent|monitor``.
 
 Invalid values raise ``ValueError`` naming the field (pydantic ``ValidationError`` is one).
@@ -23,9 +23,9 @@ from typing import Any, Literal, get_args
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from schemas.keys import validate_run_id
+from services.agent.policies import POLICY_NAMES
 
 ENV_PREFIX = "MORPH_"
-POLICIES = ("full", "constant", "tsg", "proximity", "none", "morph")
 PRESETS = ("reference", "paper")
 
 
@@ -43,7 +43,7 @@ class RunConfig(BaseModel):
     scale: str = Field(default="tiny", description="warehouse size: tiny, small, medium, large, extralarge")
     agvs: int | None = Field(default=None, ge=1, le=2048, description="number of AGVs (default: the scale's)")
     pickers: int | None = Field(default=None, ge=1, le=2048, description="number of pickers (default: the scale's)")
-    policy: Literal["full", "constant", "tsg", "proximity", "none", "morph"] = Field(
+    policy: Literal[POLICY_NAMES] = Field(  # type: ignore[valid-type]
         default="morph", description="coordination policy")
     preset: Literal["reference", "paper"] = Field(default="reference", description="MORPH preset")
     ablation: str | None = Field(default=None, description="MORPH ablation name (None = full model)")

@@ -10,6 +10,7 @@ import os
 import signal
 import socket
 import subprocess
+import sys
 import time
 
 import psutil
@@ -60,3 +61,153 @@ def wait_for_port(port: int, proc: subprocess.Popen, deadline: float, poll: floa
         except OSError:
             assert proc.poll() is None and time.monotonic() < deadline, f"nothing opened 127.0.0.1:{port}"
             time.sleep(poll)
+
+
+class LiveRun:
+    """``morph-sim up`` as a user starts it, for a test: its own session (so its whole process group can be killed
+    by pid), listening on a free loopback port, stdout and stderr in files (an unread pipe can fill and stall the
+    supervisor), every wait bounded. Use it through the ``live_run`` fixture (tests/conftest.py), which kills what
+    is still running at the end of the test.
+    """
+
+    def __init__(self, tmp_path, run_id: str, *flags: str, scale: str = "tiny", listen: bool = True,
+                 output_dir=None, env: dict[str, str] | None = None, quiet: bool = True):
+        from pathlib import Path
+
+        from services.bus.zenoh_bus import free_port
+
+        self.run_id = run_id
+        self.output_dir = Path(output_dir) if output_dir is not None else Path(tmp_path)
+        self.record = self.output_dir / run_id
+        self.port = free_port() if listen else None
+        self.endpoint = f"tcp/127.0.0.1:{self.port}" if listen else None
+        self.argv = [sys.executable, "-m", "morph_sim.cli", "up", *(["--quiet"] if quiet else []), "--scale", scale,
+                     "--run-id", run_id, "--output-dir", str(self.output_dir), *flags,
+                     *(["--listen", self.endpoint] if listen else [])]
+        self.env = env
+        self._logs = Path(tmp_path) / f"up-{run_id}"
+        self.proc: subprocess.Popen | None = None
+        self.seen: set[int] = set()  # every descendant pid observed while waiting
+
+    # -- lifecycle -----------------------------------------------------------------------------------------------------
+    def start(self) -> LiveRun:
+        self._logs.mkdir(parents=True, exist_ok=True)
+        with open(self._logs / "stdout", "wb") as out, open(self._logs / "stderr", "wb") as err:
+            self.proc = subprocess.Popen(self.argv, stdout=out, stderr=err, env=self.env, start_new_session=True)
+        return self
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def running(self) -> bool:
+        return self.proc.poll() is None
+
+    def wait(self, timeout: float) -> int:
+        """Wait for the run to end by itself; its exit status (the test fails with the output after ``timeout``)."""
+        deadline = time.monotonic() + timeout
+        while self.proc.poll() is None:
+            self._note_children()
+            assert time.monotonic() < deadline, f"up did not end within {timeout} s\n{self.stderr()[-3000:]}"
+            time.sleep(0.05)
+        return self.proc.returncode
+
+    async def finished(self, timeout: float) -> int:
+        """:meth:`wait` for an async test: the event loop (and the test's own subscriptions) keeps running."""
+        import asyncio
+
+        deadline = time.monotonic() + timeout
+        while self.proc.poll() is None:
+            self._note_children()
+            assert time.monotonic() < deadline, f"up did not end within {timeout} s\n{self.stderr()[-3000:]}"
+            await asyncio.sleep(0.05)
+        return self.proc.returncode
+
+    async def endpoint_open(self, timeout: float = 60.0) -> None:
+        """:meth:`wait_for_endpoint` for an async test."""
+        await until(self._accepts, timeout, f"endpoint on 127.0.0.1:{self.port} (up alive: {self.running()})")
+
+    def _accepts(self) -> bool:
+        assert self.running(), f"up ended ({self.proc.returncode})\n{self.stderr()[-3000:]}"
+        try:
+            socket.create_connection(("127.0.0.1", self.port), timeout=1).close()
+            return True
+        except OSError:
+            return False
+
+    def signal(self, sig: int = signal.SIGTERM) -> None:
+        """Send ``sig`` to the supervisor process only (what Ctrl-C or ``docker stop`` does)."""
+        self._note_children()
+        if self.proc.poll() is None:
+            os.kill(self.proc.pid, sig)
+
+    def stop(self, timeout: float = 15.0) -> int | None:
+        """SIGTERM, then the exit status within ``timeout`` (None, and everything killed, if it did not end)."""
+        self.signal(signal.SIGTERM)
+        try:
+            return self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.kill()
+            return None
+
+    def kill(self) -> None:
+        """SIGKILL the supervisor, its process group and every descendant seen, and reap the supervisor."""
+        if self.proc is None:
+            return
+        self._note_children()
+        if self.proc.poll() is None:
+            try:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+        kill_all(alive(self.seen))
+        try:
+            self.proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            pass
+
+    def left_behind(self) -> list[int]:
+        """Processes of this run still alive (call after it ended)."""
+        return alive(self.seen | {self.proc.pid})
+
+    # -- waiting for the run's state ----------------------------------------------------------------------------------
+    def _note_children(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.seen |= descendants(self.proc.pid)
+
+    def wait_until(self, condition, timeout: float, what: str, poll: float = 0.1) -> None:
+        """Wait for ``condition()`` while the run is alive; fail naming ``what`` if it ends or ``timeout`` passes."""
+        deadline = time.monotonic() + timeout
+        while not condition():
+            self._note_children()
+            assert self.proc.poll() is None, f"up ended ({self.proc.returncode}) before {what}\n{self.stderr()[-3000:]}"
+            assert time.monotonic() < deadline, f"no {what} within {timeout} s\n{self.stderr()[-3000:]}"
+            time.sleep(poll)
+
+    def wait_for_endpoint(self, timeout: float = 60.0) -> None:
+        self.wait_until(self._accepts, timeout, f"endpoint on 127.0.0.1:{self.port}", poll=0.1)
+
+    def rows(self) -> int:
+        """Rows of ``metrics.csv`` written so far."""
+        path = self.record / "metrics.csv"
+        return max(0, path.read_text().count("\n") - 1) if path.exists() else 0
+
+    def wait_for_rows(self, n: int, timeout: float = 90.0) -> None:
+        self.wait_until(lambda: self.rows() >= n, timeout, f"{n} rows in {self.record / 'metrics.csv'}")
+
+    # -- output ----------------------------------------------------------------------------------------------------------
+    def stdout(self) -> str:
+        return (self._logs / "stdout").read_text(errors="replace")
+
+    def stderr(self) -> str:
+        return (self._logs / "stderr").read_text(errors="replace")
+
+
+async def until(condition, timeout: float = 3.0, what: str = "condition") -> None:
+    """Wait (on the event loop) until ``condition()`` holds; fail naming ``what`` after ``timeout`` seconds."""
+    import asyncio
+
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, f"{what} not met within {timeout} s"
+        await asyncio.sleep(0.005)

@@ -1,4 +1,4 @@
-"""`morph-sim agent` without --id claims its robot id from the sim's registry (issue 7, C1/C2), and processes read
+"""`morph-sim agent` without --id claims its robot id from the sim's registry (C1/C2), and processes read
 the deployment's Zenoh config from ZENOH_CONFIG (C3). Live, on 127.0.0.1 only."""
 
 from __future__ import annotations

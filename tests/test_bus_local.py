@@ -7,12 +7,13 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Callable
 
 import pytest
 
 from schemas import Ack, RegistrationReply, RegistrationRequest, RunKeys, Stop, decode, intersects
 from services.bus import Bus, LivelinessEvent, LocalNetwork, Sample, wait_for_alive
+
+from _procs import until
 
 K = RunKeys("t1")
 
@@ -79,14 +80,6 @@ async def get_until(bus: Bus, selector: str, n: int, timeout: float = 5.0, **kw)
         if len(replies) >= n or time.monotonic() > deadline:
             return replies
         await asyncio.sleep(0.02)
-
-
-async def until(cond: Callable[[], bool], timeout: float = 3.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        await asyncio.sleep(0.005)
 
 
 async def test_publish_subscribe_message(env) -> None:
@@ -415,7 +408,7 @@ async def test_local_delivery_order_is_deterministic() -> None:
         log: list[tuple[str, str, int]] = []
         for bus in buses:
             await bus.subscribe("morph/t1/**", lambda s, me=bus.identity: log.append((me, s.sender, s.seq)))
-        for round_ in range(3):
+        for _round in range(3):
             for bus in reversed(buses):
                 await bus.publish(K.ack(int(bus.identity)), b"x")
         await asyncio.sleep(0)

@@ -1,4 +1,4 @@
-"""docker-compose.yml without a Docker engine (issue 7): it parses, its commands are real CLI invocations, its process
+"""docker-compose.yml without a Docker engine: it parses, its commands are real CLI invocations, its process
 graph is the supervisor's, its environment is the RunConfig's, and the services honour its healthcheck and stop signal.
 """
 
@@ -16,14 +16,14 @@ from pathlib import Path
 
 import pytest
 
-from _yaml_subset import YamlSubsetError, defaults_of, interpolate, loads
+from _compose import defaults_of, interpolate, load
 from morph_sim.cli import build_parser
 from services import envconfig
 from services.runconfig import RunConfig, config_from_args
-from services.supervisor.graph import CHILD_ENV, process_graph
+from services.supervisor.graph import process_graph
 
 ROOT = Path(__file__).resolve().parent.parent
-COMPOSE = loads((ROOT / "docker-compose.yml").read_text())
+COMPOSE = load(ROOT / "docker-compose.yml")
 # The run itself: the services `docker compose up` starts without a profile (profile services such as
 # "monitoring"'s Prometheus and Grafana are third-party images, checked in tests/test_monitoring.py).
 SERVICES = {name: s for name, s in COMPOSE["services"].items() if "profiles" not in s}
@@ -54,21 +54,15 @@ def _parse(argv: list[str]):
 
 
 def _without_prometheus(argv: list[str]) -> list[str]:
-    """Until the monitor has --prometheus-port (issue 6), check the rest of its command line."""
+    """Until the monitor has --prometheus-port, check the rest of its command line."""
     if PROMETHEUS_FLAG_EXISTS or "--prometheus-port" not in argv:
         return argv
     i = argv.index("--prometheus-port")
     return argv[:i] + argv[i + 2:]
 
 
-# -- the YAML subset itself ---------------------------------------------------------------------------------------
-def test_the_yaml_subset_parser_is_strict():
-    assert loads("a: &x\n  b: 1\nc: *x\nd: [\"p\", q]\ne:\n  - 'it''s'\n") == {
-        "a": {"b": 1}, "c": {"b": 1}, "d": ["p", "q"], "e": ["it's"]}
-    for bad in ("a: 1\na: 2\n", "a:\n\t- 1\n", "a: yes\n", "a: |\n  x\n", "<<: *x\n", "---\na: 1\n",
-                "a: b: c\n", "a:\n  - b: 1\n", "a: [1, [2]]\n", "a: \"open\n"):
-        with pytest.raises(YamlSubsetError):
-            loads(bad)
+# -- Compose's interpolation ------------------------------------------------------------------------------------------
+def test_interpolation_follows_compose():
     assert interpolate("${A:-x}/${B-y}/${C}/$$D", {"A": "", "B": ""}) == "x///$D"
     assert defaults_of("${A:-1}:${B}") == [("A", "1"), ("B", None)]
 

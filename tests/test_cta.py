@@ -1,6 +1,6 @@
 """The reference CTA controller on the warehouse core.
 
-Reference numbers are from research/morph.md §8.2 (our run of the published morph_v2 code on TA-RWARE@6109c33
+Reference numbers are from our run of the published morph_v2 code on TA-RWARE@6109c33
 with the rotation-aware A*): Full-Graph per-seed deliveries for seeds 42, 7, 123, 999, 2024.
 """
 

@@ -1,4 +1,4 @@
-"""The Dockerfile without a Docker engine (issue 7): its instructions are checked, and (slow) its steps are replayed —
+"""The Dockerfile without a Docker engine: its instructions are checked, and (slow) its steps are replayed —
 the build context it would see, the wheel it builds, a fresh venv that installs that wheel, `morph-sim up` from it.
 """
 
@@ -14,9 +14,8 @@ import sysconfig
 import zipfile
 from pathlib import Path
 
-import pytest
 
-from _yaml_subset import interpolate, loads
+from _compose import interpolate, load
 from morph_sim.cli import build_parser
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -157,7 +156,7 @@ def test_the_runtime_stage_runs_as_a_non_root_user_without_dev_tools():
     users = [rest for word, rest in runtime if word == "USER"]
     assert users and users[-1] not in ("root", "0") and not users[-1].startswith("0:")
     runs = " && ".join(rest for word, rest in runtime if word == "RUN")
-    assert f"useradd --system --uid 10001 --gid morph" in runs and users[-1] == "morph"
+    assert "useradd --system --uid 10001 --gid morph" in runs and users[-1] == "morph"
     for tool in ("apt-get", "apk ", "gcc", "build-essential", "git ", "make ", "pytest", "[test]", "-e "):
         assert tool not in runs, f"runtime stage installs or uses {tool.strip()!r}"
     assert "pip install /tmp/wheels/*.whl" in runs, "the runtime installs the wheel built in the first stage"
@@ -180,7 +179,7 @@ def test_the_default_command_is_a_real_morph_sim_invocation():
 
 
 def test_exposed_ports_are_the_ones_compose_uses():
-    compose = interpolate(loads((ROOT / "docker-compose.yml").read_text()), {})
+    compose = interpolate(load(ROOT / "docker-compose.yml"), {})
     exposed = {p.split("/")[0] for word, rest in DOCKERFILE if word == "EXPOSE" for p in rest.split()}
     sim_port = compose["services"]["sim"]["command"][-1].rsplit(":", 1)[1]
     prom_port = compose["services"]["monitor"]["ports"][0].rsplit(":", 1)[1]

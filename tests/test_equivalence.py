@@ -1,4 +1,4 @@
-"""DESIGN §7.4: a zero-fault distributed run (``morph-sim up``: one OS process per agent over Zenoh) equals the
+"""A zero-fault distributed run (``morph-sim up``: one OS process per agent over Zenoh) equals the
 LocalBus run (``morph-sim run``) with the same seed — per-tick deliveries, links and W snapshots, tick for tick.
 
 The default suite keeps one configuration per scale of the fast kind; the full matrix is marked slow.
@@ -7,8 +7,6 @@ The default suite keeps one configuration per scale of the fast kind; the full m
 from __future__ import annotations
 
 import asyncio
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -18,27 +16,16 @@ from services.monitor.recorder import read_metrics, read_snapshots
 from services.runconfig import RunConfig
 from services.supervisor.local import run_local
 
-from _procs import kill_tree
 
 POLICIES = [("full", "reference"), ("tsg", "reference"), ("proximity", "reference"), ("morph", "reference"),
             ("morph", "paper")]
 
 
-def run_up(out: Path, run_id: str, scale: str, policy: str, preset: str, steps: int, seed: int,
-           timeout: float = 300) -> None:
-    argv = [sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", scale, "--policy", policy,
-            "--preset", preset, "--steps", str(steps), "--seed", str(seed), "--run-id", run_id,
-            "--output-dir", str(out), "--state-every", "10", "--snapshot-every", "50"]
-    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        _, err = proc.communicate(timeout=timeout)
-    finally:
-        kill_tree(proc)
-    assert proc.returncode == 0, err
-
-
-def check_equal(tmp_path: Path, scale: str, policy: str, preset: str, steps: int = 200, seed: int = 42) -> None:
-    run_up(tmp_path / "up", "eq", scale, policy, preset, steps, seed)
+def check_equal(live_run, tmp_path: Path, scale: str, policy: str, preset: str, steps: int = 200, seed: int = 42
+                ) -> None:
+    up = live_run("eq", "--policy", policy, "--preset", preset, "--steps", str(steps), "--seed", str(seed),
+                  "--state-every", "10", "--snapshot-every", "50", scale=scale, listen=False, output_dir=tmp_path / "up")
+    assert up.wait(timeout=300) == 0, up.stderr()[-3000:]
     config = RunConfig(run_id="eq", scale=scale, policy=policy, preset=preset, steps=steps, seed=seed,
                        state_every=10, snapshot_every=50, output_dir=tmp_path / "local")
     asyncio.run(run_local(config))
@@ -55,18 +42,18 @@ def check_equal(tmp_path: Path, scale: str, policy: str, preset: str, steps: int
         np.testing.assert_array_equal(up_snaps[t]["A"], local_snaps[t]["A"], err_msg=f"A at tick {t}")
 
 
-def test_up_equals_local_tiny_morph(tmp_path):
-    check_equal(tmp_path, "tiny", "morph", "reference")
+def test_up_equals_local_tiny_morph(live_run, tmp_path):
+    check_equal(live_run, tmp_path, "tiny", "morph", "reference")
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("scale", ["tiny", "small"])
 @pytest.mark.parametrize("policy,preset", POLICIES)
-def test_up_equals_local(tmp_path, scale, policy, preset):
-    check_equal(tmp_path, scale, policy, preset)
+def test_up_equals_local(live_run, tmp_path, scale, policy, preset):
+    check_equal(live_run, tmp_path, scale, policy, preset)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("policy,preset", [("morph", "reference"), ("morph", "paper")])
-def test_up_equals_local_medium(tmp_path, policy, preset):
-    check_equal(tmp_path, "medium", policy, preset, steps=400)
+def test_up_equals_local_medium(live_run, tmp_path, policy, preset):
+    check_equal(live_run, tmp_path, "medium", policy, preset, steps=400)

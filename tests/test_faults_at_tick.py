@@ -1,6 +1,6 @@
 """Runtime fault commands with ``at_tick`` (``morph-sim faults set --at-tick N``): every process applies the command at
 the start of tick N instead of on arrival, so a run changed at run time is as reproducible as one with the same
-command in a schedule file (virtual time, issue 5)."""
+command in a schedule file (virtual time)."""
 
 from __future__ import annotations
 
@@ -92,41 +92,24 @@ def test_at_tick_is_validated_on_the_wire_and_on_the_command_line() -> None:
 
 
 @pytest.mark.slow  # ~40 s: a 4,000-tick `up` run plus the LocalBus run it is compared with (reduced: the test above)
-def test_faults_set_at_tick_on_a_live_up_run_equals_the_scheduled_localbus_run(tmp_path):
+def test_faults_set_at_tick_on_a_live_up_run_equals_the_scheduled_localbus_run(tmp_path, live_run):
     import json
-    import os
-    import signal
     import subprocess
     import sys
-    import time
 
-    from services.bus.zenoh_bus import free_port
     from services.monitor.recorder import read_metrics
 
     steps, at = 4000, 3000  # the CLI's answers must all come before tick `at`, with margin on a loaded machine
-    port = free_port()
     flags = ["--scale", "tiny", "--policy", "full", "--seed", "9", "--steps", str(steps), "--run-id", "live"]
-    up = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "up", "--quiet", *flags, "--listen",
-                           f"tcp/127.0.0.1:{port}", "--output-dir", str(tmp_path / "up")],
-                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
-    try:
-        metrics = tmp_path / "up" / "live" / "metrics.csv"
-        deadline = time.monotonic() + 60
-        while not metrics.exists() or metrics.read_text().count("\n") < 2:  # the run is under way
-            assert up.poll() is None and time.monotonic() < deadline, "up did not start its run"
-            time.sleep(0.1)
-        spec = json.dumps(SPEC.model_dump(mode="json", exclude_none=True))
-        cli = subprocess.run([sys.executable, "-m", "morph_sim.cli", "faults", "set", "--run", "live", "--endpoint",
-                              f"tcp/127.0.0.1:{port}", "--spec", spec, "--at-tick", str(at), "--each"],
-                             capture_output=True, text=True, timeout=60)
-        replies = [json.loads(line) for line in cli.stdout.splitlines()]
-        assert cli.returncode == 0 and len(replies) >= 9 and all(r["ok"] for r in replies), (cli.stdout, cli.stderr)
-        _, err = up.communicate(timeout=180)
-        assert up.returncode == 0, err[-2000:]
-    finally:
-        if up.poll() is None:
-            os.killpg(up.pid, signal.SIGKILL)
-            up.wait()
+    up = live_run("live", *flags[2:-2], output_dir=tmp_path / "up")
+    up.wait_for_rows(2, timeout=60)  # the run is under way
+    spec = json.dumps(SPEC.model_dump(mode="json", exclude_none=True))
+    cli = subprocess.run([sys.executable, "-m", "morph_sim.cli", "faults", "set", "--run", "live", "--endpoint",
+                          up.endpoint, "--spec", spec, "--at-tick", str(at), "--each"],
+                         capture_output=True, text=True, timeout=60)
+    replies = [json.loads(line) for line in cli.stdout.splitlines()]
+    assert cli.returncode == 0 and len(replies) >= 9 and all(r["ok"] for r in replies), (cli.stdout, cli.stderr)
+    assert up.wait(timeout=180) == 0, up.stderr()[-2000:]
     schedule = tmp_path / "at.toml"
     schedule.write_text(f"[[at]]\ntick = {at}\nspec = {json.dumps(SPEC.model_dump(mode='json', exclude_none=True))}\n"
                         .replace('": ', '" = ').replace('{"', '{ "'))

@@ -22,7 +22,7 @@ import time
 
 from schemas.hot import decode_tick
 from schemas.keys import RunKeys
-from services.bus.zenoh_bus import ZenohBus, endpoint, free_port
+from services.bus.zenoh_bus import endpoint, free_port
 from services.monitor.recorder import read_metrics
 from services.monitor.report import load
 

@@ -1,4 +1,4 @@
-"""Runtime fault control (issue 5): the ctl/faults controller in every process, the TOML schedule, the
+"""Runtime fault control: the ctl/faults controller in every process, the TOML schedule, the
 ``morph-sim faults`` command (over real Zenoh), events with sim time, and ``reset`` that always heals."""
 
 from __future__ import annotations

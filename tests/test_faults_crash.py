@@ -1,9 +1,8 @@
-"""Process faults (issue 5): the crash planner's schedule (at a tick, every k ticks, a seeded random agent) and the
+"""Process faults: the crash planner's schedule (at a tick, every k ticks, a seeded random agent) and the
 faulter's signals on a real child process (SIGSTOP/SIGCONT, SIGKILL), by pid."""
 
 from __future__ import annotations
 
-import asyncio
 import os
 import signal
 import subprocess
@@ -15,6 +14,8 @@ from schemas.faults import Crash
 from services.bus import LocalNetwork
 from services.faults.controller import FaultController
 from services.faults.crash import CrashPlanner, ProcessFaulter
+
+from _procs import until
 
 
 def test_planner_at_tick_every_k_and_seeded_random_agent() -> None:
@@ -78,10 +79,8 @@ async def test_faulter_pauses_resumes_and_kills_a_real_process() -> None:
         faulter = ProcessFaulter(lambda agent: child.pid if agent == 1 else None)
         [pause] = plan.due(1)
         assert faulter.execute(pause) == child.pid
-        await asyncio.sleep(0.05)
-        assert _state(child.pid) == "T"  # stopped
-        await asyncio.sleep(0.4)
-        assert _state(child.pid) in ("S", "R")  # continued after pause_for
+        await until(lambda: _state(child.pid) == "T", what="the child stopped")
+        await until(lambda: _state(child.pid) in ("S", "R"), what="the child continued after pause_for")
         kill, absent = plan.due(3)
         assert faulter.execute(kill) == child.pid and faulter.execute(absent) is None
         assert child.wait(timeout=5) == -signal.SIGKILL

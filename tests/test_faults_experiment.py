@@ -61,7 +61,7 @@ def test_reduced_experiment_writes_json_and_plot(tmp_path) -> None:
 @pytest.mark.parametrize(("condition", "lab_condition", "preset"), [
     ("MORPH (reference)", "morph", "reference"), ("MORPH (paper)", "morph", "paper"), ("TSG", "tsg", "reference")])
 def test_zero_fault_point_is_the_lab_episode(condition: str, lab_condition: str, preset: str) -> None:
-    """Without faults the experiment's protocol is the lab's DESIGN protocol, tick for tick."""
+    """Without faults the experiment's protocol is the lab's protocol, tick for tick."""
     from morph_sim.lab.runner import EpisodeSpec, run_episode
 
     ours = run_fault_episode(condition, "bernoulli", 0, seed=42, steps=200)

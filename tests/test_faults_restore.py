@@ -1,4 +1,4 @@
-"""A restarted agent restores its plasticity state from the latest published states (issue 5): the restored brain's
+"""A restarted agent restores its plasticity state from the latest published states: the restored brain's
 state message equals the last one published (W row, links, thresholds, ages, h, η, d̂), for both MORPH presets."""
 
 from __future__ import annotations

@@ -85,7 +85,7 @@ async def test_agent_killed_every_100_ticks_rejoins_with_its_state_and_no_tick_i
     assert result.steps == 320 and len(result.per_tick_deliveries) == 320  # every tick ran, none lost
     assert [t for t, _ in kills] == [100, 200, 300]
     assert len(monitor.result.rows) == 320  # and every tick is in the record
-    for (t, last), new in zip(kills, restarted):
+    for (_t, last), new in zip(kills, restarted):
         assert last is not None and new.restored_from is not None
         assert new.restored_from.t == last.t and new.restored_from.w_row == last.w_row  # W row = last published
     assert any(any(new.restored_from.w_row) for new in restarted)  # a learnt state came back, not zeros

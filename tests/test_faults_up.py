@@ -1,4 +1,4 @@
-"""Crash faults under ``morph-sim up`` (issue 5): real OS processes over Zenoh on loopback.
+"""Crash faults under ``morph-sim up``: real OS processes over Zenoh on loopback.
 
 A schedule file asks for "kill agent k every 100 ticks"; the supervisor carries it out by pid (SIGKILL), restarts
 the agent, which restores its brain from the monitor's latest state and rejoins. The run completes with every tick
@@ -16,7 +16,7 @@ from pathlib import Path
 
 from schemas import AgentState, Event
 from schemas.keys import RunKeys
-from services.bus.zenoh_bus import ZenohBus, endpoint, free_port
+from services.bus.zenoh_bus import endpoint, free_port
 from services.monitor.recorder import read_metrics
 
 from _procs import alive, descendants, kill_all

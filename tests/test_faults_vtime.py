@@ -1,4 +1,4 @@
-"""Virtual time (DESIGN §4, issue 5) on the real LocalBus: a message sent at sim time s with latency L is delivered at
+"""Virtual time (docs/faults.md) on the real LocalBus: a message sent at sim time s with latency L is delivered at
 the first phase boundary at or after s + L, late if that is after its phase's deadline; runs are deterministic; the
 link meter measures what arrived. Wall-time mode sleeps for real."""
 
@@ -15,6 +15,8 @@ from services.bus import LocalNetwork
 from services.faults.layer import FaultLayer, install
 from services.faults.linkstats import LinkMeter, key_class
 from services.faults.vtime import VirtualTime, boundaries, release_boundary
+
+from _procs import until
 
 K = RunKeys("vt")
 
@@ -153,7 +155,7 @@ async def test_wall_time_mode_sleeps_for_real() -> None:
     await sender.publish(K.commit(2), b"x")
     await asyncio.sleep(0.01)
     assert got == []
-    await asyncio.sleep(0.15)
+    await until(lambda: got, what="the delayed message")
     assert len(got) == 1 and got[0] - t0 >= 0.045
     assert layer.meter.report()["agent/*/commit"].latency["max"] >= 0.045
     await sender.close()

@@ -1,4 +1,4 @@
-"""The shipped heuristic controller (tarware.md §11)."""
+"""The shipped heuristic controller."""
 
 import pytest
 

@@ -142,6 +142,19 @@ def test_suite_writes_records_tables_and_plots(tmp_path):
     assert markdown_table(cfg, again) .splitlines()[:7] == markdown_table(cfg, summarise(cfg, res.episodes)).splitlines()[:7]
 
 
+def test_the_suite_gives_the_same_episodes_in_worker_processes_and_in_this_process():
+    cfg = SuiteConfig(kind="scale", scales=("tiny",), seeds=(42, 7), steps=60, conditions=("proximity", "morph"),
+                      jobs=2)
+    pooled = run_suite(cfg, None, show_progress=False)
+    serial = run_suite(cfg.model_copy(update={"jobs": 1}), None, show_progress=False)
+
+    def strip(episodes):
+        return [{k: v for k, v in e.items() if k != "wall_s"} for e in episodes]
+
+    assert pooled.radii == serial.radii
+    assert repr(strip(pooled.episodes)) == repr(strip(serial.episodes))  # repr: NaN compares equal to itself
+
+
 def test_cli_experiment_small_run_and_errors(tmp_path, capsys):
     code = cli_main(["experiment", "ablation", "--scales", "tiny", "--seeds", "42", "--steps", "60",
                      "--conditions", "morph,v1", "--jobs", "1", "--no-progress", "--out", str(tmp_path),

@@ -1,4 +1,4 @@
-"""Layouts: the original's size table, grid formulas and index orders (spec tarware.md §2)."""
+"""Layouts: the original's size table, grid formulas and index orders."""
 
 import numpy as np
 import pytest
@@ -6,7 +6,7 @@ from pydantic import ValidationError
 
 from services.sim.world.layout import Layout, LayoutConfig, layout_for, named_sizes
 
-# tarware.md §2.2: name -> (H, W, shelves S, goals G, action size 1+G+S, rack groups, highway cells, queue)
+# the original's size table: name -> (H, W, shelves S, goals G, action size 1+G+S, rack groups, highway cells, queue)
 SIZES = {
     "tiny": (15, 14, 48, 6, 55, 3, 162, 20),
     "small": (25, 14, 96, 6, 103, 6, 254, 20),
@@ -35,7 +35,7 @@ def test_named_sizes_have_default_fleets():
 
 
 def test_small_grid_picture():
-    """The 'small' map drawn in tarware.md §2.1."""
+    """The 'small' map as the original draws it."""
     lay = Layout(LayoutConfig.named("small"))
     rows = ["".join("." if lay.highway[y, x] else "#" for x in range(lay.W)) for y in range(lay.H)]
     assert rows[0] == rows[1] == ".............."
@@ -61,7 +61,7 @@ def test_action_ids_goals_then_racks_column_major():
 
 def test_shelf_ids_row_major():
     lay = Layout(LayoutConfig.named("tiny"))
-    # tarware.md §13.5: shelf ids 47, 15, 37 sit at (10, 9), (6, 4), (2, 8)
+    # in the original: shelf ids 47, 15, 37 sit at (10, 9), (6, 4), (2, 8)
     assert lay.shelf_cells[47 - 1] == (10, 9)
     assert lay.shelf_cells[15 - 1] == (6, 4)
     assert lay.shelf_cells[37 - 1] == (2, 8)

@@ -1,4 +1,4 @@
-"""Metric streams (issue 6): every documented stream is published by the monitor, versioned, with tick and time."""
+"""Metric streams: every documented stream is published by the monitor, versioned, with tick and time."""
 
 from __future__ import annotations
 
@@ -8,10 +8,12 @@ import pytest
 
 from schemas import MetricSample
 from services.bus.local import LocalNetwork
-from services.monitor.streams import (STREAM_NAMES, Decimator, Histogram, MessageStats, markdown_table,
-                                                subscribe_metrics)
+from services.monitor.catalogue import BY_NAME, NAMES
+from services.monitor.streams import Decimator, Histogram, MessageStats, subscribe_metrics
 from services.runconfig import RunConfig
 from services.supervisor.local import run_local
+
+from _procs import until
 
 
 async def test_every_documented_stream_is_published_during_a_run(tmp_path):
@@ -21,13 +23,15 @@ async def test_every_documented_stream_is_published_during_a_run(tmp_path):
     watcher = net.session("watcher")
     await subscribe_metrics(watcher, config.run_id, lambda m: seen.setdefault(m.name, []).append(m))
     run = await run_local(config, network=net)
-    await asyncio.sleep(0.05)
+    await until(lambda: seen.get("deliveries_total") and seen["deliveries_total"][-1].t == config.steps - 1,
+                what="the final samples")
     await watcher.close()
     # net/* exist only under a network profile (--network): tests/test_network_services.py
-    missing = set(STREAM_NAMES) - set(seen) - {n for n in STREAM_NAMES if n.startswith("net/")}
+    missing = set(NAMES) - set(seen) - {n for n in NAMES if n.startswith("net/")}
     assert not missing, f"documented but never published: {sorted(missing)}"
     for name, samples in seen.items():
-        assert name in STREAM_NAMES, name
+        assert name in NAMES, name
+        assert {s.unit for s in samples} == {BY_NAME[name].unit}, f"{name}: the catalogue's unit on the wire"
         s = samples[-1]
         assert s.v == MetricSample.VERSION and s.t >= 0 and s.sim_time >= 0
     assert seen["deliveries_total"][-1].value == run.monitor.deliveries_total
@@ -84,27 +88,17 @@ def test_message_stats_count_sequence_gaps_dispatch_delay_and_buckets():
     assert h.cumulative() == [("0.1", 2), ("1.0", 3), ("+Inf", 4)]
 
 
-def test_the_readme_table_lists_every_stream():
-    table = markdown_table()
-    for name in STREAM_NAMES:
-        assert f"`{name}`" in table
-
-
-def _sustain(tmp_path, scale: str, agvs: int, pickers: int, steps: int) -> dict:
+def _sustain(live_run, tmp_path, scale: str, agvs: int, pickers: int, steps: int) -> dict:
     """Run ``up`` with every agent publishing its state every tick; the monitor must count every message."""
     import json
-    import subprocess
-    import sys
     import time
 
     run_id = f"sustain-{agvs + pickers}"
     t0 = time.monotonic()
-    proc = subprocess.run(
-        [sys.executable, "-m", "morph_sim.cli", "up", "--scale", scale, "--agvs", str(agvs), "--pickers",
-         str(pickers), "--steps", str(steps), "--state-every", "1", "--run-id", run_id, "--quiet",
-         "--phase-timeout", "60", "--output-dir", str(tmp_path)], capture_output=True, text=True, timeout=1500)
+    up = live_run(run_id, "--agvs", str(agvs), "--pickers", str(pickers), "--steps", str(steps), "--state-every",
+                  "1", "--phase-timeout", "60", scale=scale, listen=False)
+    assert up.wait(1500) == 0, up.stdout()[-2000:] + up.stderr()[-2000:]
     elapsed = time.monotonic() - t0
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     summary = json.loads((tmp_path / run_id / "summary.json").read_text())
     n = agvs + pickers
     assert summary["steps"] == steps and summary["rejected"] == 0
@@ -117,10 +111,10 @@ def _sustain(tmp_path, scale: str, agvs: int, pickers: int, steps: int) -> dict:
     return summary
 
 
-def test_the_monitor_counts_every_state_of_a_small_run(tmp_path):
-    _sustain(tmp_path, "tiny", 5, 3, 100)
+def test_the_monitor_counts_every_state_of_a_small_run(live_run, tmp_path):
+    _sustain(live_run, tmp_path, "tiny", 5, 3, 100)
 
 
 @pytest.mark.slow
-def test_the_monitor_sustains_a_64_agent_run_with_no_drops(tmp_path):
-    _sustain(tmp_path, "large", 42, 22, 60)
+def test_the_monitor_sustains_a_64_agent_run_with_no_drops(live_run, tmp_path):
+    _sustain(live_run, tmp_path, "large", 42, 22, 60)

@@ -55,7 +55,7 @@ def test_link_tracker_scripted_sequence():
     ]
     tr = m.LinkTracker(n)
     formed, pruned = [], []
-    for t, A in enumerate(seq):
+    for _t, A in enumerate(seq):
         f, p = tr.update(A)
         formed.append(f)
         pruned.append(p)
@@ -163,7 +163,7 @@ def test_path_graph_lambda2(n):
 def test_complete_graph_lambda2_both_definitions(n):
     K = np.ones((n, n), dtype=int) - np.eye(n, dtype=int)
     assert m.algebraic_connectivity(K) == pytest.approx(n)
-    # Normalised Laplacian of K_n has eigenvalues 0 and n/(n-1): K_8 gives 8/7 (morph.md §7.4, Tiny at t=100).
+    # Normalised Laplacian of K_n has eigenvalues 0 and n/(n-1): K_8 gives 8/7 (the reference's Tiny at t=100).
     assert m.reference_normalized_fiedler(K) == pytest.approx(n / (n - 1))
 
 

@@ -1,7 +1,7 @@
-"""The ``reference`` preset against the published code's behaviour (research/morph.md §4.7, §8.2, §10).
+"""The ``reference`` preset against the published code's behaviour.
 
-Reference numbers are copied from research/morph.md §8.2 and §4.7 (the spec's run of
-Cyber-physical-Systems-Lab/morph_v2@5f21ee4 on TA-RWARE@6109c33 with the rotation-aware A*). With the
+Reference numbers come from our run of the published code
+(Cyber-physical-Systems-Lab/morph_v2@5f21ee4 on TA-RWARE@6109c33 with the rotation-aware A*). With the
 reference's switches (sequential dispatch, one shared stream) our trajectories reproduce those runs.
 """
 
@@ -10,7 +10,7 @@ import pytest
 
 from morph_sim.lab.runner import REFERENCE_SEEDS, EpisodeSpec, run_episode
 
-# morph.md §8.2: per-seed final deliveries (seeds 42, 7, 123, 999, 2024), mean ± population std, mean links
+# the reference code's per-seed final deliveries (seeds 42, 7, 123, 999, 2024), mean ± population std, mean links
 REFERENCE_82 = {
     ("tiny", "morph"): ([56, 57, 56, 52, 59], 56.0, 2.3, 27.1),
     ("small", "morph"): ([68, 71, 66, 65, 69], 67.8, 2.1, 38.6),
@@ -29,7 +29,7 @@ REFERENCE_82 = {
     ("medium", "proximity"): ([96, 92, 96, 94, 100], 95.6, 2.7, 30.0),
     ("large", "proximity"): ([106, 112, 108, 108, 106], 108.0, 2.2, 60.2),
 }
-RADII = {"tiny": 10, "small": 10, "medium": 6, "large": 8}  # §6: what the calibration chose
+RADII = {"tiny": 10, "small": 10, "medium": 6, "large": 8}  # what the calibration chose
 
 
 def _ref(scale, condition, seed, steps=800, **kw):
@@ -56,24 +56,24 @@ def _trace(spec):
 def test_medium_seed42_mechanics():
     result, formed, h = _trace(_ref("medium", "morph", 42))
     s = result.summary
-    assert s["deliveries"] == 75  # §8.2 per-seed value, exactly
-    assert s["median_lifetime"] == 21  # §4.6
-    assert len(formed) == 266 and set(formed) == {3}  # §4.7: 3 links at every structural step
-    assert np.all(h.max(axis=0) == 1.0) and h[-1].min() > 0.99  # §4.7: every h_i reaches 1 and stays there
-    assert s["mean_p_respond"] == pytest.approx(0.271, abs=0.01)  # §4.7
-    assert s["dispatch_decisions"] == 574  # §4.7
+    assert s["deliveries"] == 75  # the reference's per-seed value, exactly
+    assert s["median_lifetime"] == 21
+    assert len(formed) == 266 and set(formed) == {3}  # 3 links at every structural step
+    assert np.all(h.max(axis=0) == 1.0) and h[-1].min() > 0.99  # every h_i reaches 1 and stays there
+    assert s["mean_p_respond"] == pytest.approx(0.271, abs=0.01)
+    assert s["dispatch_decisions"] == 574
     assert s["w_asymmetry"] == 0.0
-    assert s["link_events"] == 754  # §4.6
+    assert s["link_events"] == 754
 
 
 def test_tiny_seed42_mechanics():
     result, formed, h = _trace(_ref("tiny", "morph", 42))
     s = result.summary
     assert s["deliveries"] == 56
-    assert np.all(h.min(axis=0) == 0.0) and h[-1].max() < 0.01  # §4.7: h saturates at 0 at Tiny
+    assert np.all(h.min(axis=0) == 0.0) and h[-1].max() < 0.01  # h saturates at 0 at Tiny
     assert s["mean_p_respond"] == pytest.approx(0.326, abs=0.01)
     assert s["dispatch_decisions"] == 340
-    assert np.bincount(formed, minlength=4).tolist() == [2, 47, 108, 109]  # §4.7 (limited by free pairs)
+    assert np.bincount(formed, minlength=4).tolist() == [2, 47, 108, 109]  # (limited by free pairs)
 
 
 @pytest.mark.parametrize("scale,links", [("tiny", 27.1), ("small", 38.6), ("medium", 40.0), ("large", 56.5)])

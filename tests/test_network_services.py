@@ -20,7 +20,6 @@ from services.runconfig import RunConfig
 from services.sim.world.layout import LayoutConfig, layout_for
 from services.supervisor.local import run_local
 
-from test_equivalence import run_up
 
 
 def config(tmp_path, network: str | None, run_id: str = "net", **kw) -> RunConfig:

@@ -1,4 +1,4 @@
-"""Prometheus /metrics of the monitor (issue 6, containers' C4): scraped on 127.0.0.1 during and after a run."""
+"""Prometheus /metrics of the monitor (containers' C4): scraped on 127.0.0.1 during and after a run."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Bus record and offline replay (issue 6): the replayed monitor recomputes the live run's metrics exactly."""
+"""Bus record and offline replay: the replayed monitor recomputes the live run's metrics exactly."""
 
 from __future__ import annotations
 

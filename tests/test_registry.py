@@ -1,4 +1,4 @@
-"""Robot-id registration (issue 7): the pure allocator, and the sim's registry queryable over LocalBus and ZenohBus."""
+"""Robot-id registration: the pure allocator, and the sim's registry queryable over LocalBus and ZenohBus."""
 
 from __future__ import annotations
 

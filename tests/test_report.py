@@ -1,26 +1,21 @@
-"""``morph-sim report`` and the run record's robustness (issue 6)."""
+"""``morph-sim report`` and the run record's robustness."""
 
 from __future__ import annotations
 
 import asyncio
 import os
 import signal
-import subprocess
-import sys
-import time
 
 import numpy as np
 import psutil
 import pytest
 from PIL import Image
 
-from services.bus.zenoh_bus import free_port
 from services.monitor.recorder import Recorder, read_metrics
 from services.monitor.report import load, numbers, write_report
 from services.runconfig import RunConfig
 from services.supervisor.local import run_local
 
-from _procs import wait_for_port
 
 
 def test_the_report_renders_every_figure_and_the_gif(tmp_path):
@@ -59,28 +54,15 @@ def test_a_restarted_recorder_trims_a_cut_line_and_resumes(tmp_path):
     assert [r["t"] for r in read_metrics(config.record_dir)] == ["0", "1"]
 
 
-def test_a_monitor_killed_and_restarted_mid_run_leaves_a_record_equal_apart_from_the_gap(tmp_path):
-    flags = ["--scale", "tiny", "--steps", "1500", "--seed", "5", "--policy", "morph", "--run-id", "killed"]
-    port = free_port()
-    up = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "up", *flags, "--quiet", "--listen",
-                           f"tcp/127.0.0.1:{port}", "--output-dir", str(tmp_path / "live")],
-                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
-    try:
-        wait_for_port(port, up, time.monotonic() + 60, 0.1)
-        metrics = tmp_path / "live" / "killed" / "metrics.csv"
-        deadline = time.monotonic() + 90
-        while not metrics.exists() or metrics.read_text().count("\n") < 300:
-            assert up.poll() is None and time.monotonic() < deadline
-            time.sleep(0.1)
-        monitor = [p for p in psutil.Process(up.pid).children(recursive=True)
-                   if "monitor" in p.cmdline() and "morph_sim.cli" in p.cmdline()]
-        assert len(monitor) == 1
-        os.kill(monitor[0].pid, signal.SIGKILL)  # no chance to flush or close; the supervisor restarts it
-        assert up.wait(timeout=120) == 0
-    finally:
-        if up.poll() is None:
-            os.killpg(up.pid, signal.SIGKILL)
-            up.wait(timeout=5)
+def test_a_monitor_killed_and_restarted_mid_run_leaves_a_record_equal_apart_from_the_gap(tmp_path, live_run):
+    up = live_run("killed", "--steps", "1500", "--seed", "5", "--policy", "morph", output_dir=tmp_path / "live")
+    up.wait_for_endpoint()
+    up.wait_for_rows(300)
+    monitor = [p for p in psutil.Process(up.pid).children(recursive=True)
+               if "monitor" in p.cmdline() and "morph_sim.cli" in p.cmdline()]
+    assert len(monitor) == 1
+    os.kill(monitor[0].pid, signal.SIGKILL)  # no chance to flush or close; the supervisor restarts it
+    assert up.wait(timeout=120) == 0
     killed = load(tmp_path / "live" / "killed")
     assert len(killed.gaps) == 1, killed.events
     first, last = killed.gaps[0]

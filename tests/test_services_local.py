@@ -13,7 +13,8 @@ from schemas import Stop
 from schemas.keys import RunKeys
 from services.bus.local import LocalNetwork
 from morph_sim.lab.runner import EpisodeSpec, run_episode
-from services.monitor.recorder import COLUMNS, read_metrics, read_snapshots
+from services.monitor.catalogue import COLUMNS
+from services.monitor.recorder import read_metrics, read_snapshots
 from services.runconfig import RunConfig, add_config_arguments, config_from_args
 from services.sim.service import make_controller, observation_from_tick, tick_from_observation, world_fields
 from services.supervisor.graph import PROGRAM, process_graph
@@ -67,7 +68,7 @@ async def test_local_run_is_deterministic(tmp_path):
                                            ("tsg", "reference"), ("proximity", "reference"), ("none", "reference"),
                                            ("constant", "reference")])
 async def test_services_equal_the_lab(tmp_path, policy, preset):
-    """DESIGN §2: the lab drives the pure core directly; it must give the services' trajectories."""
+    """The lab drives the pure core directly; it must give the services' trajectories."""
     steps = 80
     spec = EpisodeSpec(scale="tiny", condition=policy, seed=7, steps=steps, preset=preset,
                        radius=4 if policy == "proximity" else None)
@@ -145,8 +146,11 @@ async def test_stop_on_ctl_stop(tmp_path):
     net = LocalNetwork()
     operator = net.session("operator")
 
+    under_way = asyncio.Event()
+    await operator.subscribe(RunKeys(config.run_id).tick, lambda sample: under_way.set())
+
     async def stop_soon():
-        await asyncio.sleep(0.5)
+        await under_way.wait()  # the first tick is out: the run is under way
         await operator.publish(RunKeys(config.run_id).stop, Stop(reason="operator"))
 
     stopper = asyncio.create_task(stop_soon())
@@ -204,7 +208,7 @@ def test_process_graph_is_real_cli_invocations():
         assert spec.env["ZENOH_RUNTIME"].startswith("(rx:")
     assert specs[0].argv[-2:] == ("--listen", "tcp/127.0.0.1:7447")
     assert all(s.argv[-2:] == ("--endpoint", "tcp/127.0.0.1:7447") for s in specs[1:])
-    assert [s.restart for s in specs] == ["never"] + ["on-failure"] * 8 + ["on-failure"]  # monitor: issue 6
+    assert [s.restart for s in specs] == ["never"] + ["on-failure"] * 8 + ["on-failure"]  # the monitor restarts too
     external = process_graph(config.model_copy(update={"endpoint": "tcp/127.0.0.1:9000"}), "tcp/127.0.0.1:9000")
     assert external[0].argv[-2:] == ("--endpoint", "tcp/127.0.0.1:9000")
 

@@ -76,12 +76,12 @@ def test_demand_shift_off_is_the_original_generator():
 def test_assignment_filter_prefers_the_active_half():
     """shift.py's variant: requests still come from every shelf, but active-half items are assigned first."""
     left_new = right_new = 0
-    for cta, new, assigned in _full_dispatch_episode(11, 300, assignment_side="left"):
+    for cta, new, _assigned in _full_dispatch_episode(11, 300, assignment_side="left"):
         left_new += sum(cta.wh.on_side(s, "left") for s in new)
         right_new += sum(not cta.wh.on_side(s, "left") for s in new)
     assert left_new > 0 and right_new > 0  # the generator is untouched
     wh = cta.wh
-    # non-preferred requests pile up in the queue (morph.md §7.2)
+    # non-preferred requests pile up in the queue
     assert sum(not wh.on_side(s, "left") for s in wh.queue) > len(wh.queue) / 2
 
 
@@ -175,7 +175,7 @@ def test_emergent_analysis_reduced(tmp_path):
         assert e["core_events"] + e["periphery_events"] == e["link_events"] > 0
         assert len(e["series"]["fiedler_ref"]) == 220
     ref = next(e for e in res.episodes if e["preset"] == "reference")
-    assert ref["w_asymmetry"] == 0.0  # the reference keeps W symmetric (morph.md §9.1)
+    assert ref["w_asymmetry"] == 0.0  # the reference keeps W symmetric
     d = tmp_path / "em"
     summary = json.loads((d / "emergent.json").read_text())["summary"]
     assert set(summary) == {"reference", "paper"}

@@ -9,10 +9,7 @@ import asyncio
 import dataclasses
 import os
 import signal
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import psutil
 import pytest
@@ -25,91 +22,55 @@ from _procs import alive, descendants, kill_all
 UP_TIMEOUT = 120
 
 
-def up_argv(tmp_path: Path, run_id: str, *extra: str) -> list[str]:
-    return [sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", "tiny", "--run-id", run_id,
-            "--output-dir", str(tmp_path), *extra]
-
-
-def start_up(argv) -> subprocess.Popen:
-    return subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
-def end_up(proc: subprocess.Popen, seen: set[int]) -> list[int]:
-    """Kill the up if it still runs, reap it, then SIGKILL whatever it started that is still alive; return those."""
-    if proc.poll() is None:
-        proc.kill()
-    proc.communicate(timeout=10)
-    left = alive(seen | {proc.pid})
-    kill_all(left)
-    return left
-
-
-def watch(proc: subprocess.Popen, until, timeout: float) -> set[int]:
-    """Collect the up's descendant pids while waiting for ``until()`` (or the process's end)."""
-    seen: set[int] = set()
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        seen |= descendants(proc.pid)
-        if until() or proc.poll() is not None:
-            return seen
-        time.sleep(0.05)
-    return seen
-
-
-def test_up_runs_to_completion_and_leaves_no_process(tmp_path):
-    proc = start_up(up_argv(tmp_path, "done", "--policy", "morph", "--steps", "40"))
-    seen: set[int] = set()
+def test_up_runs_to_completion_and_leaves_no_process(live_run, tmp_path):
+    up = live_run("done", "--policy", "morph", "--steps", "40", listen=False)
     try:
-        seen = watch(proc, lambda: False, UP_TIMEOUT)
-        out, err = proc.communicate(timeout=10)
-        assert proc.returncode == 0, err
-        assert "completed" in out
-        assert len(seen) >= 10  # sim + 8 agents + monitor
+        assert up.wait(UP_TIMEOUT) == 0, up.stderr()
+        assert "completed" in up.stdout()
+        assert len(up.seen) >= 10  # sim + 8 agents + monitor
         rows = read_metrics(tmp_path / "done")
         assert [int(r["t"]) for r in rows] == list(range(40))
         assert all(int(r["acks"]) == 8 for r in rows)
     finally:
-        left = alive(seen | {proc.pid})
+        left = up.left_behind()
         kill_all(left)
     assert left == [], f"processes left behind: {left}"
 
 
-def test_sigterm_ends_every_process_within_5s(tmp_path):
-    proc = start_up(up_argv(tmp_path, "term", "--policy", "full", "--steps", "1000000"))
-    seen: set[int] = set()
+def test_sigterm_ends_every_process_within_5s(live_run, tmp_path):
+    up = live_run("term", "--policy", "full", "--steps", "1000000", listen=False)
     metrics = tmp_path / "term" / "metrics.csv"
     try:
-        seen = watch(proc, lambda: metrics.exists() and metrics.stat().st_size > 200, UP_TIMEOUT)
-        assert proc.poll() is None, proc.communicate()[1]
-        seen |= descendants(proc.pid)
+        up.wait_until(lambda: metrics.exists() and metrics.stat().st_size > 200, UP_TIMEOUT, "the first rows")
+        up.seen |= descendants(up.pid)
         t0 = time.monotonic()
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(timeout=10)
+        up.signal(signal.SIGTERM)
+        up.proc.wait(timeout=10)
         elapsed = time.monotonic() - t0
-        assert elapsed < 5.0, f"up took {elapsed:.1f} s to end"
-        assert proc.returncode != 0  # interrupted, not completed
+        assert elapsed < 5.0, f"up took {elapsed:.1f} s to end"  # the documented bound of Ctrl-C/SIGTERM
+        assert up.proc.returncode != 0  # interrupted, not completed
         deadline = time.monotonic() + 1.0
-        while alive(seen) and time.monotonic() < deadline:
+        while alive(up.seen) and time.monotonic() < deadline:
             time.sleep(0.05)
     finally:
-        left = end_up(proc, seen)
-    assert len(seen) >= 10
+        left = up.left_behind()
+        kill_all(left)
+    assert len(up.seen) >= 10
     assert left == [], f"processes left behind: {left}"
     # the record of the interrupted run is complete up to where it stopped
     summary = (tmp_path / "term" / "summary.json").read_text()
     assert "stopped_early" in summary
 
 
-def test_up_restarts_an_agent_that_dies(tmp_path):
-    proc = start_up(up_argv(tmp_path, "crash", "--policy", "full", "--steps", "1000000", "--phase-timeout", "5"))
+def test_up_restarts_an_agent_that_dies(live_run, tmp_path):
+    up = live_run("crash", "--policy", "full", "--steps", "1000000", "--phase-timeout", "5", listen=False)
     metrics = tmp_path / "crash" / "metrics.csv"
-    seen: set[int] = set()
     try:
-        seen = watch(proc, lambda: metrics.exists() and metrics.stat().st_size > 200, UP_TIMEOUT)
+        up.wait_until(lambda: metrics.exists() and metrics.stat().st_size > 200, UP_TIMEOUT, "the first rows")
 
         def agent_pids(agent: int) -> list[int]:
             out = []
-            for pid in descendants(proc.pid):
+            for pid in descendants(up.pid):
                 try:
                     cmd = psutil.Process(pid).cmdline()
                 except psutil.NoSuchProcess:
@@ -130,28 +91,26 @@ def test_up_restarts_an_agent_that_dies(tmp_path):
             rows = read_metrics(tmp_path / "crash")
             return len(rows) > 5 and int(rows[-1]["acks"]) == 8 and any(int(r["acks"]) == 7 for r in rows)
 
-        seen |= watch(proc, rejoined, 60)
-        assert restarted and rejoined(), "agent 2 was not restarted or did not rejoin"
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(timeout=10)
+        up.wait_until(rejoined, 60, "agent 2 restarted and rejoined")
+        up.signal(signal.SIGTERM)
+        up.proc.wait(timeout=10)
         events = (tmp_path / "crash" / "events.jsonl").read_text()
         assert '"agent.restart"' in events and '"agent": 2' in events  # the restart is in the run record
     finally:
-        left = end_up(proc, seen)
+        if up.running():  # the supervisor only: what it started must be gone by itself
+            up.proc.kill()
+            up.proc.wait(timeout=10)
+        left = up.left_behind()
+        kill_all(left)
     assert left == [], f"processes left behind: {left}"
 
 
-def test_up_fails_clearly_when_nothing_listens_on_the_endpoint(tmp_path):
+def test_up_fails_clearly_when_nothing_listens_on_the_endpoint(live_run):
     from services.bus.zenoh_bus import free_port
 
-    proc = start_up(up_argv(tmp_path, "nolisten", "--steps", "5", "--endpoint", f"tcp/127.0.0.1:{free_port()}"))
-    try:
-        out, err = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 1
-    assert "nothing listens on the Zenoh endpoint" in err
+    up = live_run("nolisten", "--steps", "5", "--endpoint", f"tcp/127.0.0.1:{free_port()}", listen=False)
+    assert up.wait(30) == 1
+    assert "nothing listens on the Zenoh endpoint" in up.stderr()
 
 
 async def test_supervisor_reports_a_process_that_cannot_start(tmp_path):
@@ -172,24 +131,21 @@ async def test_supervisor_reports_a_process_that_cannot_start(tmp_path):
     assert sup.all_pids and left == []
 
 
-def test_up_joins_an_existing_router_with_endpoint(tmp_path):
+def test_up_joins_an_existing_router_with_endpoint(live_run, tmp_path):
     """``--endpoint``: every process, the sim included, is a client of a router that is already running."""
     from services.bus.zenoh_bus import endpoint, free_port, zenoh, zenoh_config
 
     ep = endpoint(free_port())
     router = zenoh.open(zenoh_config(listen=ep, mode="router"))
-    proc = start_up(up_argv(tmp_path, "ext", "--policy", "tsg", "--steps", "30", "--endpoint", ep))
-    seen: set[int] = set()
     try:
-        seen = watch(proc, lambda: False, UP_TIMEOUT)
-        out, err = proc.communicate(timeout=10)
-        assert proc.returncode == 0, err
+        up = live_run("ext", "--policy", "tsg", "--steps", "30", "--endpoint", ep, listen=False)
+        assert up.wait(UP_TIMEOUT) == 0, up.stderr()
         sim_log = (tmp_path / "ext" / "logs" / "sim.log").read_text()
         assert f"--endpoint {ep}" in sim_log and "--listen" not in sim_log
         assert len(read_metrics(tmp_path / "ext")) == 30
     finally:
         router.close()
-        left = alive(seen | {proc.pid})
+        left = up.left_behind()
         kill_all(left)
     assert left == [], f"processes left behind: {left}"
 

@@ -1,4 +1,4 @@
-"""Trajectory fidelity with the ORIGINAL TA-RWARE (tests/data/tarware_digests.json, from tarware.md §13.5 and §13.7):
+"""Trajectory fidelity with the ORIGINAL TA-RWARE (tests/data/tarware_digests.json):
 the reset vector, and 12 whole heuristic episodes whose per-step state digests and cumulative deliveries must be
 bit-identical. All 12 run in a few seconds, so all are in the default suite."""
 
@@ -104,7 +104,7 @@ SEEDS20 = json.loads((Path(__file__).parent / "data" / "tarware_digests_20seeds.
 @pytest.mark.slow
 @pytest.mark.parametrize("size", ["tiny", "small", "medium", "large"])
 def test_twenty_seeds_bit_identical(size):
-    """Beyond §13.7: 20 seeds per size, including the jammed episodes, equal the original's."""
+    """Beyond the 12 episodes: 20 seeds per size, including the jammed episodes, equal the original's."""
     for ep in [e for e in SEEDS20["episodes"] if e["size"] == size]:
         cfg = WarehouseConfig.named(size, ep["agvs"], ep["pickers"], max_steps=SEEDS20["steps"])
         result = run_episode(cfg, ep["seed"], digests=True)
@@ -149,7 +149,7 @@ def test_reseed_replays_the_request_stream():
     assert deliveries_with_reseed(7) == deliveries_with_reseed(7)
     assert isinstance(Warehouse(WarehouseConfig.named("tiny")).config, WarehouseConfig)
     with pytest.raises(RuntimeError, match="rng"):
-        Warehouse(WarehouseConfig.named("tiny")).rng
+        _ = Warehouse(WarehouseConfig.named("tiny")).rng
 
 
 RANDOM = json.loads((Path(__file__).parent / "data" / "random_action_digests.json").read_text())

@@ -1,4 +1,4 @@
-"""``morph-sim watch`` (issue 6): the view renders from a scripted state, and follows a live run joining late."""
+"""``morph-sim watch``: the view renders from a scripted state, and follows a live run joining late."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The security sample of deploy/zenoh/, loaded by live Zenoh 1.10.2 sessions on 127.0.0.1 (issue 7).
+"""The security sample of deploy/zenoh/, loaded by live Zenoh 1.10.2 sessions on 127.0.0.1.
 
 A router session opens with ``deploy/zenoh/router.json5`` (user/password authentication + access control) exactly as
 shipped, only its listen endpoint and the credentials path are pointed at this machine. Clients authenticate with
@@ -144,7 +144,7 @@ def test_only_the_operator_changes_faults(router, observer):
         sessions["sim"].put(KEYS.stop, b"stop-by-sim")  # the sim ends its run; it still cannot touch faults
         for user, own in (("agent-0", KEYS.ack(0)), ("sim", KEYS.tick), ("monitor", KEYS.metric("links"))):
             sessions[user].put(own, b"sentinel")
-        for user, own in (("agent-0", KEYS.ack(0)), ("sim", KEYS.tick), ("monitor", KEYS.metric("links"))):
+        for _user, own in (("agent-0", KEYS.ack(0)), ("sim", KEYS.tick), ("monitor", KEYS.metric("links"))):
             observer.wait_for(own, b"sentinel")
         seen = observer.wait_for(KEYS.stop, b"stop-by-sim")
         seen = observer.wait_for(KEYS.faults, b"fault-by-operator")
@@ -155,7 +155,7 @@ def test_only_the_operator_changes_faults(router, observer):
 
 
 def test_an_agent_answers_fault_queries_but_cannot_serve_the_registry(router):
-    """Every agent runs a fault controller on ctl/faults (issue 5): the operator's `faults list` must reach it."""
+    """Every agent runs a fault controller on ctl/faults: the operator's `faults list` must reach it."""
     agent = _open(router, "agent-0")
     operator = _open(router, "operator")
     try:

@@ -15,6 +15,8 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
+from schemas.errors import invalid
+
 NAME = "experiment"
 HELP = "run an in-process study: scale, ablation, shift, emergent, faults or audit (parallel, with run records)"
 
@@ -141,14 +143,10 @@ def _seeds(value: str | None, default: tuple[int, ...]) -> tuple[int, ...]:
 
 
 def _validated(model, **kw):
-    from pydantic import ValidationError as _VE
-
-    from schemas.errors import explain
-
     try:
         return model(**kw)
-    except _VE as exc:
-        raise ValueError(explain(exc, first_only=True)) from None
+    except ValidationError as exc:
+        raise invalid(exc) from None
 
 
 def _run_shift(args) -> int:

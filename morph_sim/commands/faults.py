@@ -64,9 +64,9 @@ def build_command(args: argparse.Namespace):
     """The FaultCommand the arguments describe; ValueError naming the bad field."""
     from pydantic import ValidationError
 
+    from schemas.errors import invalid
     from schemas.keys import validate_run_id
     from schemas.messages import FaultCommand
-    from services.faults.schedule import _explain
 
     validate_run_id(args.run)
     if args.timeout <= 0:
@@ -119,7 +119,7 @@ def build_command(args: argparse.Namespace):
     try:
         return FaultCommand(op="set", spec=spec, at_tick=at_tick)
     except ValidationError as exc:  # the location already starts at spec (spec.loss.percent: …)
-        raise _explain(exc) from None
+        raise invalid(exc) from None
 
 
 async def send(endpoint: str, run: str, command, timeout: float = 2.0, bus=None, args=None) -> list:

@@ -21,15 +21,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from rich.console import Console
-
     from services.runconfig import config_from_args
     from services.supervisor.launcher import StartError, Supervisor
 
     config = config_from_args(args)
-    console = Console(stderr=True)
+    try:  # the live line needs the [cli] extra; a service-only install (a container) prints the last line alone
+        from rich.console import Console
+    except ImportError:
+        Console = None
+    console = Console(stderr=True) if Console is not None else None
     status = None
-    if not args.quiet:
+    if not args.quiet and console is not None:
         status = console.status("starting …")
         status.start()
 
@@ -37,7 +39,10 @@ def run(args: argparse.Namespace) -> int:
         if status is not None:
             status.update(line)
         if progress.finished:
-            console.print(line)
+            if console is not None:
+                console.print(line)
+            else:
+                print(line, file=sys.stderr)
 
     try:
         supervisor = Supervisor(config, on_progress=show, insecure=args.insecure)

@@ -37,6 +37,7 @@ def run(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from services.sim.world.heuristic import run_episode
+    from schemas.errors import invalid
     from services.sim.world.warehouse import WarehouseConfig
 
     if args.steps is not None and args.steps < 1:
@@ -48,8 +49,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         config = WarehouseConfig.named(args.scale, args.agvs, args.pickers, max_steps=args.steps,
                                        reward_type=args.reward)
-    except ValueError as exc:  # pydantic's ValidationError is a ValueError; keep its field names, drop the URL
-        raise ValueError(_short(exc)) from None
+    except ValueError as exc:  # pydantic's ValidationError is a ValueError
+        raise invalid(exc) from None
 
     frames = []
     render_s = 0.0

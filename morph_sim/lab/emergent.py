@@ -1,4 +1,4 @@
-"""The paper's emergent-structure analysis (issue 8; paper §"Emergent allocation structure", morph.md §7.3–§7.4).
+"""The paper's emergent-structure analysis (paper section "Emergent allocation structure"; docs/morph.md).
 
 Long Medium MORPH episodes (T = 1500, several seeds, each preset): W snapshots at fixed ticks, Spearman of the final
 W against the episode's mean Manhattan distance (directed AGV→picker pairs with a permutation p; the reference's
@@ -10,9 +10,9 @@ and the textbook algebraic connectivity). Writes figures, ``emergent.json`` and 
 from __future__ import annotations
 
 import json
-import multiprocessing as mp
 import sys
 import time
+from concurrent.futures import as_completed
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -21,11 +21,11 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from morph_sim.lab.runner import EpisodeSpec, check_nonempty, run_episode
-from morph_sim.lab.suite import _git_revision, _jsonable, _versions
-from services.monitor import metrics
+from morph_sim.lab.suite import _git_revision, _jsonable, _versions, episode_pool
+from services.monitor import catalogue, metrics
 
 SNAPSHOT_TICKS = (0, 100, 200, 400, 600, 800, 1500)
-#: ticks at which λ₂ is quoted (morph.md §8.5's list, plus the end)
+#: ticks at which λ₂ is quoted (the reference's list, plus the end)
 LAMBDA_TICKS = (1, 50, 100, 200, 400, 800, 1500)
 
 
@@ -93,7 +93,7 @@ def analyse_episode(args: tuple[EmergentConfig, str, int]) -> dict:
         "core_share": core / life.size if life.size else float("nan"),
         "events_ge_400": int(np.count_nonzero(life >= 400)),  # the paper's "≥ 400 consecutive steps"
         "lifetimes": life.tolist(),
-        "w_agv_agv": blocks.agv_agv, "w_agv_picker": blocks.agv_picker, "w_picker_picker": blocks.picker_picker,
+        **catalogue.w_block_values(blocks),
         "w_asymmetry": float(np.abs(W - W.T).max()),
         "eta_mean": float(res.ticks["eta"].mean()), "eta_positive_share": float((res.ticks["eta"] > 0).mean()),
         "links_mean": float(res.ticks["links"].mean()),
@@ -135,8 +135,8 @@ class EmergentResult:
 
 
 _SUMMARY_KEYS = ("deliveries", "link_events", "median_lifetime", "core_events", "core_share", "events_ge_400", "eta_mean",
-                 "eta_positive_share", "links_mean", "links_mean_after_200", "w_agv_agv", "w_agv_picker",
-                 "w_picker_picker", "lambda_ref_max", "lambda_ref_trend_2nd_half")
+                 "eta_positive_share", "links_mean", "links_mean_after_200", *catalogue.W_BLOCKS, "lambda_ref_max",
+                 "lambda_ref_trend_2nd_half")
 
 
 def summarise_emergent(cfg: EmergentConfig, episodes: list[dict]) -> dict:
@@ -187,7 +187,7 @@ def markdown_emergent(res: EmergentResult) -> str:
             ("core share of events", lambda p: ms(p, "core_share", 3)),
             ("events ≥ 400 steps (the paper's core at T = 800)", lambda p: ms(p, "events_ge_400", 1)),
             ("mean W AGV–AGV / AGV–picker / picker–picker", lambda p: " / ".join(
-                ms(p, k, 3) for k in ("w_agv_agv", "w_agv_picker", "w_picker_picker"))),
+                ms(p, k, 3) for k in catalogue.W_BLOCKS)),
             ("mean links (all / after t = 200)", lambda p: ms(p, "links_mean", 1) + " / " + ms(
                 p, "links_mean_after_200", 1)),
             ("mean η; share of ticks with η > 0", lambda p: ms(p, "eta_mean", 3) + "; " + ms(
@@ -217,14 +217,9 @@ def run_emergent(cfg: EmergentConfig, out_root: Path | None = Path("runs"), run_
     episodes = []
     with progress:
         task = progress.add_task("emergent analysis", total=len(work))
-        if cfg.jobs > 1:
-            with mp.get_context("fork" if sys.platform != "win32" else "spawn").Pool(cfg.jobs) as pool:
-                for ep in pool.imap_unordered(analyse_episode, work):
-                    episodes.append(ep)
-                    progress.advance(task)
-        else:
-            for w in work:
-                episodes.append(analyse_episode(w))
+        with episode_pool(cfg.jobs) as pool:
+            for future in as_completed([pool.submit(analyse_episode, w) for w in work]):
+                episodes.append(future.result())
                 progress.advance(task)
     order = {(p, s): k for k, (_, p, s) in enumerate(work)}
     episodes.sort(key=lambda e: order[(e["preset"], e["seed"])])

@@ -1,6 +1,6 @@
 """In-process episodes: the warehouse, the CTA controller and every agent's brain in one process, no bus.
 
-One episode is ``T`` ticks of the DESIGN §3 protocol driven directly on the pure core:
+One episode is ``T`` ticks of the tick protocol (docs/services.md) driven directly on the pure core:
 
 1. the controller runs steps 1-2 and produces the tick's observation;
 2. every agent applies its plasticity update for the previous step (``Coordinator.learn``);
@@ -11,9 +11,9 @@ After the last step the agents get one more observation to learn from, so the li
 the one after the update for step t, as the reference logs it.
 
 Two switches reproduce the reference: ``dispatch="sequential"`` (an AGV whose nearest free picker was
-just taken asks the next-nearest in the same tick, spec §5) instead of the DESIGN's concurrent
+just taken asks the next-nearest in the same tick) instead of the protocol's concurrent
 resolution, and ``shared_stream=True`` (gate draws from the warehouse's request stream re-seeded after
-reset, spec §2) instead of each agent's own generator. The other mode's outcome is computed each tick
+reset) instead of each agent's own generator. The other mode's outcome is computed each tick
 with the same draws and the number of ticks where the two differ is reported.
 """
 
@@ -30,16 +30,13 @@ from schemas.faults import FaultSpec
 from services.agent.observation import TickObservation
 from services.agent.policies import (
     Coordinator,
-    ConstantPolicy,
     CoordinationPolicy,
     Fleet,
-    FullPolicy,
     MorphPolicy,
-    NonePolicy,
     ProximityPolicy,
-    TSGPolicy,
+    make_policy,
 )
-from services.monitor import metrics
+from services.monitor import catalogue, metrics
 from services.protocol.dispatch import DEFAULT_REQUEST_TIMEOUT, gate
 from morph_sim.lab.network import FLEET_KEY, EventNetwork, LabDispatch, Team, dispatch_faults
 from services.sim.world.cta import CTAController, resolve_requests
@@ -95,7 +92,7 @@ def make_condition_policy(condition: str, preset: str = "reference", radius: int
         if radius is None:
             raise ValueError("radius: the proximity condition needs a radius (or calibration)")
         return ProximityPolicy(radius=radius)
-    return {"none": NonePolicy, "tsg": TSGPolicy, "full": FullPolicy, "constant": ConstantPolicy}[kind]()
+    return make_policy(kind)
 
 
 class EpisodeSpec(BaseModel):
@@ -112,7 +109,7 @@ class EpisodeSpec(BaseModel):
     dispatch: Literal["concurrent", "sequential"] = "concurrent"
     shared_stream: bool = False
     fiedler_every: int = Field(default=1, ge=1, description="compute λ₂ every this many ticks")
-    #: demand shift (issue 8): the side of each consecutive ``phase_steps``-long phase; empty = no shift
+    #: demand shift: the side of each consecutive ``phase_steps``-long phase; empty = no shift
     demand_phases: tuple[Literal["left", "right"], ...] = ()
     phase_steps: int = Field(default=400, ge=1)
     #: "requests": new requests drawn from the active half (the paper); "assignment": shift.py's filter;
@@ -386,9 +383,7 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
         "divergent_dispatch_ticks": stats.divergent_ticks,
         **({f"protocol_{k}": v for k, v in driver.outcomes.as_dict().items()} if driver is not None else {}),
         **(_network_summary(driver) if driver is not None else {}),
-        "w_agv_agv": blocks.agv_agv,
-        "w_agv_picker": blocks.agv_picker,
-        "w_picker_picker": blocks.picker_picker,
+        **catalogue.w_block_values(blocks),
         "w_asymmetry": float(np.abs(W - W.T).max()),
     }
     if not brains.memoryless:

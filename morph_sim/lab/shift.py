@@ -1,4 +1,4 @@
-"""The paper's spatial demand-shift experiment (issue 8, paper Table 4, morph.md §7.2).
+"""The paper's spatial demand-shift experiment (paper Table 4; docs/morph.md).
 
 Medium warehouse, six phases alternating left/right demand (L–R–L–R–L–R), each ``phase_steps`` long. Demand
 shift = replacement requests drawn from the active half of the shelves (:meth:`Warehouse.set_demand_side`); the
@@ -13,6 +13,7 @@ import csv
 import json
 import sys
 import time
+from concurrent.futures import as_completed
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -21,8 +22,10 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from morph_sim.lab.runner import REFERENCE_SEEDS, EpisodeResult, EpisodeSpec, check_choices, check_nonempty
-from morph_sim.lab.suite import _git_revision, _jsonable, _num, _Scheduler, _versions
+from morph_sim.lab.runner import (
+    REFERENCE_SEEDS, EpisodeResult, EpisodeSpec, check_choices, check_nonempty, run_episode,
+)
+from morph_sim.lab.suite import _git_revision, _jsonable, _num, _versions, episode_pool
 from services.monitor import metrics
 
 #: shift condition key -> (label, lab condition, MORPH preset)
@@ -175,14 +178,12 @@ def run_shift(cfg: ShiftConfig, out_root: Path | None = Path("runs"), run_id: st
     done: dict[tuple[str, int], EpisodeResult] = {}
     progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                         disable=not show_progress)
-    with progress, _Scheduler(cfg.jobs) as pool:
+    with progress, episode_pool(cfg.jobs) as pool:
         task = progress.add_task("shift experiment", total=len(specs))
-        for sp in heavy:
-            pool.submit(sp)
-        while pool.pending:
-            for res in pool.results():
-                done[by_spec[res.spec.model_dump_json()]] = res
-                progress.advance(task)
+        for future in as_completed([pool.submit(run_episode, sp) for sp in heavy]):
+            res = future.result()
+            done[by_spec[res.spec.model_dump_json()]] = res
+            progress.advance(task)
     wall = time.perf_counter() - t0
     episodes = []
     rates: dict[str, np.ndarray] = {}

@@ -1,7 +1,7 @@
 """Experiment suites: conditions × scales × seeds in parallel processes, with run records and tables.
 
-``scale`` is the reference's scale study (spec §7.1: nine conditions, four scales, five seeds, T = 800,
-Proximity radius calibrated first per §6); ``ablation`` runs MORPH and its ablations of one preset.
+``scale`` is the reference's scale study (nine conditions, four scales, five seeds, T = 800,
+Proximity radius calibrated first; docs/morph.md); ``ablation`` runs MORPH and its ablations of one preset.
 Every episode gets a record under ``runs/<run-id>/episodes/<key>/`` (``manifest.json``, ``ticks.csv``,
 ``summary.json``); the suite writes ``manifest.json``, ``summary.csv``, ``summary.md`` and plots.
 Any table can be recomputed from the episode summaries alone (:func:`summarise`).
@@ -14,10 +14,12 @@ import json
 import multiprocessing as mp
 import os
 import platform
-import queue
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -101,47 +103,56 @@ def _work(spec: EpisodeSpec) -> EpisodeResult:
     return run_episode(spec)
 
 
+class _InProcess(Executor):
+    """``jobs == 1``: each episode runs in this process when submitted (no worker process to start or feed)."""
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        future: Future = Future()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except BaseException as exc:  # delivered by future.result(), as a pool would
+            future.set_exception(exc)
+        return future
+
+
+@contextmanager
+def episode_pool(jobs: int) -> Iterator[Executor]:
+    """Worker processes for episodes (forked: no re-import per worker); on an error the queued episodes are dropped."""
+    pool = (ProcessPoolExecutor(jobs, mp_context=mp.get_context("fork" if sys.platform != "win32" else "spawn"))
+            if jobs > 1 else _InProcess())
+    try:
+        yield pool
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
+
+
 class _Scheduler:
-    """A process pool fed one episode at a time; ``results()`` waits for at least one finished episode."""
+    """This machine's processes (:func:`episode_pool`) fed one episode at a time; ``results()`` waits for at least
+    one finished episode (the interface :class:`_DaskScheduler` shares)."""
 
     def __init__(self, jobs: int) -> None:
         self.jobs = jobs
         self.pending = 0
-        self._queue: queue.Queue = queue.Queue()
-        self._serial: list[EpisodeSpec] = []
-        self._pool = None
+        self._running: set[Future] = set()
 
     def __enter__(self) -> _Scheduler:
-        if self.jobs > 1:
-            ctx = mp.get_context("fork" if sys.platform != "win32" else "spawn")
-            self._pool = ctx.Pool(processes=self.jobs)
+        self._context = episode_pool(self.jobs)
+        self._pool = self._context.__enter__()
         return self
 
-    def __exit__(self, *exc) -> None:
-        if self._pool is not None:
-            self._pool.terminate() if exc[0] is not None else self._pool.close()
-            self._pool.join()
+    def __exit__(self, *exc) -> bool | None:
+        return self._context.__exit__(*exc)
 
     def submit(self, spec: EpisodeSpec) -> None:
         self.pending += 1
-        if self._pool is None:
-            self._serial.append(spec)
-        else:
-            self._pool.apply_async(_work, (spec,), callback=self._queue.put, error_callback=self._queue.put)
+        self._running.add(self._pool.submit(_work, spec))
 
     def results(self) -> list[EpisodeResult]:
-        if self._pool is None:
-            spec = self._serial.pop(0)
-            out = [_work(spec)]
-        else:
-            out = [self._queue.get()]
-            while not self._queue.empty():
-                out.append(self._queue.get_nowait())
-        for item in out:
-            if isinstance(item, BaseException):
-                raise item
-        self.pending -= len(out)
-        return out
+        finished, self._running = wait(self._running, return_when=FIRST_COMPLETED)
+        self.pending -= len(finished)
+        return [future.result() for future in finished]
 
 
 class _DaskScheduler:

@@ -59,7 +59,7 @@ class ClaimingAgent:
                 raise ValueError(f"agvs/pickers: the sim's fleet is {reply.n_agvs}+{reply.n_pickers}, this agent's "
                                  f"configuration {self.config.n_agvs}+{self.config.n_pickers}")
             self.agent_id, self.role = reply.agent_id, reply.role
-        # issue 5: a (re)started agent restores its brain from the monitor's latest states unless --cold-restart
+        # a (re)started agent restores its brain from the monitor's latest states unless --cold-restart
         from services.faults.runtime import FaultRuntime
 
         # its own fault runtime: ingress faults, ctl/faults, the clock of the run's fault time (docs/faults.md)

@@ -5,7 +5,7 @@ requests from the latest one; it never reads the warehouse or another agent's me
 controller (``services.sim.world.cta``) produces one observation per tick, and the distributed
 services carry exactly these fields.
 
-Timing (DESIGN §3): the observation for tick ``t`` is taken *after* the controller has assigned items
+Timing (docs/services.md): the observation for tick ``t`` is taken *after* the controller has assigned items
 and advanced the AGV missions for step ``t`` and *before* pickers are dispatched. It carries two blocks:
 
 * the ``prev_*`` block and ``delivered``/``reward``/``loader`` describe step ``t-1`` as it was executed
@@ -102,7 +102,7 @@ class TickObservation:
     def coassignment(self, previous: bool = True) -> np.ndarray:
         """J: (n, n) 0/1, pairs whose mission targets are the same cell (zero diagonal).
 
-        This is the reference's "Jaccard" of singleton target sets (spec §4.1).
+        This is the reference's "Jaccard" of singleton target sets.
         """
         tgt = self.prev_target if previous else self.target
         # one integer per target cell (y < 65536 on the wire); a robot without a target gets a code of its own,

@@ -2,7 +2,7 @@
 
 Two rule sets share the parameter model (:mod:`.presets`):
 
-* :class:`ReferenceState` reproduces the reference code (spec research/morph.md §4): symmetric W and A,
+* :class:`ReferenceState` reproduces the reference code (docs/morph.md): symmetric W and A,
   the η → BCM → decay → Hebbian → burst → clip → homeostasis → structural → ageing order, MI of the
   current positions, greedy ``max_new`` formation. It is batched over *replicas*: every agent that runs
   the reference preset owns one full replica (shape ``(B, n, n)``), so a process holding one agent has
@@ -47,7 +47,7 @@ def neuromodulation(params: MorphParams, dhat: float, delivery: float, d_exp: fl
 def position_mi(positions: np.ndarray) -> np.ndarray:
     """The reference's "MI": |Pearson correlation| of the agents' normalised position rows.
 
-    Identically 1 off the diagonal unless an agent's x/cols equals its y/rows (spec §4.5). Computed
+    Identically 1 off the diagonal unless an agent's x/cols equals its y/rows. Computed
     the way the reference does (centre, divide by std + 1e-9) because the last bits of it break the
     formation ties.
     """
@@ -112,7 +112,7 @@ class ReferenceState:
         self._offdiag = ~self._eye
 
     def reset_links(self) -> None:
-        """MORPH-reset (spec §6): clear W, A, θ_bcm, age and J_prev, h back to ρ_target; keep d̂ and t."""
+        """MORPH-reset: clear W, A, θ_bcm, age and J_prev, h back to ρ_target; keep d̂ and t."""
         for arr in (self.W, self.A, self.age, self.theta_bcm, self.j_prev):
             arr[...] = 0.0
         self.h[...] = self.params.rho_target
@@ -124,7 +124,7 @@ class ReferenceState:
         delivery: int,
         pred: np.ndarray | None,
     ) -> None:
-        """One ``MORPH.step`` (spec §4.4) applied to every replica.
+        """One ``MORPH.step`` of the reference code applied to every replica.
 
         positions: (n, 2) normalised (x/cols, y/rows); jaccard: (n, n) co-assignment of this step;
         delivery: deliveries in this step; pred: the predictive hint or None.
@@ -397,7 +397,6 @@ class PaperState:
         # -0.001 per step). Only J > 0.25 is credited, so the AGV's delivery strengthens its link to the
         # picker that shared the delivered task, not every co-active pair.
         jac = self.task_jaccard()
-        self.last_jaccard = jac
         credit = np.where(jac > p.credit_threshold, jac, 0.0)
         r = x.reward[own] if p.use_step_reward else np.full(len(own), p.cov)
         self.W *= retention

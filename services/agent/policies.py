@@ -9,7 +9,7 @@ One small interface, used unchanged by the in-process lab and by the per-agent s
   its own state slice and its own seeded :class:`numpy.random.Generator` for gate draws; nothing is
   read across agents. An agent learns only from :class:`~.observation.TickObservation` objects.
 
-Per tick (DESIGN §3): ``learn(obs)`` applies the update for step ``t-1``; then each AGV that needs a
+Per tick (docs/services.md): ``learn(obs)`` applies the update for step ``t-1``; then each AGV that needs a
 picker takes ``candidate(agv, obs, free)`` and, if ``draws`` is true, draws ``draw(agv)`` and asks
 when the draw is below ``probability(agv, picker, obs)``. Policies with ``draws = False`` (full, none)
 dispatch with P = 1 or 0 and consume no random number, as in the reference.
@@ -192,7 +192,7 @@ class _TopologyBrains(Coordinator):
 class _TSGBrains(_TopologyBrains):
     def _topology(self, obs):
         # pairs sharing a current mission target (before dispatch): a free picker has none, so the
-        # gate entry for the candidate is always 0 — TSG behaves as a constant 0.25 gate (spec §1.9)
+        # gate entry for the candidate is always 0 — TSG behaves as a constant 0.25 gate (docs/morph.md)
         return obs.coassignment(previous=False)[self.owners]
 
 
@@ -274,7 +274,7 @@ class ProximityPolicy(_SimplePolicy):
         return None if value >= 0 else f"must be >= 0, got {value}"
 
 
-#: the radii the reference's calibration tries (spec §6)
+#: the radii the reference's calibration tries (docs/morph.md)
 PROXIMITY_RADII = (2, 3, 4, 5, 6, 8, 10)
 
 
@@ -300,7 +300,7 @@ _PICKING, _RETURNING = (int(m) for m in NEEDS_PICKER)  # plain ints: numpy compa
 
 
 def reference_hint(obs: TickObservation) -> np.ndarray:
-    """The reference's predictive hint δ_pred (spec §4.8) for the step before ``obs``.
+    """The reference's predictive hint δ_pred (docs/morph.md) for the step before ``obs``.
 
     For every AGV that had a PICKING or RETURNING mission, the picker nearest (Manhattan, from the
     pickers' post-move cells, busy ones included, first on ties) to the AGV's target is hinted.
@@ -488,22 +488,24 @@ class MorphPolicy(CoordinationPolicy):
         return {"name": self.name, "preset": self.preset, "ablation": self.ablation or "full"}
 
 
-POLICY_NAMES = ("full", "constant", "tsg", "proximity", "none", "morph")
+#: The coordination policies by name: the one list that the run configuration (and so every CLI's --policy and
+#: MORPH_POLICY), the lab's conditions and this factory read.
+POLICIES: dict[str, type[CoordinationPolicy]] = {
+    "full": FullPolicy,
+    "constant": ConstantPolicy,
+    "tsg": TSGPolicy,
+    "proximity": ProximityPolicy,
+    "none": NonePolicy,
+    "morph": MorphPolicy,
+}
+POLICY_NAMES = tuple(POLICIES)
 
 
 def make_policy(name: str, **options) -> CoordinationPolicy:
     """A policy by name with its options (p for constant, radius for proximity, preset/ablation for morph)."""
-    classes = {
-        "full": FullPolicy,
-        "none": NonePolicy,
-        "constant": ConstantPolicy,
-        "tsg": TSGPolicy,
-        "proximity": ProximityPolicy,
-        "morph": MorphPolicy,
-    }
-    if name not in classes:
+    if name not in POLICIES:
         raise ValueError(f"policy: unknown {name!r} (known: {', '.join(POLICY_NAMES)})")
     try:
-        return classes[name](**options)
+        return POLICIES[name](**options)
     except TypeError as exc:
         raise ValueError(f"policy.{name}: {exc}") from None

@@ -14,6 +14,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from schemas.errors import invalid
+
 ABLATIONS = ("v1", "v1_paper", "no_threshold", "no_reward", "no_neuromod", "reset_at_boundary")
 
 
@@ -125,7 +127,7 @@ class MorphPreset(BaseModel):
         try:
             return MorphParams.model_validate(data)
         except ValidationError as exc:
-            raise ValueError(f"ablations.{ablation}: {exc}") from None
+            raise invalid(exc, f"ablations.{ablation}") from None
 
 
 def _read_toml(text: str, source: str) -> MorphPreset:
@@ -136,7 +138,7 @@ def _read_toml(text: str, source: str) -> MorphPreset:
     try:
         return MorphPreset.model_validate(data)
     except ValidationError as exc:
-        raise ValueError(f"preset {source}: {exc}") from None
+        raise invalid(exc, f"preset {source}") from None
 
 
 _CACHE: dict[str, MorphPreset] = {}

@@ -1,7 +1,7 @@
 """The agent service: one robot's coordination brain, learning and deciding from messages only.
 
 It owns that robot's :class:`~services.agent.policies.Coordinator` (its plasticity state and its own seeded
-RNG) and nothing else. Per tick ``t`` (DESIGN §3):
+RNG) and nothing else. Per tick ``t`` (docs/services.md):
 
 * on ``Tick`` it rebuilds the observation from the message alone, applies the plasticity update of step t−1,
   and, as an AGV that needs a picker, picks a candidate by the policy's rule, draws its gate and on success sends a
@@ -40,9 +40,6 @@ log = logging.getLogger("morph_sim.agent")
 
 STOP_GRACE = 3.0  # seconds an agent waits for the sim's end of run after someone else's stop
 
-def _ack_fields() -> set[str]:
-    return set(Ack.model_fields)
-
 
 @dataclass
 class AgentCounters:
@@ -56,12 +53,12 @@ class AgentService:
     """Agent ``agent_id`` of the run of ``config`` over ``bus``. ``await run()`` until stop."""
 
     def __init__(self, config: RunConfig, bus: Bus, agent_id: int, *, restore: bool = True, faults=None):
-        # issue 5: this process's FaultRuntime (ingress faults on what this agent receives, its ctl/faults
+        # this process's FaultRuntime (ingress faults on what this agent receives, its ctl/faults
         # controller, sim-time stamps); in virtual time it advances on every Tick/Resolve that arrives (_on_arrival)
         self.faults = faults
         # picker, with faults: t -> AGVs whose request arrived but was dropped (or held past the boundary)
         self._arrived: dict[int, set[int]] = {}
-        # restore (issue 5): a (re)started agent loads its plasticity state from the monitor's latest states
+        # restore: a (re)started agent loads its plasticity state from the monitor's latest states
         # (state/agent/*) before it joins; a first start finds none. restore=False is the cold restart.
         self.restore = restore
         self.restored_from: AgentState | None = None
@@ -80,7 +77,6 @@ class AgentService:
         self.counters = AgentCounters()
         self.last_t = -1
         self._ticks = TickOrder(config.steps)  # which ticks this agent takes (services/tickorder.py)
-        self._ack_extras = _ack_fields() & {"links", "eta"}
         self._stop = asyncio.Event()
         self._seq = 0
         # picker side: requests received per tick, and the resolve being decided
@@ -123,7 +119,7 @@ class AgentService:
             self._layer = layer
             await self.faults.start()  # ctl/faults, and the schedule from time 0
         restored = await self._restore() if self.restore else None
-        # inline: the lock-step hot path skips the hop to the loop (3-4x the tick rate over Zenoh, zenoh.md §4c)
+        # inline: the lock-step hot path skips the hop to the loop (3-4x the tick rate over Zenoh, docs/services.md)
         await bus.subscribe(k.tick, self._on_tick, inline=True)
         await bus.subscribe(k.event("sim"), self._on_probe)
         await bus.subscribe(k.stop, self._on_stop)
@@ -161,7 +157,7 @@ class AgentService:
         return Event(
             kind="agent.restored", source=self.id, t=restored,
             # the row the brain holds now (read back from it, not copied from the state): the record can show that a
-            # restarted agent resumed with the W row last published (issue 5 acceptance)
+            # restarted agent resumed with the W row last published 
             details={"from_t": restored, "w_row": self.state_message(restored).w_row})
 
     def stop(self) -> None:
@@ -195,7 +191,7 @@ class AgentService:
         self._seq += 1
         return self._seq
 
-    # -- virtual time (issue 5) ------------------------------------------------------------------------------------
+    # -- virtual time ----------------------------------------------------------------------------------------------
     def _on_arrival(self, sample: Sample, fate: list[float]) -> None:
         """Fault layer hook: a sample physically arrived (any thread, under the runtime's lock, before it is
         delivered, dropped or held). A Tick or Resolve carries the sim's boundary: reach it first (releasing what is
@@ -347,19 +343,13 @@ class AgentService:
                         mission=int(obs.mission[self.id]), seq=req.seq))
                     self.counters.requests += 1
                     asked.append(g.picker)
-        extras = {}
-        if "links" in self._ack_extras:
-            extras["links"] = self.brains.out_links(self.id)
-        if "eta" in self._ack_extras:
-            extras["eta"] = float(self.brains.state.eta) if isinstance(self.brains, MorphBrains) else None
-        # Without per-tick links in the ack (older wire schema) the state row carries them every tick.
-        publish_state = tick.t % self.config.state_every == 0 or final or "links" not in self._ack_extras
+        eta = float(self.brains.state.eta) if isinstance(self.brains, MorphBrains) else None
+        publish_state = tick.t % self.config.state_every == 0 or final
         # encoded from plain values (no model round trip: the hot path, codec.encode_fields)
         ack = encode_fields(Ack, t=tick.t, agent=self.id, phase=int(Phase.TICK), requests_sent=asked,
-                            seq=self._next_seq(), **extras)
-        if publish_state and (final or "links" not in self._ack_extras):
-            # Before the ack, on the same link: the last state must reach the monitor before the run ends, and a
-            # state that carries the per-tick links of step t−1 before tick t+1 (the monitor closes row t−1 then).
+                            seq=self._next_seq(), links=self.brains.out_links(self.id), eta=eta)
+        if final:
+            # Before the ack, on the same link: the last state must reach the monitor before the run ends.
             self.bus.put(self.keys.agent_state(self.id), self.state_message(tick.t))
             publish_state = False
         self.bus.put(self.keys.ack(self.id), ack)  # the ack first: it is on the sim's critical path

@@ -182,7 +182,7 @@ class _RawClock:
             self.count += 1
             if self.count < self.n:
                 return
-            if self.phase + 1 < self.phases:  # two-phase tick (DESIGN §3): resolve after the tick's acks
+            if self.phase + 1 < self.phases:  # two-phase tick (docs/services.md): resolve after the tick's acks
                 self.count = 0
                 self.phase += 1
                 self.publish_phase(self.t, self.phase)
@@ -345,7 +345,7 @@ def run_barrier(n_agents: int, ticks: int = 2000, warmup: int = 100, *, mode: st
     """Measure the lock-step barrier rate with ``n_agents`` agent OS processes. Every child is reaped (killed by
     pid if needed) before this returns.
 
-    ``phases=2`` (raw mode) makes every tick two barriers, tick then resolve, as in the tick protocol of DESIGN §3.
+    ``phases=2`` (raw mode) makes every tick two barriers, tick then resolve, as in the tick protocol (docs/services.md).
     """
     if n_agents < 1:
         raise ValueError(f"n_agents must be >= 1, got {n_agents}")

@@ -9,7 +9,7 @@ Every published sample carries a small header (the publisher's identity, a per-(
 the publisher's send time), so receivers can attribute a message to its link (sender → receiver) and measure loss,
 duplication and latency from the messages themselves.
 
-Fault-layer seam (issue 5). Every sample passes two hook points (on the loop; for inline subscriptions the ingress
+Fault-layer seam. Every sample passes two hook points (on the loop; for inline subscriptions the ingress
 hook runs on the receive thread, so a fault layer schedules delayed copies with ``call_soon_threadsafe``):
 
 * egress — ``Interposer.on_publish(sample, send)`` runs in ``publish`` after the header is stamped and before the
@@ -395,7 +395,7 @@ class Bus(ABC):
                         *, inline: bool = False) -> Subscription[Sample]:
         """Subscribe to samples on ``key_expr`` (``*``/``**`` wildcards allowed).
 
-        ``inline=True`` is the lock-step hot path (the Zenoh reference's fastest pattern, §4c): the handler, a plain
+        ``inline=True`` is the lock-step hot path (the fastest pattern measured over Zenoh, docs/services.md): the handler, a plain
         function, may run on the transport's receive thread instead of the loop, skipping one thread hop and loop
         wake-up per message. All inline handlers of one bus are serialized by one lock (they never run
         concurrently with each other), but they may run concurrently with coroutines on the loop: hand results to

@@ -11,7 +11,7 @@
   lowlatency transport does not batch anyway, and an express message from a lowlatency session, routed through the
   endpoint to a subscriber whose session uses default transport settings (any user's client, e.g. the README's
   five-line subscriber), stops that subscriber's stream after a couple of samples (measured with zenoh 1.10.2;
-  issue 6, docs/decisions.md).
+  docs/decisions.md).
 * There is no asyncio API in zenoh-python: every Zenoh callback (it runs on a Zenoh-owned Python thread) converts
   the sample to plain bytes there and appends it to one inbox; the loop is woken with ``call_soon_threadsafe`` only
   when the inbox goes from empty to non-empty, so a burst of replies costs one wake-up, not one per message.

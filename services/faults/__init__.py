@@ -1,1 +1,1 @@
-"""Runtime fault control (issue 5): the ``ctl/faults`` controller every process mounts and the timed schedule file."""
+"""Runtime fault control: the ``ctl/faults`` controller every process mounts and the timed schedule file."""

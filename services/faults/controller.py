@@ -1,4 +1,4 @@
-"""The ``ctl/faults`` controller (DESIGN §4): every process mounts one over its fault layers.
+"""The ``ctl/faults`` controller (docs/faults.md): every process mounts one over its fault layers.
 
 * a queryable on ``morph/<run>/ctl/faults``: ``morph-sim faults set|list|reset`` sends a :class:`FaultCommand` as the
   query payload; each process applies it to its own layers (each keeps its own seeded per-link streams) and replies

@@ -1,4 +1,4 @@
-"""Process faults (issue 5): kill an agent (SIGKILL) or pause it (SIGSTOP, SIGCONT after ``pause_for``) at a tick,
+"""Process faults: kill an agent (SIGKILL) or pause it (SIGSTOP, SIGCONT after ``pause_for``) at a tick,
 every k ticks, or a seeded random agent — the supervisor's half of a ``crash`` fault spec.
 
 * :class:`CrashPlanner` (pure): which crash actions are due at tick ``t``. A spec without ``agent`` picks a random

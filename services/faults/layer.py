@@ -1,4 +1,4 @@
-"""Application-layer fault injection for the bus (DESIGN §4, issue 5): loss (Bernoulli, Gilbert–Elliott), latency
+"""Application-layer fault injection for the bus (docs/faults.md): loss (Bernoulli, Gilbert–Elliott), latency
 (fixed, jitter, uniform/normal/pareto, correlation), duplicate, reorder and directional partitions, scoped by key
 expression and agent ids, with optional auto-heal, and a seeded RNG per (fault, link) so a run is reproducible.
 

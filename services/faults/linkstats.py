@@ -1,4 +1,4 @@
-"""Measured, not assumed (issue 5): per-key sent / delivered / dropped / duplicated / late counts and the observed
+"""Measured, not assumed: per-key sent / delivered / dropped / duplicated / late counts and the observed
 latency distribution, computed by a receiver from the samples themselves.
 
 Every sample carries its publisher, a per-(publisher, key) sequence number starting at 0, and the publisher's send

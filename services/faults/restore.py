@@ -1,4 +1,4 @@
-"""A restarted agent restores its plasticity state from the monitor's latest states (issue 5, process faults).
+"""A restarted agent restores its plasticity state from the monitor's latest states (after a process fault).
 
 The monitor answers ``get morph/<run>/state/agent/*`` with the latest :class:`AgentState` of every agent (its
 latest-state queryable). :func:`fetch_states` asks for them; :func:`restore_brains` loads them into a fresh brain:

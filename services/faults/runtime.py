@@ -1,4 +1,4 @@
-"""One process's fault machinery in one object, so a service wires faults with three calls (DESIGN §4, issue 5).
+"""One process's fault machinery in one object, so a service wires faults with three calls (docs/faults.md).
 
     rt = FaultRuntime(config.run_id, seed=config.seed, dt=config.dt, virtual=True, events=is_sim)
     rt.attach(bus)                      # fault layer (+ link meter) on the bus; sim-time stamps in virtual time

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from schemas.errors import explain
+from schemas.errors import invalid
 from schemas.faults import FaultOp, FaultSpec
 from schemas.messages import FaultCommand
 
@@ -67,15 +67,11 @@ class FaultSchedule(BaseModel):
         return [(c.at(dt), c.command()) for _, c in indexed]
 
 
-def _explain(exc: ValidationError, where: str | None = None) -> ValueError:
-    return ValueError(explain(exc, where=where))
-
-
 def parse_schedule(data: dict, where: str = "schedule") -> FaultSchedule:
     try:
         return FaultSchedule.model_validate(data)
     except ValidationError as exc:
-        raise _explain(exc, where) from None
+        raise invalid(exc, where) from None
 
 
 def load_schedule(path: str | Path, n_agents: int | None = None) -> FaultSchedule:

@@ -1,4 +1,4 @@
-"""Virtual time for fault injection (DESIGN §4): latency and deadlines in sim seconds, deterministic.
+"""Virtual time for fault injection (docs/faults.md): latency and deadlines in sim seconds, deterministic.
 
 Within one phase of a tick everything happens at the same sim time: the phase's boundary. A message sent at sim
 time ``s`` with latency ``L`` is released at the first phase boundary ``b >= s + L``. The receiver's deadline for a

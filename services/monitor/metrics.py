@@ -1,7 +1,7 @@
 """Pure metric computations over numpy arrays (no I/O, no bus).
 
 Used by the monitor (live metric streams), the lab (experiment tables) and the reports. Definitions follow
-`reference/morph.md` §7 and the paper's analysis sections; where the paper and the reference code disagree, both
+the reference code and the paper's analysis sections (docs/morph.md); where the paper and the reference code disagree, both
 variants are offered and named after their source.
 
 Conventions
@@ -127,7 +127,7 @@ class LinkEvent:
 class LinkTracker:
     """Records link formations, prunings and lifetimes from a sequence of link matrices, one per tick.
 
-    Exactly the reference's link-persistence analysis (`emergent.py`, morph.md §7.3): A is recorded after each
+    Exactly the reference's link-persistence analysis (`emergent.py`): A is recorded after each
     update; a 0→1 transition between consecutive observations starts an event, the matching 1→0 ends it; the state
     before the first observation is all-zero; events open at the end are censored at ``T - birth``; the stable core is
     lifetime ≥ ⌊T/2⌋ with T the number of observed ticks.  A link pruned and re-formed inside one tick is never seen
@@ -301,7 +301,7 @@ def algebraic_connectivity(A, W=None) -> float:
 
 
 def reference_normalized_fiedler(A, symmetrize: bool = True) -> float:
-    """The reference code's "Fiedler value" (`MORPH._sg`, morph.md §7.4), reproduced exactly.
+    """The reference code's "Fiedler value" (`MORPH._sg`), reproduced exactly.
 
     d_i = Σ_j A_ij; if every degree is 0 return 0; D^{-1/2} uses max(d_i, 1e−9); L = I − D^{-1/2} A D^{-1/2};
     return the second-smallest eigenvalue (scipy ``eigvalsh``, lower triangle).  Unlike the textbook value an
@@ -424,7 +424,7 @@ def spearman_agv_picker(
 def spearman_reference_pairs(
     W, mean_distance, n_permutations: int = 0, rng: int | np.random.Generator | None = 0
 ) -> SpearmanResult:
-    """The reference's variant (`emergent.py`, morph.md §7.3): all unordered pairs i<j, every role combination.
+    """The reference's variant (`emergent.py`): all unordered pairs i<j, every role combination.
 
     x = mean Manhattan distance of the pair, y = final W_ij read from the upper triangle (i<j); N(N−1)/2 pairs (153 at
     Medium, N=18), same-role pairs included although they mostly tie at W = 0.  p is scipy's asymptotic p, as the
@@ -511,9 +511,9 @@ def shift_recoveries(
     fraction: float = 0.9,
     baseline_lag: int = 2,
 ) -> list[PhaseRecovery]:
-    """Recovery times of the shift experiment (issue 8, paper r3–r6), for every phase with a same-side predecessor.
+    """Recovery times of the shift experiment (paper r3–r6), for every phase with a same-side predecessor.
 
-    Exact definition (the paper leaves it open; morph.md §7.2):
+    Exact definition (the paper leaves it open; docs/morph.md):
 
     * rate(t) = trailing 50-step rolling mean of the per-step delivery series over the whole episode
       (:func:`rolling_rate`), so the rate at a boundary still reflects the previous phase and falls as the window
@@ -562,7 +562,7 @@ class MeanStd:
 
 
 def mean_std(values: Iterable[float], ddof: int = 0) -> MeanStd:
-    """Mean and standard deviation; ddof=0 (population std) as the reference's tables (morph.md §7.1)."""
+    """Mean and standard deviation; ddof=0 (population std) as the reference's tables."""
     v = np.asarray(list(values), dtype=float)
     if v.ndim != 1 or v.size == 0:
         raise ValueError(f"values: expected a non-empty 1-D sequence, got shape {v.shape}")

@@ -1,4 +1,4 @@
-"""Prometheus ``/metrics`` of the monitor (ecosystem.md §E1): one endpoint for the whole run.
+"""Prometheus ``/metrics`` of the monitor: one endpoint for the whole run, named by the catalogue of metrics.
 
 A custom collector reads the monitor's latest metric samples and message statistics at scrape time, in its own
 ``CollectorRegistry`` (no process-global state, so tests and several monitors in one process do not collide).
@@ -11,18 +11,12 @@ from __future__ import annotations
 from prometheus_client import CollectorRegistry, start_http_server
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
 
-#: stream name -> (Prometheus name without suffix, type, help). Counters get ``_total`` from the client.
-EXPORTED = {
-    "deliveries_total": ("morph_deliveries", "counter", "Shelves delivered since the start of the run"),
-    "links": ("morph_links", "gauge", "Undirected coordination links"),
-    "lambda2": ("morph_lambda2", "gauge", "Algebraic connectivity of the link graph"),
-    "eta": ("morph_eta", "gauge", "Mean neuromodulation signal"),
-    "delivery_rate": ("morph_delivery_rate_per_second", "gauge", "Deliveries per sim second (sliding window)"),
-    "w_agv_agv": ("morph_w_agv_agv", "gauge", "Mean W between AGVs"),
-    "w_agv_picker": ("morph_w_agv_picker", "gauge", "Mean W between AGVs and pickers"),
-    "w_picker_picker": ("morph_w_picker_picker", "gauge", "Mean W between pickers"),
-    "agents_alive": ("morph_agents_alive", "gauge", "Agents that acknowledged the last tick"),
-}
+from services.monitor import catalogue
+
+#: exported from the monitor's message statistics (labels per kind or reason, histograms), not from a stream's value
+FROM_STATS = ("messages_total", "drops_total", "latency_seconds", "dispatch_delay")
+#: the streams exported as one gauge or counter each, with the catalogue's name and help
+EXPORTED = tuple(m for m in catalogue.CATALOGUE if m.prometheus and m.name not in FROM_STATS)
 
 
 class MonitorCollector:
@@ -41,18 +35,21 @@ class MonitorCollector:
         sim_time = GaugeMetricFamily("morph_sim_time_seconds", "Sim time of the last finalised tick", labels=["run"])
         sim_time.add_metric([run], max((s.sim_time for s in latest.values()), default=0.0))
         yield sim_time
-        for stream, (name, kind, doc) in EXPORTED.items():
-            sample = latest.get(stream)
-            family = (CounterMetricFamily if kind == "counter" else GaugeMetricFamily)(name, doc, labels=["run"])
+        for metric in EXPORTED:
+            sample = latest.get(metric.name)
+            family = (CounterMetricFamily if metric.kind == "counter" else GaugeMetricFamily)(
+                metric.prometheus, metric.help, labels=["run"])
             if sample is not None and sample.value is not None:
                 family.add_metric([run], sample.value)
             yield family
         stats = mon.stats
-        messages = CounterMetricFamily("morph_messages", "Messages received by the monitor", labels=["run", "kind"])
+        by = catalogue.BY_NAME
+        messages = CounterMetricFamily(by["messages_total"].prometheus, "Messages received by the monitor",
+                                       labels=["run", "kind"])
         for kind, count in sorted(dict(stats.by_kind).items()):
             messages.add_metric([run, kind], count)
         yield messages
-        drops = CounterMetricFamily("morph_dropped_messages", "Messages lost (sequence gaps) or rejected",
+        drops = CounterMetricFamily(by["drops_total"].prometheus, "Messages lost (sequence gaps) or rejected",
                                     labels=["run", "reason"])
         drops.add_metric([run, "sequence_gap"], stats.gaps)
         drops.add_metric([run, "rejected"], stats.rejected)
@@ -74,10 +71,10 @@ class MonitorCollector:
                 links.add_metric([run, key, receiver, s.name.split("/", 1)[1]], s.value)
         yield links
         yield latency
-        for hist, name, doc in ((stats.latency, "morph_bus_latency_seconds", "Publish to monitor latency"),
-                                (stats.dispatch, "morph_dispatch_delay_seconds",
-                                 "Sim seconds from an AGV's first help request to a picker's commit")):
-            family = HistogramMetricFamily(name, doc, labels=["run"])
+        for hist, stream, doc in ((stats.latency, "latency_seconds", "Publish to monitor latency"),
+                                  (stats.dispatch, "dispatch_delay",
+                                   "Sim seconds from an AGV's first help request to a picker's commit")):
+            family = HistogramMetricFamily(by[stream].prometheus, doc, labels=["run"])
             family.add_metric([run], hist.cumulative(), sum_value=hist.sum)
             yield family
 

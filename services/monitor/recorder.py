@@ -1,4 +1,4 @@
-"""The run record (DESIGN §6): ``runs/<run-id>/`` written incrementally, so a killed monitor loses at most a second.
+"""The run record: ``runs/<run-id>/`` written incrementally, so a killed monitor loses at most a second.
 
 Files:
 
@@ -29,11 +29,9 @@ from typing import Any
 
 import numpy as np
 
+from services.monitor.catalogue import COLUMNS  # per-tick columns; ``deliveries`` of step t come with tick t+1
 from services.runconfig import RunConfig
 
-#: per-tick columns; ``deliveries`` are those of step t (reported by tick t+1)
-COLUMNS = ("t", "sim_time", "deliveries", "deliveries_total", "requests", "commits", "links", "lambda2", "eta",
-           "acks", "w_agv_agv", "w_agv_picker", "w_picker_picker")
 FLUSH_SECONDS = 1.0
 
 

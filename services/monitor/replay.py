@@ -1,4 +1,4 @@
-"""Record all bus traffic of a run to a file, and replay it into a monitor offline (issue 6).
+"""Record all bus traffic of a run to a file, and replay it into a monitor offline.
 
 File format (``.mbr``, "morph bus record"): a stream of msgpack objects. The first is the header
 ``{"format": "morph-sim-bus-record", "version": 1, "run_id": …, "config": RunConfig JSON, "started_at": …}``; every

@@ -1,4 +1,4 @@
-"""Markdown report of one or more run records (DESIGN §6), with figures and an animation of the warehouse.
+"""Markdown report of one or more run records, with figures and an animation of the warehouse.
 
 Reads only the record files (``manifest.json``, ``metrics.csv``, ``events.jsonl``, ``snapshots/``,
 ``positions.csv``, ``links.csv``, ``summary.json``), so a report can be made long after the run, for a record written
@@ -334,7 +334,7 @@ def write_report(run_dirs: list[Path], out: Path, *, gif: bool = True) -> Path:
             count = warehouse_gif(rec, g)
             if count is None:
                 lines.append(f"{rec.name}: no animation — the record has no positions.csv/links.csv "
-                             "(recorded before issue 6)")
+                             "(recorded by an older monitor)")
             else:
                 lines += [f"![{rec.name}]({g.name})", "",
                           f"{count} frames; the legend under the map names every glyph and colour."]

@@ -1,6 +1,6 @@
 """The monitor service: observes the whole run, computes per-tick metrics from messages alone, records the run.
 
-One subscription on ``morph/<run>/**`` (one Zenoh callback thread, fan-out in Python — zenoh.md §8.12) feeds:
+One subscription on ``morph/<run>/**`` (one Zenoh callback thread, fan-out in Python) feeds:
 
 * ``sim/tick``            deliveries of step t−1 (its ``delivered_by``), sim time;
 * ``agent/<id>/ack``      requests sent, the agent's out-links after its update (→ links, λ₂), η;
@@ -31,6 +31,7 @@ from schemas import Ack, AgentState, Commit, Event, MetricSample, Phase, Stop
 from schemas.hot import TickArrays, decode_tick
 from schemas.keys import RunKeys, intersects
 from services.bus.base import Bus, Query, Sample
+from services.monitor import catalogue
 from services.monitor import metrics as M
 from services.monitor.recorder import Recorder
 from services.monitor.streams import MessageStats
@@ -41,12 +42,9 @@ from services.tickorder import TickOrder
 log = logging.getLogger("morph_sim.monitor")
 
 ROW_GRACE_TICKS = 8
-STREAMS = ("deliveries", "deliveries_total", "requests", "commits", "links", "lambda2", "eta", "acks",
-           "w_agv_agv", "w_agv_picker", "w_picker_picker")
-ACK_HAS_LINKS = "links" in Ack.model_fields  # the wire schema's per-tick link report (else: state rows)
 STOP_GRACE = 3.0  # seconds the monitor waits for the sim's end of run after someone else's stop
 QUIET_EVENTS = ("ready.probe", "ready.ack")
-NET_STREAMS = ("handovers", "in_outage", "outage_seconds", "stopped")
+NET_STREAMS = tuple(m.name.split("/", 1)[1] for m in catalogue.CATALOGUE if m.source == "network")
 # what the dispatch protocol sends, by the monitor's message kind (the sim's Ticks and Resolves are kind "sim")
 PROTOCOL_KINDS = ("sim", "ack", "request", "reply", "commit")  # what the monitor's own network model can see
 
@@ -123,7 +121,7 @@ class MonitorService:
         self._stop_timer: asyncio.TimerHandle | None = None
         self._link_shift = 1 if config.policy == "morph" else 0
         self.stats = MessageStats(self.n, config.dt)  # message streams (counts, drops, latency, dispatch)
-        # issue 5 (F3): per key class sent / delivered / dropped / duplicated / late and latency, from the samples'
+        # per key class sent / delivered / dropped / duplicated / late and latency, from the samples'
         # own headers, published as link/* metrics every k (state_every) ticks
         from services.faults.linkstats import LinkMeter
 
@@ -280,8 +278,7 @@ class MonitorService:
                 row.requests += len(ack.requests_sent)
                 if ack.requests_sent:
                     self.stats.requested(ack.t, ack.agent)
-        if ACK_HAS_LINKS:
-            self._links_from(ack.t, ack.agent, getattr(ack, "links", None) or [], getattr(ack, "eta", None))
+        self._links_from(ack.t, ack.agent, ack.links or [], ack.eta)
 
     def _links_from(self, t: int, agent: int, links: list[int], eta: float | None) -> None:
         # Links and η belong to the step whose update produced them: a plastic policy's report at tick t carries the
@@ -314,8 +311,6 @@ class MonitorService:
         prev = self.latest_state.get(state.agent)
         if prev is None or state.t >= prev.t:
             self.latest_state[state.agent] = state
-        if not ACK_HAS_LINKS:  # older wire schema: per-tick links come from the state rows
-            self._links_from(state.t, state.agent, np.flatnonzero(state.a_row).tolist(), state.eta)
         if state.t % self.config.state_every != 0 and state.t < self.config.steps:
             return  # a per-tick state (links only): not a W sample
         at = self._states.setdefault(state.t, {})
@@ -362,7 +357,7 @@ class MonitorService:
 
     # -- rows ------------------------------------------------------------------------------------------------------------
     def _row_complete(self, row: Row) -> bool:
-        return len(row.ackers) >= self.n and (not ACK_HAS_LINKS or len(row.links) >= self.n)
+        return len(row.ackers) >= self.n and len(row.links) >= self.n
 
     def _finalize(self, upto: int, grace: int = 0) -> None:
         while self._next_row <= upto:
@@ -389,9 +384,7 @@ class MonitorService:
             "t": row.t, "sim_time": row.sim_time, "deliveries": row.deliveries, "deliveries_total": self._total,
             "requests": row.requests, "commits": row.commits, "links": link_count,
             "lambda2": lambda2, "eta": float(np.mean(row.etas)) if row.etas else None,
-            "acks": len(row.ackers),
-            "w_agv_agv": block.agv_agv if block else None, "w_agv_picker": block.agv_picker if block else None,
-            "w_picker_picker": block.picker_picker if block else None,
+            "acks": len(row.ackers), **catalogue.w_block_values(block),
         }
         self.result.deliveries_total = self._total
         self._last_values = values
@@ -413,7 +406,7 @@ class MonitorService:
         """
         t = values["t"]
         sim_time = values["sim_time"] or t * self.config.dt
-        for name in STREAMS:
+        for name in catalogue.ROW:
             v = values.get(name)
             if v is not None and not (isinstance(v, float) and not math.isfinite(v)):
                 self._fresh[name] = (t, sim_time, float(v))
@@ -439,8 +432,7 @@ class MonitorService:
     def _build_samples(self, values: dict) -> None:
         """The pending MetricSamples of the rows noted since the last build; ``values`` is the newest row."""
         self._unbuilt = False
-        samples = [MetricSample(name=name, t=t, sim_time=sim_time, value=v)
-                   for name, (t, sim_time, v) in self._fresh.items()]
+        samples = [catalogue.sample(name, t, sim_time, value=v) for name, (t, sim_time, v) in self._fresh.items()]
         self._fresh = {}
         samples += self.stats.samples(values)
         for s in samples:

@@ -1,12 +1,12 @@
-"""The monitor's metric streams: their documented list, the extra per-message statistics, and subscriber helpers.
+"""The monitor's metric streams: the per-message statistics, and subscriber helpers.
 
 Every stream is published on ``morph/<run>/metrics/<name>`` as a :class:`~schemas.MetricSample` (a
 versioned wire message carrying the tick ``t`` and the sim time), at most ``--max-rate`` updates per second per stream
 (the monitor's publish path), and answered from the latest value on ``get morph/<run>/state/metrics/<name>``.
 
-:data:`STREAMS` is the one list of names, units and meanings: the README table, the Prometheus exporter and the tests
-all read it. The row streams come from the monitor's per-tick rows (``metrics.csv``); :class:`MessageStats` adds the
-statistics that come from the messages themselves (counts, drops by sequence gaps, latency, dispatch delay).
+Names, units and meanings are in :mod:`services.monitor.catalogue`. The row streams come from the monitor's per-tick
+rows (``metrics.csv``); :class:`MessageStats` adds the statistics that come from the messages themselves (counts,
+drops by sequence gaps, latency, dispatch delay).
 """
 
 from __future__ import annotations
@@ -17,64 +17,15 @@ import math
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
-
 import numpy as np
 
 from schemas import MetricSample
+from services.monitor.catalogue import RATE_WINDOW, sample
 
 #: Histogram bucket boundaries (seconds): prometheus_client's defaults, also OTel's for messaging durations.
 LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.075, 0.1, 0.25, 0.5, 0.75, 1.0, 2.5, 5.0, 7.5, 10.0)
 #: Dispatch delay is in sim seconds (one step = Δ, 1 s by default): buckets of a few steps up to minutes.
 DISPATCH_BUCKETS = (0.0, 1.0, 2.0, 3.0, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0, 500.0)
-RATE_WINDOW = 50  # ticks of the sliding window of delivery_rate
-
-
-@dataclass(frozen=True)
-class Stream:
-    name: str
-    unit: str
-    help: str
-
-
-STREAMS: tuple[Stream, ...] = (
-    Stream("deliveries", "deliveries", "shelves delivered in step t"),
-    Stream("deliveries_total", "deliveries", "cumulative deliveries up to step t"),
-    Stream("delivery_rate", "deliveries/s", f"deliveries per sim second over the last {RATE_WINDOW} steps"),
-    Stream("links", "links", "undirected coordination links after the update of step t"),
-    Stream("lambda2", "1", "algebraic connectivity λ₂ of the link graph"),
-    Stream("eta", "1", "mean neuromodulation signal η over the agents (plastic policies)"),
-    Stream("w_agv_agv", "1", "mean W between AGVs (every --state-every ticks)"),
-    Stream("w_agv_picker", "1", "mean W between AGVs and pickers"),
-    Stream("w_picker_picker", "1", "mean W between pickers"),
-    Stream("requests", "messages", "help requests sent in tick t"),
-    Stream("commits", "messages", "picker commitments in tick t"),
-    Stream("acks", "agents", "agents that acknowledged tick t"),
-    Stream("agents_alive", "agents", "agents heard from (acked) in tick t; labels: the missing ids"),
-    Stream("dispatch_delay", "s", "mean sim seconds from an AGV's first help request to a picker's commit, step t"),
-    Stream("messages_total", "messages", "messages seen by the monitor; labels: count per kind"),
-    Stream("drops_total", "messages", "messages lost: sequence gaps per sender and key, plus rejected payloads"),
-    Stream("latency_seconds", "s", "bus latency publish→monitor over the last second: values = [p50, p90, p99]"),
-    # per key class as the monitor received them, every --state-every ticks (issue 5); labels: key, receiver
-    *(Stream(f"link/{c}", "messages", f"cumulative messages {c} per key class (sent: highest sequence number + 1)")
-      for c in ("sent", "delivered", "dropped", "duplicated", "late")),
-    *(Stream(f"link/latency/{q}", "s", f"observed latency per key class: {q} since the start")
-      for q in ("mean", "p50", "p90", "p99", "max")),
-    # with a network profile (--network): the robots' Wi-Fi as they drive through it (docs/faults.md)
-    Stream("net/handovers", "hand-overs", "cumulative access-point hand-overs of all robots"),
-    Stream("net/in_outage", "robots", "robots whose radio is in a hand-over outage at step t"),
-    Stream("net/outage_seconds", "s", "cumulative hand-over outage, all robots"),
-    Stream("net/stopped", "robots", "robots held in place at step t: silent for the profile's silence_stop"),
-)
-STREAM_NAMES = tuple(s.name for s in STREAMS)
-ROW_STREAMS = ("deliveries", "deliveries_total", "links", "lambda2", "eta", "w_agv_agv", "w_agv_picker",
-               "w_picker_picker", "requests", "commits", "acks")
-
-
-def markdown_table() -> str:
-    lines = ["| stream | unit | meaning |", "|---|---|---|"]
-    lines += [f"| `{s.name}` | {s.unit} | {s.help} |" for s in STREAMS]
-    return "\n".join(lines)
 
 
 class Histogram:
@@ -176,24 +127,20 @@ class MessageStats:
         t = values["t"]
         sim_time = values.get("sim_time") or t * self.dt
         out = [
-            MetricSample(name="delivery_rate", t=t, sim_time=sim_time, unit="deliveries/s",
-                         value=sum(self._deliveries) / (len(self._deliveries) * self.dt)),
-            MetricSample(name="messages_total", t=t, sim_time=sim_time, unit="messages", value=float(self.total),
-                         labels={k: str(v) for k, v in sorted(self.by_kind.items())}),
-            MetricSample(name="drops_total", t=t, sim_time=sim_time, unit="messages",
-                         value=float(self.gaps + self.rejected),
-                         labels={"sequence_gaps": str(self.gaps), "rejected": str(self.rejected)}),
-            MetricSample(name="agents_alive", t=t, sim_time=sim_time, unit="agents",
-                         value=float(values.get("acks") or 0)),
+            sample("delivery_rate", t, sim_time, value=sum(self._deliveries) / (len(self._deliveries) * self.dt)),
+            sample("messages_total", t, sim_time, value=float(self.total),
+                   labels={k: str(v) for k, v in sorted(self.by_kind.items())}),
+            sample("drops_total", t, sim_time, value=float(self.gaps + self.rejected),
+                   labels={"sequence_gaps": str(self.gaps), "rejected": str(self.rejected)}),
+            sample("agents_alive", t, sim_time, value=float(values.get("acks") or 0)),
         ]
         if self._dispatch_row is not None:
             at, at_time, delay = self._dispatch_row
             self._dispatch_row = None
-            out.append(MetricSample(name="dispatch_delay", t=at, sim_time=at_time, unit="s", value=delay))
+            out.append(sample("dispatch_delay", at, at_time, value=delay))
         q = self.latency_quantiles()
         if all(math.isfinite(x) for x in q):
-            out.append(MetricSample(name="latency_seconds", t=t, sim_time=sim_time, unit="s", values=q,
-                                    labels={"quantiles": "0.5,0.9,0.99"}))
+            out.append(sample("latency_seconds", t, sim_time, values=q, labels={"quantiles": "0.5,0.9,0.99"}))
         return out
 
 
@@ -248,13 +195,3 @@ async def subscribe_metrics(bus, run_id: str, handler: Callable[[MetricSample], 
 
     expr = keys.metrics if names == "**" else keys.metric(names)
     return await bus.subscribe(expr, on_sample)
-
-
-#: The README's subscriber example (tests/test_readme_example.py runs it against a live ``morph-sim up``).
-README_EXAMPLE = '''\
-import time, msgpack, zenoh  # after: morph-sim up --run-id demo --listen tcp/127.0.0.1:7447 --steps 5000
-conf = zenoh.Config.from_file("runs/demo/credentials/operator.json5"); conf.insert_json5("mode", '"client"'); conf.insert_json5("connect/endpoints", '["tcp/127.0.0.1:7447"]')
-with zenoh.open(conf) as session:
-    session.declare_subscriber("morph/*/metrics/**", lambda s: print(s.key_expr, msgpack.unpackb(s.payload.to_bytes())))
-    time.sleep(10)
-'''

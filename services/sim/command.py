@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _faults(config):
-    """The sim's fault runtime (issue 5): ``morph-sim faults set|list|reset`` reaches it on ctl/faults; in the run's
+    """The sim's fault runtime: ``morph-sim faults set|list|reset`` reaches it on ctl/faults; in the run's
     fault time (``--fault-time``, virtual by default: every agent process runs its own clock, docs/faults.md)."""
     from services.faults.runtime import FaultRuntime
 

@@ -1,4 +1,4 @@
-"""The sim clock service: the warehouse's single authority, running the two-phase lockstep tick of DESIGN §3.
+"""The sim clock service: the warehouse's single authority, running the two-phase lockstep tick (docs/services.md).
 
 Per tick ``t``:
 
@@ -14,7 +14,7 @@ After the last step a final ``Tick`` (``t == steps``) reports that step; agents 
 and ack; then the sim publishes a ``run.finished`` event and ``ctl/stop``.
 
 Presence: an agent takes part once its liveliness token is visible *and* it has answered a readiness probe
-(declarations propagate asynchronously, zenoh.md §8.6). An agent whose token disappears, or that stays silent past
+(declarations propagate asynchronously in Zenoh). An agent whose token disappears, or that stays silent past
 the lockstep phase timeout, is absent until it answers a probe again; the sim never waits for an absent agent, and
 its robot gets no new help from it (its requests are simply missing).
 
@@ -51,7 +51,7 @@ LEAVE_TIMEOUT = 2.0  # seconds the sim waits, after its stop, for the other part
 # on a loaded machine: several seconds). The sim hosts the endpoint: closing it earlier loses what is still on the way
 # to the monitor, and the record would end before the run did (seen: 51 of 60 rows).
 MONITOR_LEAVE_TIMEOUT = 20.0
-PROBE_INTERVAL = 0.25  # seconds between readiness probes (zenoh.md §8.6)
+PROBE_INTERVAL = 0.25  # seconds between readiness probes
 MONITOR = "monitor"
 
 
@@ -242,7 +242,7 @@ class SimService:
     def __init__(self, config: RunConfig, bus: Bus, *, wait_for_monitor: bool = True,
                  on_tick: Callable[[int, TickObservation], None] | None = None, faults=None):
         self.config = config
-        # issue 5: a FaultRuntime (services.faults.runtime) whose layer sits on this bus; phases then end
+        # a FaultRuntime (services.faults.runtime) whose layer sits on this bus; phases then end
         # when every answer has *arrived* (delivered, held or dropped by the layer) and at each phase boundary the
         # runtime releases what is due, so a lost or late answer costs that agent its tick, never a hang.
         self.faults = faults

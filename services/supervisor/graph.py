@@ -2,7 +2,7 @@
 
 ``process_graph(config, endpoint)`` lists every OS process of a run (sim, one agent per robot, monitor): its name, the
 ``morph-sim`` command line with real flags, the environment it needs and its restart policy. The supervisor starts
-exactly these; issue 7's docker-compose file is tested against them.
+exactly these; docker-compose.yml is tested against them.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from services.runconfig import RunConfig
 
 PROGRAM = "morph-sim"
 
-# Zenoh's measured best settings for the lock-step loop (reference zenoh.md §7): one app worker thread with every
+# Zenoh's measured best settings for the lock-step loop (measured: docs/services.md): one app worker thread with every
 # other runtime handed over to it; one BLAS thread per process (many processes share 2 cores).
 ZENOH_RUNTIME = (
     "(rx: (handover: app), tx: (handover: app), acc: (handover: app), net: (handover: app), "
@@ -51,7 +51,7 @@ class ProcessSpec:
 
     def environment(self, base: dict[str, str] | None = None) -> dict[str, str]:
         env = dict(os.environ if base is None else base)
-        if env.get("ZENOH_RUNTIME") == "":  # an empty value makes zenoh panic (zenoh.md §8.9)
+        if env.get("ZENOH_RUNTIME") == "":  # an empty value makes zenoh panic (zenoh 1.10.2)
             del env["ZENOH_RUNTIME"]
         env.update(self.env)
         return env
@@ -61,7 +61,7 @@ def process_graph(config: RunConfig, endpoint: str) -> list[ProcessSpec]:
     """Every process of a distributed run of ``config`` whose Zenoh endpoint is ``endpoint``.
 
     Without ``config.endpoint`` the sim hosts the endpoint (it listens on ``endpoint``; no router process, which
-    zenoh.md §4a measured 25–45 % slower); with it every process, the sim included, connects to that router.
+    we measured 25–45 % slower); with it every process, the sim included, connects to that router.
     """
     shared = config.to_argv(_SHARED_FIELDS)
     external = config.endpoint is not None
@@ -71,7 +71,7 @@ def process_graph(config: RunConfig, endpoint: str) -> list[ProcessSpec]:
         specs.append(ProcessSpec(
             f"agent-{agent}", "agent", (PROGRAM, "agent", "--id", str(agent), *shared, "--endpoint", endpoint),
             dict(CHILD_ENV), "on-failure", agent))
-    # on-failure: a restarted monitor appends to the same run record and declares the rows it missed (issue 6)
+    # on-failure: a restarted monitor appends to the same run record and declares the rows it missed
     specs.append(ProcessSpec("monitor", "monitor", (PROGRAM, "monitor", *shared, "--endpoint", endpoint),
                              dict(CHILD_ENV), "on-failure"))
     return specs

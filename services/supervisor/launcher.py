@@ -32,7 +32,7 @@ log = logging.getLogger("morph_sim.supervisor")
 TERM_GRACE = 3.0  # seconds between SIGTERM and SIGKILL
 SHUTDOWN_BOUND = 5.0
 # A crash loop is a failure, not something to retry forever: at most MAX_RESTARTS unplanned restarts of one child
-# within RESTART_WINDOW wall seconds. Kills the supervisor carries out itself (crash faults, issue 5) do not count, so
+# within RESTART_WINDOW wall seconds. Kills the supervisor carries out itself (crash faults) do not count, so
 # "kill agent k every 100 ticks" runs for any number of steps.
 MAX_RESTARTS = 5
 RESTART_WINDOW = 60.0
@@ -181,7 +181,7 @@ class Supervisor:
                               else stall_timeout)
         self.stop_requested: str | None = None
         self.events: list[tuple[float, str, str]] = []
-        # Crash faults (issue 5): specs from the schedule file or `morph-sim faults set` land in the planner (the
+        # Crash faults: specs from the schedule file or `morph-sim faults set` land in the planner (the
         # ctl/faults controller's on_crash hook); each tick the due actions are carried out on the agents' pids.
         from services.faults.crash import CrashPlanner, ProcessFaulter
 

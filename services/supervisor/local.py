@@ -29,7 +29,7 @@ async def run_local(config: RunConfig, *, record: bool = True, network: LocalNet
                     on_bus: Callable[[str, Bus], None] | None = None, faults=None) -> LocalRun:
     """Run ``config`` in this loop. ``on_bus(name, bus)`` sees every session (tests install fault layers there).
 
-    ``faults``: a FaultRuntime (issue 5) for the sim's session (default: one when ``config.fault_schedule`` is set);
+    ``faults``: a FaultRuntime for the sim's session (default: one when ``config.fault_schedule`` is set);
     every agent session then gets its own runtime like it (``FaultRuntime.like``: same seed, Δ, fault time and
     schedule), as each agent process of ``morph-sim up`` has, and the monitor stamps the sim's clock."""
     if faults is None and (config.fault_schedule or config.network):

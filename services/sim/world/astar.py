@@ -1,6 +1,6 @@
 """The rotation-aware A* of TA-RWARE's planner fork, re-implemented exactly, and TA-RWARE's path rules.
 
-Spec: shared/reference/tarware.md §7.2. The search is the fork's (raulsteleac/pyastar2d_TARWARE@ff9257d) greedy
+The search is the fork's (raulsteleac/pyastar2d_TARWARE@ff9257d) greedy
 variant, not textbook A*: 4-connected, Manhattan heuristic, neighbours in the order up, left, right, down
 (direction codes 1, 3, 4, 6), +1 on a change of direction (never on the first move), and +100 added to a cell's
 weight once it is pushed, so a cell is in effect settled when first reached. The open list is a binary heap ordered
@@ -130,7 +130,7 @@ def astar(weights: list[float], H: int, W: int, start: int, goal: int,
 
 
 class Planner:
-    """TA-RWARE's ``find_path`` cost-grid rules on top of :func:`astar` (spec §7.2 steps 1-7).
+    """TA-RWARE's ``find_path`` cost-grid rules on top of :func:`astar` (the original's ``find_path``).
 
     AGVs plan on an all-free grid; pickers only on highways outside the goal row, plus their target rack cell, and
     a picker on a rack cell whose target is the other half of the same 2-wide rack must leave through the highway.

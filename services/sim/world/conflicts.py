@@ -1,4 +1,4 @@
-"""Stage A of TA-RWARE's move-conflict resolution: the move graph (spec: shared/reference/tarware.md §7.3, §14.2).
+"""Stage A of TA-RWARE's move-conflict resolution: the move graph.
 
 The original builds a networkx 3.2.1 ``DiGraph`` with one edge (cell -> requested cell) per agent, in agent id
 order, and for every weakly connected component commits either the agents on the component's cycle (nobody for a
@@ -131,7 +131,7 @@ def _find_cycle(hsucc: dict[Cell, list[Cell]]) -> list[tuple[Cell, Cell]] | None
             active.add(head)
             previous_head = head
         if cycle:
-            for i, (tail, _head) in enumerate(cycle):
+            for i, (tail, _head) in enumerate(cycle):  # noqa: B007 (i is the cycle's start, used below)
                 if tail == final:
                     break
             return cycle[i:]

@@ -1,6 +1,6 @@
 """The reference's CTA controller ("Closest-Target Assignment" with its seven coordination fixes).
 
-Spec: shared/reference/morph.md §3 and §5. Per step the reference runs: (1) assign queued items to the
+Per step the reference runs: (1) assign queued items to the
 nearest free AGV, (2) advance every AGV's mission, (3-4) dispatch pickers through a gate, (5) release
 pickers no longer needed ("sticky" release), (6) build macro actions, (7) step the warehouse. This class
 splits that loop at the dispatch so the decision can be taken by the agents:
@@ -52,7 +52,7 @@ class CTAController:
         self.n = warehouse.num_agents
         self.grid_shape = (warehouse.H, warehouse.W)
         self.t = 0
-        #: the reference's demand-shift variant (shift.py, morph.md §7.2): when set to "left"/"right", queued
+        #: the reference's demand-shift variant (shift.py; docs/morph.md): when set to "left"/"right", queued
         #: items on that half are assigned first and the others only when none of that half is waiting
         self.assignment_side: str | None = None
         #: robots that stand still in the next step whatever their path (the services' network safety stop)
@@ -83,7 +83,7 @@ class CTAController:
         """Reset the warehouse with ``seed``, then re-seed its request stream as the reference does.
 
         The reference calls ``np.random.seed(seed)`` again right after ``env.reset(seed)``, so request
-        replacements are drawn from a fresh stream (spec §2). Doing the same here gives every condition
+        replacements are drawn from a fresh stream. Doing the same here gives every condition
         the reference's request sequence; whether gate draws also come from that stream (the reference's
         single shared stream) is the lab's switch (:attr:`shared_rng`).
         """
@@ -311,7 +311,7 @@ class CTAController:
 
 
 def resolve_requests(requests) -> list[tuple[int, int]]:
-    """DESIGN §3: each picker takes the first request in mission order and declines the others.
+    """The picker rule of the tick protocol (docs/services.md): each picker takes the first request in mission order and declines the others.
 
     ``requests``: (agv, picker) pairs in the sim's mission order. Returns (picker, agv) commitments.
     """

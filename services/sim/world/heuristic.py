@@ -1,4 +1,4 @@
-"""TA-RWARE's shipped heuristic controller (spec: shared/reference/tarware.md §11; original: tarware/heuristic.py).
+"""TA-RWARE's shipped heuristic controller (original: tarware/heuristic.py).
 
 FIFO order assignment: each requested shelf, in queue order, gets the closest free AGV; AGVs then deliver to the
 closest goal and return the shelf to the closest empty rack cell; each picker serves its zone (a contiguous chunk

@@ -1,4 +1,4 @@
-"""Warehouse grid layouts with TA-RWARE's formulas and index orders (spec: shared/reference/tarware.md §2).
+"""Warehouse grid layouts with TA-RWARE's formulas and index orders.
 
 Pure data: a :class:`LayoutConfig` (validated by pydantic) and the :class:`Layout` derived from it. Cells are
 ``(x, y)`` with ``y`` the row; arrays are indexed ``[y, x]``; flat cell indices are ``y * W + x``.
@@ -110,9 +110,6 @@ class Layout:
         self.rack_groups = _find_sections(rack_colmajor)
         self.action_size = len(self.action_cells)
 
-    def is_highway(self, x: int, y: int) -> bool:
-        return bool(self.highway[y, x])
-
     def action_to_cell(self, action: int) -> tuple[int, int]:
         if not 1 <= action < self.action_size:
             raise ValueError(f"action: {action} is not a target id (1..{self.action_size - 1})")
@@ -123,12 +120,6 @@ class Layout:
             return self.cell_to_action[cell]
         except KeyError:
             raise ValueError(f"cell: {cell} is neither a goal nor a rack cell") from None
-
-    @staticmethod
-    def manhattan(a: tuple[int, int], b: tuple[int, int]) -> int:
-        """Path length an AGV's planner returns on the obstacle-free grid (it always equals the Manhattan
-        distance there; see tests/test_astar.py)."""
-        return abs(a[0] - b[0]) + abs(a[1] - b[1])
 
 
 def _find_sections(cells: list[tuple[int, int]]) -> list[list[tuple[int, int]]]:

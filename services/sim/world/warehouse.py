@@ -1,14 +1,13 @@
 """TA-RWARE's warehouse dynamics, re-implemented to reproduce the original's trajectories bit for bit.
 
-Spec: shared/reference/tarware.md §3-§10 (the original: uoe-agents/task-assignment-robotic-warehouse@6109c33,
-tarware/warehouse.py). One :class:`Warehouse` is one environment with its own ``np.random.RandomState``, drawn
-from in the original's order (§13.5, §14.2), so a run equals the original run in a fresh process.
+The original: uoe-agents/task-assignment-robotic-warehouse@6109c33, tarware/warehouse.py. One :class:`Warehouse` is one environment with its own ``np.random.RandomState``, drawn
+from in the original's order, so a run equals the original run in a fresh process.
 
 Per-agent state lives in plain Python lists (one entry per agent, id order; agent id = index + 1) and the grid
 layers in flat lists indexed ``y * W + x``: the step loop reads and writes single entries, which is several times
 faster on lists than on numpy arrays. Read-only numpy copies are offered as properties for controllers and
 renderers. The layers are rebuilt only at the end of a step, as in the original, so phases 1-6 of a step see the
-positions from the start of the step (§7).
+positions from the start of the step.
 """
 
 from __future__ import annotations
@@ -24,12 +23,6 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from services.sim.world.astar import Planner
 from services.sim.world.conflicts import commit_cells
 from services.sim.world.layout import Layout, LayoutConfig, layout_for
-
-
-class AgentType(IntEnum):
-    AGV = 0
-    PICKER = 1
-    AGENT = 2  # used for every agent when there are no pickers: it loads and unloads alone
 
 
 class Direction(IntEnum):
@@ -116,7 +109,7 @@ class StepResult:
 
 
 def micro_action_towards(x: int, y: int, heading: int, nxt: tuple[int, int]) -> int:
-    """Turn or move towards the adjacent cell ``nxt`` (§7.1): a 180° turn is two RIGHT turns."""
+    """Turn or move towards the adjacent cell ``nxt``: a 180° turn is two RIGHT turns."""
     try:
         needed = _HEADING_OF_DELTA[(nxt[0] - x, nxt[1] - y)]
     except KeyError:
@@ -150,14 +143,14 @@ class Warehouse:
         self._global_reward = config.reward_type == "global"
         self.steps = 0
         self._rng: np.random.RandomState | None = None
-        #: demand shift (issue 8): None = requests drawn from every shelf (TA-RWARE); "left"/"right" = replacement
+        #: demand shift: None = requests drawn from every shelf (TA-RWARE); "left"/"right" = replacement
         #: requests drawn only from shelves whose *current* cell has x < split_x ("left") or x >= split_x ("right")
         self.demand_side: str | None = None
         self.demand_split_x = self.W // 2  # shift.py's half_x = floor(W_grid / 2): 11 at Medium, 80/80 shelves
 
     # ------------------------------------------------------------------ reset
     def reset(self, seed: int | None = None) -> None:
-        """Spawn agents and draw the initial requests with a fresh RNG seeded by ``seed`` (§6, §10).
+        """Spawn agents and draw the initial requests with a fresh RNG seeded by ``seed``.
 
         ``seed=None`` seeds from OS entropy, like the original; pass a seed for a reproducible episode.
         """
@@ -328,7 +321,7 @@ class Warehouse:
         )
 
     def _attribute(self, actions: list[int]) -> tuple[int, int]:
-        """Phase 1 (§7.1): macro action -> path for idle agents, next micro action for busy ones."""
+        """Phase 1: macro action -> path for idle agents, next micro action for busy ones."""
         W = self.W
         cells = self.layout.action_cells
         n_actions = len(cells)
@@ -382,9 +375,9 @@ class Warehouse:
         return agv_dist, picker_dist
 
     def _resolve_conflicts(self) -> int:
-        """Phase 2 (§7.3): move graph (Stage A), then the pairwise clash loop (Stage B), then the final veto."""
+        """Phase 2: move graph (Stage A), then the pairwise clash loop (Stage B), then the final veto."""
         N, W = self.num_agents, self.W
-        xs, ys, req, types = self.x, self.y, self.req, self.types
+        xs, ys, req = self.x, self.y, self.req
         starts = list(zip(xs, ys))
         targets = [self.req_location(i) for i in range(N)]
         committed: set[int] = set()
@@ -467,7 +460,7 @@ class Warehouse:
         return clashes
 
     def _resolve_stuck(self) -> int:
-        """Phase 3 (§7.4): re-plan or release agents that have not left their cell for too long."""
+        """Phase 3: re-plan or release agents that have not left their cell for too long."""
         goals = self._goal_set
         req, busy, path = self.req, self.busy, self.path
         moving = [
@@ -510,7 +503,7 @@ class Warehouse:
         return stucks
 
     def _execute(self, rewards: list[float]) -> tuple[int, int]:
-        """Phase 5 (§7.5): moves, turns, loads and unloads in id order, on start-of-step agent layers."""
+        """Phase 5: moves, turns, loads and unloads in id order, on start-of-step agent layers."""
         W = self.W
         loads = unloads = 0
         for i in range(self.num_agents):
@@ -566,7 +559,7 @@ class Warehouse:
             rewards[picker_id - 1] += 0.1
 
     def _deliver(self, rewards: list[float]) -> tuple[int, list[int]]:
-        """Phase 6 (§7.6): requested shelves on goal cells at the start of the step are delivered."""
+        """Phase 6: requested shelves on goal cells at the start of the step are delivered."""
         deliveries = 0
         delivered_by: list[int] = []
         queue = self.queue
@@ -658,7 +651,7 @@ class Warehouse:
         return mask
 
     def empty_rack_actions(self) -> list[int]:
-        """Rack action ids whose cell counts as empty (§4): no floor shelf, and no carried shelf unless its AGV is
+        """Rack action ids whose cell counts as empty: no floor shelf, and no carried shelf unless its AGV is
         moving or turning (the original's ``get_empty_shelf_information``), in action id order."""
         W, lay = self.W, self.layout
         out = []
@@ -706,7 +699,7 @@ class Warehouse:
         )
 
     def digest_key(self) -> list:
-        """The list whose repr() the §13.7 per-step digest hashes."""
+        """The list whose repr() the per-step digest hashes (tests/data/tarware_digests.json)."""
         state: list = [
             (self.x[i], self.y[i], self.dir[i], self.carrying[i], int(self.busy[i]), self.req[i])
             for i in range(self.num_agents)
@@ -715,10 +708,10 @@ class Warehouse:
         return state
 
     def digest_row(self) -> str:
-        """12-hex per-step digest of §13.7 (sha1 of the repr of :meth:`digest_key`)."""
+        """12-hex per-step digest (sha1 of the repr of :meth:`digest_key`)."""
         return hashlib.sha1(repr(self.digest_key()).encode()).hexdigest()[:12]
 
 
 def episode_digest(step_digests: list[str]) -> str:
-    """§13.7 episode digest: first 16 hex of sha1 over the concatenated per-step digests."""
+    """Episode digest: first 16 hex of sha1 over the concatenated per-step digests."""
     return hashlib.sha1("".join(step_digests).encode()).hexdigest()[:16]

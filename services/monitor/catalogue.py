@@ -1,0 +1,119 @@
+"""The catalogue of metrics: every metric of a run defined once (name, unit, help, how it is computed).
+
+The monitor's per-tick rows (``metrics.csv`` columns), its metric streams ``metrics/<name>`` (with the unit on the
+wire), the Prometheus exporter, the README's table of streams and the lab's W-block summaries all read this module;
+nothing else lists metric names. Each entry says where its value comes from:
+
+* ``row`` — the monitor's per-tick row, from the sim's ticks and the agents' acks, commits and state rows;
+* ``messages`` — the monitor's statistics of the messages themselves (counts, sequence gaps, latency, dispatch);
+* ``link`` — the per key class link statistics (``services.faults.linkstats``), every ``--state-every`` ticks;
+* ``network`` — the network model's counters, under a network profile (``--network``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from schemas import MetricSample
+
+RATE_WINDOW = 50  # ticks of the sliding window of delivery_rate
+#: per key class counters of the link statistics and what each counts
+LINK_COUNTERS = {
+    "sent": "messages sent (highest sequence number + 1)",
+    "delivered": "messages delivered (duplicates included)",
+    "dropped": "messages lost (sent − distinct delivered)",
+    "duplicated": "extra copies delivered",
+    "late": "messages delivered after their phase deadline",
+}
+LINK_LATENCIES = ("mean", "p50", "p90", "p99", "max")
+
+
+@dataclass(frozen=True)
+class Metric:
+    name: str
+    unit: str
+    help: str
+    source: str  # "row" | "messages" | "link" | "network" (module docstring)
+    #: Prometheus family name (counters without the ``_total`` the client adds) and type, if exported
+    prometheus: str | None = None
+    kind: str = "gauge"  # "gauge" | "counter" | "histogram"
+
+
+#: Row metrics first, in the column order of ``metrics.csv`` (after ``t`` and ``sim_time``).
+CATALOGUE: tuple[Metric, ...] = (
+    Metric("deliveries", "deliveries", "shelves delivered in step t", "row"),
+    Metric("deliveries_total", "deliveries", "cumulative deliveries up to step t", "row",
+           "morph_deliveries", "counter"),
+    Metric("requests", "messages", "help requests sent in tick t", "row"),
+    Metric("commits", "messages", "picker commitments in tick t", "row"),
+    Metric("links", "links", "undirected coordination links after the update of step t", "row", "morph_links"),
+    Metric("lambda2", "1", "algebraic connectivity λ₂ of the link graph", "row", "morph_lambda2"),
+    Metric("eta", "1", "mean neuromodulation signal η over the agents (plastic policies)", "row", "morph_eta"),
+    Metric("acks", "agents", "agents that acknowledged tick t", "row"),
+    Metric("w_agv_agv", "1", "mean W between AGVs (every --state-every ticks)", "row", "morph_w_agv_agv"),
+    Metric("w_agv_picker", "1", "mean W between AGVs and pickers", "row", "morph_w_agv_picker"),
+    Metric("w_picker_picker", "1", "mean W between pickers", "row", "morph_w_picker_picker"),
+    Metric("delivery_rate", "deliveries/s", f"deliveries per sim second over the last {RATE_WINDOW} steps",
+           "messages", "morph_delivery_rate_per_second"),
+    Metric("agents_alive", "agents", "agents heard from (acked) in tick t; labels: the missing ids", "messages",
+           "morph_agents_alive"),
+    Metric("dispatch_delay", "s", "mean sim seconds from an AGV's first help request to a picker's commit, step t",
+           "messages", "morph_dispatch_delay_seconds", "histogram"),
+    Metric("messages_total", "messages", "messages seen by the monitor; labels: count per kind", "messages",
+           "morph_messages", "counter"),
+    Metric("drops_total", "messages", "messages lost: sequence gaps per sender and key, plus rejected payloads",
+           "messages", "morph_dropped_messages", "counter"),
+    Metric("latency_seconds", "s", "bus latency publish→monitor over the last second: values = [p50, p90, p99]",
+           "messages", "morph_bus_latency_seconds", "histogram"),
+    *(Metric(f"link/{c}", "messages", f"cumulative {what} per key class; labels: key, receiver", "link")
+      for c, what in LINK_COUNTERS.items()),
+    *(Metric(f"link/latency/{q}", "s", f"observed latency per key class: {q} since the start", "link")
+      for q in LINK_LATENCIES),
+    # with a network profile (--network): the robots' Wi-Fi as they drive through it (docs/faults.md)
+    Metric("net/handovers", "hand-overs", "with `--network`: cumulative access-point hand-overs of all robots",
+           "network"),
+    Metric("net/in_outage", "robots", "with `--network`: robots whose radio is in a hand-over outage at step t",
+           "network"),
+    Metric("net/outage_seconds", "s", "with `--network`: cumulative hand-over outage, all robots", "network"),
+    Metric("net/stopped", "robots",
+           "with `--network`: robots held in place at step t, silent for the profile's `silence_stop`", "network"),
+)
+
+BY_NAME: dict[str, Metric] = {m.name: m for m in CATALOGUE}
+NAMES: tuple[str, ...] = tuple(m.name for m in CATALOGUE)
+#: the per-tick row's metrics, in ``metrics.csv`` column order
+ROW: tuple[str, ...] = tuple(m.name for m in CATALOGUE if m.source == "row")
+#: the columns of ``metrics.csv``
+COLUMNS: tuple[str, ...] = ("t", "sim_time", *ROW)
+#: mean W per role block: the names the monitor's rows and the lab's summaries give them
+W_BLOCKS: tuple[str, ...] = ("w_agv_agv", "w_agv_picker", "w_picker_picker")
+
+
+def unit(name: str) -> str | None:
+    """The unit of stream ``name`` (None for a name outside the catalogue)."""
+    metric = BY_NAME.get(name)
+    return metric.unit if metric else None
+
+
+def sample(name: str, t: int, sim_time: float, **fields) -> MetricSample:
+    """A sample of stream ``name`` with the catalogue's unit on it (``value=…`` or ``values=…``, ``labels=…``)."""
+    return MetricSample(name=name, t=t, sim_time=sim_time, unit=BY_NAME[name].unit, **fields)
+
+
+def w_block_values(blocks) -> dict[str, float | None]:
+    """The W block means of a :class:`~services.monitor.metrics.BlockMeans` (or None) under their metric names."""
+    if blocks is None:
+        return dict.fromkeys(W_BLOCKS)
+    return {"w_agv_agv": blocks.agv_agv, "w_agv_picker": blocks.agv_picker, "w_picker_picker": blocks.picker_picker}
+
+
+def markdown_table() -> str:
+    """The README's table of metric streams (a test checks the README holds exactly this)."""
+    lines = ["| stream | unit | meaning |", "|---|---|---|"]
+    lines += [f"| `{m.name}` | {m.unit} | {m.help} |" for m in CATALOGUE]
+    return "\n".join(lines)
+
+
+def prometheus_names() -> list[str]:
+    """The exported Prometheus family names as a scraper sees them (counters with ``_total``)."""
+    return [m.prometheus + ("_total" if m.kind == "counter" else "") for m in CATALOGUE if m.prometheus]
