@@ -16,7 +16,7 @@ the same :class:`TickArrays`.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import msgpack
@@ -57,6 +57,7 @@ class TickArrays:
     unloads: list[tuple[int, int]]
     has_previous: bool
     final: bool
+    replied: list[int] = field(default_factory=list)
     deliveries_total: int | None = None
 
     @property
@@ -130,16 +131,18 @@ def _cheap(body: dict[str, Any]) -> TickArrays | None:
         return None
     lists = [body[name] for name in ID_LISTS]
     loads, unloads = body["loads"], body["unloads"]
-    if not (type(loads) is list and type(unloads) is list and all(type(v) is list for v in lists)
+    replied = body.get("replied", [])
+    if not (type(loads) is list and type(unloads) is list and all(type(v) is list for v in (*lists, replied))
             and all(type(p) is list and len(p) == 2 for p in loads + unloads)):
         return None
     robot_ids = [v for row in lists for v in row] + [v for p in loads + unloads for v in p]
-    if not (_exact_ints(robot_ids, 0, ids) and _exact_ints(body["request_queue"], 0, _TASK)):
+    if not (_exact_ints(robot_ids, 0, ids) and _exact_ints(body["request_queue"], 0, _TASK)
+            and _exact_ints(replied, 0, _TASK)):
         return None
     pairs = [[(a, b) for a, b in loads], [(a, b) for a, b in unloads]]
     split = len(INT_ROWS)
     return TickArrays(t, sim_time, rows, cols, block[:split], block[split:] != 0, reward, *lists,
-                      body["request_queue"], *pairs, has_previous, final, total)
+                      body["request_queue"], *pairs, has_previous, final, replied, total)
 
 
 def arrays_from_tick(tick: Tick) -> TickArrays:
@@ -158,7 +161,8 @@ def arrays_from_tick(tick: Tick) -> TickArrays:
         np.array([d[name] for name in FLAG_ROWS], dtype=bool).reshape(len(FLAG_ROWS), tick.n),
         np.array(tick.reward, dtype=float), list(tick.mission_order), list(tick.free_pickers),
         list(tick.delivered_by), list(tick.request_queue), [tuple(p) for p in tick.loads],
-        [tuple(p) for p in tick.unloads], bool(tick.has_previous), bool(tick.final), tick.deliveries_total)
+        [tuple(p) for p in tick.unloads], bool(tick.has_previous), bool(tick.final), list(tick.replied),
+        tick.deliveries_total)
 
 
 def decode_tick(data: bytes | bytearray | memoryview) -> TickArrays:

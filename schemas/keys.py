@@ -198,6 +198,10 @@ class RunKeys:
     def resolve(self) -> str:
         return self._k("sim", "resolve")
 
+    def refusal(self, agent: int) -> str:
+        """The sim tells an AGV and a picker that their commitment was no longer valid when it arrived."""
+        return self._k("sim", "refusal", _agent_chunk(agent))
+
     # -- agents ------------------------------------------------------------------------------------------------
     def ack(self, agent: int | str) -> str:
         return self._k("agent", _agent_chunk(agent), "ack")

@@ -125,6 +125,11 @@ class Tick(Message):
                                   "cumulative count from it); None = not given")
     handled: list[bool] = Field(description="robots that took part in a load or unload in step t−1")
     final: bool = Field(default=False, description="the report after the last step: agents learn, nobody asks")
+    # synchronisation, not world state: an AGV takes its decision of step t once this many replies to it have arrived
+    # (delivered, held or lost by the network), so whether it heard an answer does not depend on wall-clock races
+    # between the pickers' path and the sim's (cumulative, so a Tick an AGV missed hides nothing)
+    replied: list[Annotated[int, Field(ge=0)]] = Field(
+        default_factory=list, description="per AGV: HelpReplies sent to it so far (cumulative; empty: none)")
 
     PER_ROBOT: ClassVar[tuple[str, ...]] = (
         "y", "heading", "is_agv", "busy", "carrying", "carrying_requested", "mission", "target_x", "target_y",
@@ -186,6 +191,13 @@ class Ack(Message):
     links: list[RobotId] | None = Field(
         default=None, description="out-links after the plasticity update of step t−1 (robot ids j with A[i,j]=1)")
     eta: Finite | None = Field(default=None, description="the agent's η after that update")
+    # Phase RESOLVE only (synchronisation, never faulted): what the sim must wait for before the step boundary
+    committed_to: RobotId | None = Field(
+        default=None, description="RESOLVE: the AGV this picker sent a Commit for (the sim waits for it to arrive)")
+    more: bool = Field(default=False, description="RESOLVE: requests still on their way to or waiting at this "
+                                                  "picker; the sim gives it the next decision point too")
+    replied_to: list[RobotId] = Field(default_factory=list, description="RESOLVE: AGVs this picker sent a "
+                                      "HelpReply (the next Tick tells them to wait for it)")
 
 
 class Resolve(Message):
@@ -236,6 +248,7 @@ class HelpReply(Message):
     agv: RobotId
     accepted: bool
     seq: Seq = 0
+    request_seq: Seq = Field(default=0, description="seq of the HelpRequest answered (0: unknown)")
 
 
 class Commit(Message):
@@ -246,6 +259,21 @@ class Commit(Message):
     t: TickNo
     picker: RobotId
     agv: RobotId
+    seq: Seq = 0
+    target_x: OptCoord = Field(default=-1, description="the requested cell (-1: not given)")
+    target_y: OptCoord = -1
+
+
+class Refusal(Message):
+    """Sim → AGV and picker: a commitment that reached the sim no longer valid (the AGV needs no picker at that
+    cell, or the picker is not free); it was not applied."""
+
+    KIND = "refusal"
+
+    t: TickNo = Field(description="the step boundary it was refused at")
+    picker: RobotId
+    agv: RobotId
+    commit_seq: Seq = Field(description="seq of the refused Commit")
     seq: Seq = 0
 
 
@@ -402,13 +430,14 @@ class RegistrationReply(Message):
 
 
 MESSAGE_TYPES: tuple[type[Message], ...] = (
-    Tick, Ack, Resolve, HelpRequest, HelpReply, Commit, AgentState, MetricSample, Event, Stop,
+    Tick, Ack, Resolve, HelpRequest, HelpReply, Commit, Refusal, AgentState, MetricSample, Event, Stop,
     FaultCommand, FaultReply, RegistrationRequest, RegistrationReply,
 )
 MESSAGES: dict[str, type[Message]] = {cls.KIND: cls for cls in MESSAGE_TYPES}
 
 __all__ = [
     "Ack", "AgentState", "Commit", "Event", "FaultCommand", "FaultReply", "Heading", "HelpReply", "HelpRequest",
-    "MESSAGES", "MESSAGE_TYPES", "MetricSample", "MissionType", "Phase", "RegistrationReply", "RegistrationRequest",
+    "MESSAGES", "MESSAGE_TYPES", "MetricSample", "MissionType", "Phase", "Refusal", "RegistrationReply",
+    "RegistrationRequest",
     "Resolve", "Role", "Stop", "Tick",
 ]

@@ -59,6 +59,10 @@ class RunConfig(BaseModel):
         default=10.0, gt=0.0, le=3600.0,
         description="lockstep: wall seconds a phase waits before marking silent agents absent")
     ready_timeout: float = Field(default=120.0, gt=0.0, description="wall seconds to wait for every agent before tick 0")
+    request_timeout: float = Field(
+        default=5.0, gt=0.0, le=3600.0,
+        description="sim seconds an AGV waits for the answer to a help request before it may ask again "
+        "(services/protocol/dispatch.py: DEFAULT_REQUEST_TIMEOUT)")
     state_every: int = Field(default=10, ge=1, description="k: agents publish their state every k ticks")
     snapshot_every: int = Field(default=50, ge=1, description="monitor: W/A snapshot every this many ticks")
     cold_restart: bool = Field(

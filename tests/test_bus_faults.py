@@ -17,7 +17,7 @@ from _procs import until
 K = RunKeys("f1")
 
 
-def fates(layer: FaultLayer, n: int, key: str = K.ack(1), sender: object = 1, receiver: object = "sim"):
+def fates(layer: FaultLayer, n: int, key: str = K.commit(1), sender: object = 1, receiver: object = "sim"):
     return [layer.fate(key, sender, receiver) for _ in range(n)]
 
 
@@ -88,9 +88,9 @@ def test_same_seed_same_fates_and_links_are_independent() -> None:
         layer.set(spec)
         out = []
         for _i in range(500):
-            out.append(layer.fate(K.ack(1), 1, "sim"))
+            out.append(layer.fate(K.commit(1), 1, "sim"))
             if interleave:  # other links' traffic must not shift this link's stream
-                layer.fate(K.ack(2), 2, "sim")
+                layer.fate(K.commit(2), 2, "sim")
                 layer.fate(K.request(1, 5), 1, 5)
         return out
 
@@ -106,13 +106,13 @@ def test_same_seed_same_fates_and_links_are_independent() -> None:
 def test_directional_partition_and_scope() -> None:
     layer = FaultLayer("f1")
     layer.set(FaultSpec(partition=Partition(from_agents=[1, 2], to_agents=["sim"], direction="to")))
-    assert layer.fate(K.ack(1), 1, "sim") == []
+    assert layer.fate(K.commit(1), 1, "sim") == []
     assert layer.fate(K.tick, "sim", 1) == [0.0]  # the other direction still flows
     assert layer.fate(K.request(1, 5), 1, 5) == [0.0]
     layer.reset()
-    layer.set(FaultSpec(loss=Loss(percent=100), scope=Scope(key_expr="agent/*/ack", agents=[2])))
-    assert layer.fate(K.ack(2), 2, "sim") == []
-    assert layer.fate(K.ack(1), 1, "sim") == [0.0]  # agent out of scope
+    layer.set(FaultSpec(loss=Loss(percent=100), scope=Scope(key_expr="agent/*/commit", agents=[2])))
+    assert layer.fate(K.commit(2), 2, "sim") == []
+    assert layer.fate(K.commit(1), 1, "sim") == [0.0]  # agent out of scope
     assert layer.fate(K.agent_state(2), 2, "monitor") == [0.0]  # key out of scope
     assert layer.fate("morph/other/agent/2/ack", 2, "sim") == [0.0]  # another run's traffic
 
@@ -133,9 +133,9 @@ def test_duration_auto_heals_and_reset_always_works() -> None:
     fid = layer.set(FaultSpec(id="cut", loss=Loss(percent=100), duration=5.0))
     other = layer.set(FaultSpec(latency=Latency(delay=1.0)))
     assert fid == "cut" and [s.id for s in layer.active()] == ["cut", other]
-    assert layer.fate(K.ack(1), 1, "sim") == []
+    assert layer.fate(K.commit(1), 1, "sim") == []
     now[0] = 5.0
-    assert layer.fate(K.ack(1), 1, "sim") == [1.0]  # healed at its end; the latency fault remains
+    assert layer.fate(K.commit(1), 1, "sim") == [1.0]  # healed at its end; the latency fault remains
     assert changes == [("set", "cut"), ("set", other), ("healed", "cut")]
     assert layer.reset() == [other] and layer.active() == [] and layer.reset() == []
     with pytest.raises(ValueError, match="supervisor"):
@@ -164,12 +164,12 @@ async def test_fault_layer_on_a_bus_through_the_seam() -> None:
     twin.set(FaultSpec(loss=Loss(percent=40), latency=Latency(delay=0.02, jitter=0.01)))
     receiver.set_interposer(layer)
     got: list[int] = []
-    await receiver.subscribe(K.acks, lambda s: got.append(s.seq))
+    await receiver.subscribe(K.commits, lambda s: got.append(s.seq))
     for _ in range(200):
-        await sender.publish(K.ack(3), b"a")
+        await sender.publish(K.commit(3), b"a")
     await asyncio.sleep(0)
     assert got == []  # everything that survived is still in flight
-    expected = [i for i, f in enumerate(fates(twin, 200, K.ack(3), 3, "sim")) if f]
+    expected = [i for i, f in enumerate(fates(twin, 200, K.commit(3), 3, "sim")) if f]
     await until(lambda: len(got) >= len(expected), what="every surviving message delivered")
     assert sorted(got) == expected and 90 <= len(got) <= 150
     assert layer.stats.dropped == 200 - len(expected)

@@ -38,10 +38,8 @@ def test_shift_and_emergent_run_at_the_scale_given(tmp_path, capsys):
     (["shift", "--radius", "tiny=3"], "radius: experiment shift takes one integer radius, got 'tiny=3'"),
     (["emergent", "--conditions", "morph"], "conditions: experiment emergent does not take --conditions"),
     (["emergent", "--scales", "huge"], "scales: unknown scale 'huge'"),
-    (["faults", "--scales", "tiny"], "scales: experiment faults does not take --scales (the sweep runs at tiny)"),
-    (["faults", "--seeds", "1,2"], "seeds: experiment faults does not take --seeds"),
-    (["faults", "--steps", "100"], "steps: experiment faults does not take --steps"),
-    (["faults", "--jobs", "4"], "jobs: experiment faults does not take --jobs"),
+    (["faults", "--loss", "10"], "loss: experiment faults does not take --loss"),
+    (["faults", "--scales", "huge"], "scales: unknown scale 'huge'"),
 ])
 def test_a_flag_the_study_cannot_honour_is_refused_in_one_line(tmp_path, capsys, argv, message):
     rc = cli_main(["experiment", *argv, "--out", str(tmp_path / "never")])

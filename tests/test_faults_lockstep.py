@@ -1,7 +1,7 @@
-"""A scripted lockstep protocol over real buses with faults in virtual time: each participant has its own
-FaultRuntime (as separate processes would); the sim waits for every ack to *arrive* (the fault layer's ``on_fate``
-hook, so a dropped ack never makes it wait), closes the TICK phase at t·Δ + Δ/2, and a late or lost ack costs that
-agent its tick. Same seed and fault config give the same record twice, on LocalBus and on Zenoh alike."""
+"""A scripted lockstep exchange over real buses with faults in virtual time: each participant has its own
+FaultRuntime (as separate processes would); the sim waits for every answer to *arrive* (the fault layer's ``on_fate``
+hook, so a dropped one never makes it wait), closes the phase at t·Δ + Δ/2, and a late or lost answer misses it. The
+answers travel on a protocol key (commitments): acks themselves are synchronisation and never faulted. Same seed and fault config give the same record twice, on LocalBus and on Zenoh alike."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from services.faults.runtime import FaultRuntime
 RUN = "ls"
 K = RunKeys(RUN)
 SPEC = FaultSpec(id="net", loss=Loss(model="gilbert_elliott", percent=20, burst_length=3),
-                 latency=Latency(delay=0.4, jitter=0.3, distribution="uniform"), scope=Scope(key_expr="agent/*/ack"))
+                 latency=Latency(delay=0.4, jitter=0.3, distribution="uniform"), scope=Scope(key_expr="agent/*/commit"))
 
 
 async def lockstep(open_bus, *, agents: int = 4, ticks: int = 40, seed: int = 5, settle: float = 0.0):
@@ -38,7 +38,7 @@ async def lockstep(open_bus, *, agents: int = 4, ticks: int = 40, seed: int = 5,
         else:
             record.append(("late", t, who, sim_rt.now()))  # stale: the protocol ignores it
 
-    await sim_bus.subscribe(K.acks, on_ack)
+    await sim_bus.subscribe(K.commits, on_ack)
     agent_buses, agent_rts = [], []
     for i in range(agents):
         bus = await open_bus(str(i))
@@ -49,7 +49,7 @@ async def lockstep(open_bus, *, agents: int = 4, ticks: int = 40, seed: int = 5,
         def on_tick(sample, bus=bus, rt=rt, i=i) -> None:
             t = int(sample.payload)
             rt.advance(boundaries(t, 1.0)[0])  # an agent reaches the boundary when it sees the Tick
-            bus.put(K.ack(i), str(t).encode())
+            bus.put(K.commit(i), str(t).encode())
         await bus.subscribe(K.tick, on_tick)
         agent_buses.append(bus)
         agent_rts.append(rt)
@@ -74,7 +74,7 @@ async def lockstep(open_bus, *, agents: int = 4, ticks: int = 40, seed: int = 5,
         record.append(("tick", t, tuple(sorted(on_time.get(t, ())))))
         current["t"] = -1
     sim_rt.advance(boundaries(ticks + 2, 1.0)[0])
-    report = sim_rt.meters["sim"].report()["agent/*/ack"]
+    report = sim_rt.meters["sim"].report()["agent/*/commit"]
     for bus in (*agent_buses, sim_bus):
         await bus.close()
     return record, report, sim_rt.controller.log

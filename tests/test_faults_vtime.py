@@ -41,12 +41,12 @@ async def scripted_run(spec: FaultSpec | None, *, ticks: int = 20, dt: float = 1
     for p in pubs:
         p.set_clock(vt.now)
     log: list[tuple[float, str, int, bool]] = []
-    await receiver.subscribe(K.acks, lambda s: log.append((vt.now(), s.sender, s.seq, vt.is_late(s.sent_at))))
+    await receiver.subscribe(K.commits, lambda s: log.append((vt.now(), s.sender, s.seq, vt.is_late(s.sent_at))))
     for t in range(ticks):
         start, tick_deadline, _ = boundaries(t, dt)
         vt.advance(start)
         for p in pubs:
-            await p.publish(K.ack(int(p.identity)), b"ack")
+            await p.publish(K.commit(int(p.identity)), b"ack")
         await drain()
         vt.advance(tick_deadline)  # the sim closes the TICK phase
         await drain()
@@ -95,7 +95,7 @@ async def test_latency_lands_on_the_first_boundary_at_or_after_send_plus_latency
     for when, sender, seq, was_late in log:
         assert when == pytest.approx(seq * 1.0 + released_offset)
         assert was_late is late and sender == "3"
-    report = meter.report()["agent/*/ack"]
+    report = meter.report()["agent/*/commit"]
     assert report.sent == report.delivered == 6 and report.late == (6 if late else 0)
     assert report.latency["p50"] == pytest.approx(released_offset)  # measured in sim seconds, boundary-quantised
 
@@ -109,18 +109,18 @@ async def test_same_seed_same_faults_give_the_same_run_twice() -> None:
     other, _ = await scripted_run(spec, ticks=60, seed=10, senders=senders)
     assert first == second and m1.report() == m2.report()
     assert first != other
-    r = m1.report()["agent/*/ack"]
+    r = m1.report()["agent/*/commit"]
     assert r.dropped > 0 and r.duplicated > 0 and 0 < r.late < r.delivered
 
 
 async def test_meter_counts_match_the_fault_layer() -> None:
     log, meter = await scripted_run(FaultSpec(loss=Loss(percent=25)), ticks=400, seed=3)
-    r = meter.report()["agent/*/ack"]
+    r = meter.report()["agent/*/commit"]
     # the last message may be lost unseen; otherwise sent is exact
     assert r.sent in (399, 400) and r.delivered == len(log) and r.duplicated == 0
     assert r.dropped == r.sent - len(log) and abs(r.loss_rate - 0.25) < 0.06
     names = {(m.name, m.labels["key"]) for m in meter.metrics(400, 400.0)}
-    assert ("link/dropped", "agent/*/ack") in names and ("link/latency/p90", "agent/*/ack") in names
+    assert ("link/dropped", "agent/*/commit") in names and ("link/latency/p90", "agent/*/commit") in names
 
 
 def test_link_meter_from_sequence_numbers_alone() -> None:
@@ -150,13 +150,13 @@ async def test_wall_time_mode_sleeps_for_real() -> None:
     layer = install(receiver, FaultLayer("vt", meter=LinkMeter(K.prefix)))
     layer.set(FaultSpec(latency=Latency(delay=0.05)))
     got: list[float] = []
-    await receiver.subscribe(K.acks, lambda s: got.append(time.monotonic()))
+    await receiver.subscribe(K.commits, lambda s: got.append(time.monotonic()))
     t0 = time.monotonic()
-    await sender.publish(K.ack(2), b"x")
+    await sender.publish(K.commit(2), b"x")
     await asyncio.sleep(0.01)
     assert got == []
     await until(lambda: got, what="the delayed message")
     assert len(got) == 1 and got[0] - t0 >= 0.045
-    assert layer.meter.report()["agent/*/ack"].latency["max"] >= 0.045
+    assert layer.meter.report()["agent/*/commit"].latency["max"] >= 0.045
     await sender.close()
     await receiver.close()

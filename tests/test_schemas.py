@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from schemas import (
     MESSAGE_TYPES, Ack, AgentState, Commit, DecodeError, Event, FaultCommand, FaultReply, FaultSpec, HelpReply,
-    HelpRequest, Latency, Loss, MetricSample, Partition, RegistrationReply, RegistrationRequest, Resolve, Stop, Tick,
+    HelpRequest, Latency, Loss, MetricSample, Partition, Refusal, RegistrationReply, RegistrationRequest, Resolve, Stop, Tick,
     decode, encode,
 )
 from schemas import codec
@@ -117,6 +117,7 @@ MESSAGE_STRATEGIES: dict[type, st.SearchStrategy] = {
                            target_y=st.integers(0, 999), mission=st.sampled_from([1, 3]), seq=seq),
     HelpReply: st.builds(HelpReply, t=tick_no, picker=rid, agv=rid, accepted=st.booleans(), seq=seq),
     Commit: st.builds(Commit, t=tick_no, picker=rid, agv=rid, seq=seq),
+    Refusal: st.builds(Refusal, t=tick_no, picker=rid, agv=rid, commit_seq=seq, seq=seq),
     AgentState: agent_states(),
     MetricSample: st.builds(MetricSample, name=st.sampled_from(["deliveries", "links", "w_mean/agv_picker"]),
                             t=tick_no, sim_time=nonneg, value=finite, labels=st.dictionaries(chunk, chunk, max_size=2))

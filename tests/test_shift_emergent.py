@@ -207,7 +207,10 @@ def test_full_shift_experiment_within_budget(tmp_path):
 
 def test_experiment_faults_cli_is_wired(tmp_path, capsys):
     """The faults helper's request L1: `experiment faults --quick` runs its reduced sweep and writes its files."""
-    rc = cli_main(["experiment", "faults", "--quick", "--out", str(tmp_path), "--run-id", "f"])
+    rc = cli_main(["experiment", "faults", "--quick", "--scales", "tiny,small", "--out", str(tmp_path),
+                   "--run-id", "f", "--no-progress"])
     assert rc == 0
-    assert (tmp_path / "f" / "faults.json").exists() and (tmp_path / "f" / "faults.png").exists()
-    assert "faults experiment" in capsys.readouterr().out
+    assert (tmp_path / "f" / "faults.json").exists()
+    assert (tmp_path / "f" / "faults_tiny.png").exists() and (tmp_path / "f" / "faults_small.png").exists()
+    out = capsys.readouterr().out
+    assert "faults experiment" in out and "| small | dispatch | Full-Graph |" in out

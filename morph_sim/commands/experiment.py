@@ -89,16 +89,12 @@ FLAGS = {
     "ablation": _COMMON | _SUITE,
     "shift": _COMMON | {"scales", "seeds", "phase_steps", "demand", "loss", "conditions", "radius", "jobs"},
     "emergent": _COMMON | {"preset", "scales", "seeds", "steps", "loss", "jobs"},
-    "faults": _COMMON | {"quick"},
+    "faults": _COMMON | {"quick", "scales", "seeds", "steps", "jobs", "conditions"},
     # audit: --conditions names the variants (morph_sim/lab/audit.py)
     "audit": _COMMON | {"scales", "seeds", "steps", "conditions", "jobs"},
 }
 _WHY = {
     ("shift", "steps"): "its length is 6 phases × --phase-steps",
-    ("faults", "scales"): "the sweep runs at tiny",
-    ("faults", "seeds"): "the sweep's seeds are fixed; --quick uses seed 1",
-    ("faults", "steps"): "the sweep's episodes are 800 steps (--quick: 150)",
-    ("faults", "jobs"): "the sweep runs in this process",
 }
 
 
@@ -195,13 +191,49 @@ def _run_emergent(args) -> int:
 def _run_faults(args) -> int:
     from datetime import datetime, timezone
 
-    from morph_sim.lab.faults_experiment import run_experiment
+    from morph_sim.lab.faults_experiment import CONDITIONS, markdown, run_experiment
 
+    scales = tuple(_csv(args.scales or ("tiny" if args.quick else "tiny,small,medium,large")))
+    from services.sim.world.layout import named_sizes
+
+    for sc in scales:
+        if sc not in named_sizes():
+            raise ValueError(f"scales: unknown scale {sc!r} (choose from {', '.join(named_sizes())})")
+    seeds = _seeds(args.seeds, ()) if args.seeds is not None else None
+    if args.steps is not None and args.steps < 1:
+        raise ValueError("steps: must be >= 1")
+    conditions = tuple(_csv(args.conditions)) if args.conditions else None
+    for c in conditions or ():
+        if c not in CONDITIONS:
+            raise ValueError(f"conditions: unknown {c!r}; choose from {', '.join(CONDITIONS)}")
     out = Path(args.out) / (args.run_id or f"{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%SZ')}-faults")
     out.mkdir(parents=True, exist_ok=True)
-    res = run_experiment(out, quick=args.quick)  # (a sweep of its own: no scales, seeds, steps or jobs to pass)
-    print(f"faults experiment: {len(res['rows'])} rows in {res['wall_s']:.1f} s; {res['json']}, {res['png']}")
+    bar = None if args.no_progress else _Progress("faults")
+    res = run_experiment(out, quick=args.quick, scales=scales, seeds=seeds, steps=args.steps,
+                         jobs=2 if args.jobs is None else args.jobs,
+                         conditions=conditions, progress=None if bar is None else bar.update)
+    if bar is not None:
+        bar.close()
+    print(markdown(res["rows"]))
+    print(f"faults experiment: {len(res['rows'])} rows in {res['wall_s']:.1f} s; {res['json']}, "
+          f"{', '.join(res['pngs'])}")
     return 0
+
+
+class _Progress:
+    """A one-line progress bar on stderr: episodes done of total."""
+
+    def __init__(self, what: str):
+        self.what = what
+
+    def update(self, _episode, done: int, total: int) -> None:
+        width = 30
+        filled = width * done // max(total, 1)
+        sys.stderr.write(f"\r{self.what} [{'#' * filled}{'.' * (width - filled)}] {done}/{total}")
+        sys.stderr.flush()
+
+    def close(self) -> None:
+        sys.stderr.write("\n")
 
 
 def _run_audit(args) -> int:

@@ -1,22 +1,14 @@
-"""The fault experiment: deliveries, links and dispatch delay against message loss (0–50 %, Bernoulli vs
-bursty Gilbert–Elliott) and latency (0–5 ticks), for MORPH (both presets), full, TSG and proximity, several seeds.
+"""The degradation study: deliveries, links and dispatch delay against latency and loss on the protocol's
+messages, for MORPH (both presets), Full-Graph, TSG and Proximity, over scales and seeds.
 
-Each episode runs on the lab's pure core (warehouse, CTA controller, every agent's brain in one process, as
-:mod:`.runner`), with the dispatch protocol's messages passed through the bus's own fault decision
-(:meth:`FaultLayer.fate`, per-link seeded streams) under virtual time (docs/faults.md, Δ = 1 s):
-
-* an AGV whose gate opens sends ``HelpRequest`` (AGV → picker) and its ``Ack`` (AGV → sim) at t·Δ; both must arrive
-  by the TICK deadline t·Δ + Δ/2 (latency ≤ Δ/2), else the request is stale / the ack is late and the AGV gets no
-  picker this tick — it asks again next tick, since the world still says it needs one (retry by design);
-* the sim resolves the requests that made it (the picker takes the first requester in mission order);
-  ``Resolve`` (sim → picker) and ``Commit`` (picker → sim) are sent at t·Δ + Δ/2 and must arrive by (t+1)·Δ;
-* ``HelpReply`` (picker → AGV) is sent too, but a lost reply costs nothing: the commit reached the sim, and the next
-  Tick tells the AGV (world state is authoritative);
-* ``Tick`` itself is not faulted here (every brain learns from every tick; the services layer, where an agent that
-  misses a Tick skips that tick, is the end-to-end version — see docs/faults.md).
+Each episode is the lab's episode (:func:`morph_sim.lab.runner.run_episode`, the one tick loop) with network faults
+on its discrete-event network: messages are delayed by the fault layer's per-link draw and delivered at send time
+plus delay, never dropped for being late (docs/faults.md, "Late, not lost"). A fault acts on the dispatch messages
+(request, reply, commitment, refusal), on the fleet broadcast (then every agent learns and gates from its own view),
+or on both (``target``).
 
 Measured per episode: deliveries, mean undirected links, mean dispatch delay (ticks an AGV waits from first needing
-a picker until one is committed), and the fraction of dispatch attempts lost to faults.
+a picker until one is committed), the protocol's outcome counters, and dispatch messages per delivery.
 """
 
 from __future__ import annotations
@@ -24,23 +16,17 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from schemas.faults import FaultSpec, Latency, Loss
-from schemas.keys import RunKeys
-from services.agent.policies import Fleet
-from services.faults.layer import FaultLayer
-from morph_sim.lab.runner import REFERENCE_SEEDS, _gate, make_condition_policy
-from services.sim.world.cta import CTAController, resolve_requests
-from services.sim.world.warehouse import Warehouse, WarehouseConfig
+from morph_sim.lab.network import dispatch_faults, fleet_faults
+from morph_sim.lab.runner import REFERENCE_SEEDS, EpisodeSpec, run_episode
 
-RUN = "faults-lab"
-K = RunKeys(RUN)
 DT = 1.0
-DEADLINE = DT / 2  # a message is on time if it arrives within its phase
 
 #: condition label -> (lab condition, MORPH preset)
 CONDITIONS: dict[str, tuple[str, str]] = {
@@ -51,7 +37,8 @@ CONDITIONS: dict[str, tuple[str, str]] = {
     "Proximity": ("proximity", "reference"),
 }
 LOSS_PCT = (0, 10, 20, 30, 40, 50)
-LATENCY_TICKS = (0.0, 0.25, 0.5, 1.0, 2.0, 5.0)
+LATENCY_TICKS = (0.0, 0.1, 0.25, 0.5, 1.0, 2.0, 5.0, 10.0)
+TARGETS = ("dispatch", "fleet", "both")
 BURST = 4.0  # Gilbert–Elliott mean burst length, messages
 PROXIMITY_RADIUS = 4  # RunConfig's default
 
@@ -71,6 +58,20 @@ def fault_spec(kind: str, level: float, seed: int) -> FaultSpec | None:
     raise ValueError(f"kind: unknown {kind!r} (bernoulli, bursty, latency)")
 
 
+def scoped(spec: FaultSpec | None, target: str) -> tuple[FaultSpec, ...]:
+    """``spec`` on the dispatch messages, the fleet broadcast, or both."""
+    if target not in TARGETS:
+        raise ValueError(f"target: unknown {target!r} ({', '.join(TARGETS)})")
+    if spec is None:
+        return ()
+    out = []
+    if target in ("dispatch", "both"):
+        out += dispatch_faults(spec)
+    if target in ("fleet", "both"):
+        out += fleet_faults(spec)
+    return tuple(out)
+
+
 @dataclass
 class FaultEpisode:
     condition: str
@@ -80,163 +81,173 @@ class FaultEpisode:
     deliveries: int
     mean_links: float
     dispatch_delay: float
-    attempts: int
-    lost_attempts: int
+    attempts: int  # requests sent
+    lost_attempts: int  # requests that expired unanswered (their request, reply or commitment lost)
     wall_s: float
-
-
-def _on_time(layer: FaultLayer, key: str, sender, receiver) -> bool:
-    fate = layer.fate(key, sender, receiver)
-    return bool(fate) and min(fate) <= DEADLINE + 1e-9  # a duplicate only helps if one copy is on time
+    target: str = "dispatch"
+    scale: str = "tiny"
+    outcomes: dict = field(default_factory=dict)
+    messages_per_delivery: float = float("nan")
+    bytes_per_delivery: float = float("nan")
 
 
 def run_fault_episode(condition: str, kind: str, level: float, seed: int, *, scale: str = "tiny",
-                      steps: int = 500) -> FaultEpisode:
-    t0 = time.perf_counter()
+                      steps: int = 500, target: str = "dispatch") -> FaultEpisode:
     lab_condition, preset = CONDITIONS[condition]
-    cfg = WarehouseConfig.named(scale, max_steps=steps + 1)
-    cta = CTAController(Warehouse(cfg))
-    cta.reset(seed)
-    fleet = Fleet(cta.n_agvs, cta.n_pickers, scale)
-    policy = make_condition_policy(lab_condition, preset, PROXIMITY_RADIUS if lab_condition == "proximity" else None,
-                                   steps=steps)
-    brains = policy.brains(fleet, range(fleet.n), seed)
-    layer = FaultLayer(RUN, base_seed=seed)  # the one receiver-side decision, per link
-    spec = fault_spec(kind, level, seed)
-    if spec is not None:
-        layer.set(spec)
-    links = np.zeros(steps)
-    waiting_since: dict[int, int] = {}
-    delays: list[int] = []
-    attempts = lost = 0
-    for t in range(steps):
-        obs = cta.begin_tick()
-        brains.learn(obs)
-        A = brains.team_links()
-        on = A != 0
-        links[t] = np.count_nonzero(on | on.T) // 2
-        requesters = obs.requesters().tolist()
-        for agv in set(waiting_since) - set(requesters):
-            waiting_since.pop(agv)  # no longer needs a picker (its mission changed)
-        for agv in requesters:
-            waiting_since.setdefault(agv, t)
-        requests = []
-        for agv in requesters:
-            picker = brains.candidate(agv, obs)
-            if picker < 0:
-                continue
-            u = brains.draw(agv) if brains.draws else None
-            ok, _p = _gate(brains, agv, picker, obs, u)
-            if not ok:
-                continue
-            attempts += 1
-            # both the request (to the picker) and the ack announcing it (to the sim) must be on time
-            if _on_time(layer, K.request(agv, picker), agv, picker) and _on_time(layer, K.ack(agv), agv, "sim"):
-                requests.append((agv, picker))
-            else:
-                lost += 1
-        commits = []
-        for picker, agv in resolve_requests(requests):
-            if _on_time(layer, K.resolve, "sim", picker) and _on_time(layer, K.commit(picker), picker, "sim"):
-                commits.append((picker, agv))
-                layer.fate(K.reply(picker, agv), picker, agv)  # sent; its loss is healed by the next Tick
-            else:
-                lost += 1
-        for _picker, agv in cta.commit(commits):
-            start = waiting_since.pop(agv, t)
-            delays.append(t - start)
-        cta.finish_tick()
-    return FaultEpisode(condition, kind, float(level), seed, int(cta.deliveries), float(links.mean()),
-                        float(np.mean(delays)) if delays else float("nan"), attempts, lost,
-                        time.perf_counter() - t0)
+    spec = EpisodeSpec(scale=scale, condition=lab_condition, preset=preset, seed=seed, steps=steps,
+                       radius=PROXIMITY_RADIUS if lab_condition == "proximity" else None, fiedler_every=10**9,
+                       faults=scoped(fault_spec(kind, level, seed), target))
+    ep = run_episode(spec)
+    s = ep.summary
+    outcomes = {k.removeprefix("protocol_"): v for k, v in s.items() if k.startswith("protocol_")}
+    d = s["deliveries"]
+    return FaultEpisode(condition, kind, float(level), seed, int(d), float(s["mean_links"]),
+                        float(s.get("dispatch_delay", float("nan"))), outcomes.get("requests", 0),
+                        outcomes.get("expired", 0), ep.wall_s, target, scale, outcomes,
+                        s["messages_sent"] / d if d else float("nan"),
+                        s["bytes_sent"] / d if d else float("nan"))
+
+
+def _run_point(args) -> FaultEpisode:
+    return run_fault_episode(*args[:4], **args[4])
 
 
 def sweep(*, seeds=REFERENCE_SEEDS, conditions=tuple(CONDITIONS), loss=LOSS_PCT, latency=LATENCY_TICKS,
-          scale: str = "tiny", steps: int = 800, progress=None) -> list[FaultEpisode]:
+          scales=("tiny",), targets=("dispatch",), steps: int = 800, jobs: int = 1, progress=None,
+          scale: str | None = None) -> list[FaultEpisode]:
+    if scale is not None:
+        scales = (scale,)
     points = [("bernoulli", x) for x in loss] + [("bursty", x) for x in loss if x > 0] + \
              [("latency", x) for x in latency if x > 0]
+    work = []
+    for sc in scales:
+        for target in targets:
+            for condition in conditions:
+                for kind, level in points:
+                    if level == 0 and target != targets[0]:
+                        continue  # the fault-free point is the same for every target
+                    for seed in seeds:
+                        work.append((condition, kind, level, seed, {"scale": sc, "steps": steps, "target": target}))
     out = []
-    for condition in conditions:
-        for kind, level in points:
-            for seed in seeds:
-                ep = run_fault_episode(condition, kind, level, seed, scale=scale, steps=steps)
-                out.append(ep)
-                if progress is not None:
-                    progress(ep)
+    if jobs <= 1:
+        for item in work:
+            out.append(_run_point(item))
+            if progress is not None:
+                progress(out[-1], len(out), len(work))
+        return out
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        for ep in pool.map(_run_point, work, chunksize=4):
+            out.append(ep)
+            if progress is not None:
+                progress(ep, len(out), len(work))
     return out
 
 
 def summarize(episodes: list[FaultEpisode]) -> list[dict]:
-    """Mean and standard deviation over seeds per (condition, kind, level); level 0 is shared by every kind."""
+    """Mean and standard deviation over seeds per (scale, target, condition, kind, level); the fault-free level 0
+    is shared by every kind and target."""
     groups: dict[tuple, list[FaultEpisode]] = {}
+    targets = sorted({e.target for e in episodes}, key=TARGETS.index)
     for ep in episodes:
         kinds = ("bernoulli", "bursty", "latency") if ep.level == 0 else (ep.kind,)
         for kind in kinds:
-            groups.setdefault((ep.condition, kind, ep.level), []).append(ep)
+            for target in (targets if ep.level == 0 else (ep.target,)):
+                groups.setdefault((ep.scale, target, ep.condition, kind, ep.level), []).append(ep)
     rows = []
-    for (condition, kind, level), eps in sorted(groups.items(), key=lambda kv: (list(CONDITIONS).index(kv[0][0]),
-                                                                               kv[0][1], kv[0][2])):
-        row = {"condition": condition, "kind": kind, "level": level, "seeds": len(eps)}
-        for name in ("deliveries", "mean_links", "dispatch_delay"):
+    for (scale, target, condition, kind, level), eps in sorted(groups.items(), key=lambda kv: (
+            kv[0][0], TARGETS.index(kv[0][1]), list(CONDITIONS).index(kv[0][2]), kv[0][3], kv[0][4])):
+        row = {"scale": scale, "target": target, "condition": condition, "kind": kind, "level": level,
+               "seeds": len(eps)}
+        for name in ("deliveries", "mean_links", "dispatch_delay", "messages_per_delivery", "bytes_per_delivery"):
             vals = np.array([getattr(e, name) for e in eps], dtype=float)
             row[name] = float(np.nanmean(vals)) if np.isfinite(vals).any() else float("nan")
             row[name + "_sd"] = float(np.nanstd(vals)) if np.isfinite(vals).any() else float("nan")
         row["lost_share"] = float(sum(e.lost_attempts for e in eps) / max(1, sum(e.attempts for e in eps)))
+        for k in ("on_time", "late_applied", "refused_stale", "expired", "duplicates"):
+            row[k] = float(np.mean([e.outcomes.get(k, 0) for e in eps]))
         rows.append({k: None if isinstance(v, float) and math.isnan(v) else v for k, v in row.items()})  # JSON
     return rows
 
 
-def plot(rows: list[dict], path: str | Path) -> Path:
+def plot(rows: list[dict], path: str | Path, scale: str | None = None) -> Path:
+    """One figure: rows = metrics, columns = fault kinds, one line per (condition, target)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    metrics = (("deliveries", "deliveries"), ("mean_links", "mean links"), ("dispatch_delay", "dispatch delay, ticks"))
+    if scale is not None:
+        rows = [r for r in rows if r["scale"] == scale]
+    metrics = (("deliveries", "deliveries"), ("mean_links", "mean links"), ("dispatch_delay", "dispatch delay, ticks"),
+               ("messages_per_delivery", "dispatch messages per delivery"))
     kinds = (("bernoulli", "Bernoulli loss, %"), ("bursty", f"Gilbert–Elliott loss (burst {BURST:g}), %"),
-             ("latency", "latency, ticks"))
-    fig, axes = plt.subplots(len(metrics), len(kinds), figsize=(15, 11), squeeze=False)
+             ("latency", "latency, ticks (jitter 25 %)"))
+    styles = {"dispatch": "-", "fleet": "--", "both": ":"}
+    fig, axes = plt.subplots(len(metrics), len(kinds), figsize=(16, 14), squeeze=False)
     for i, (metric, mlabel) in enumerate(metrics):
         for j, (kind, klabel) in enumerate(kinds):
             ax = axes[i][j]
-            for condition in CONDITIONS:
-                pts = [r for r in rows if r["condition"] == condition and r["kind"] == kind]
-                if not pts:
-                    continue
-                nan = float("nan")  # no dispatch at all: no delay to show
-                ax.errorbar([r["level"] for r in pts], [nan if r[metric] is None else r[metric] for r in pts],
-                            yerr=[nan if r[metric + "_sd"] is None else r[metric + "_sd"] for r in pts], marker="o", capsize=3, label=condition)
+            for ci, condition in enumerate(CONDITIONS):
+                for target in TARGETS:
+                    pts = [r for r in rows if r["condition"] == condition and r["kind"] == kind
+                           and r["target"] == target]
+                    if not pts:
+                        continue
+                    nan = float("nan")
+                    ax.errorbar([r["level"] for r in pts], [nan if r[metric] is None else r[metric] for r in pts],
+                                yerr=[nan if r[metric + "_sd"] is None else r[metric + "_sd"] for r in pts],
+                                marker="o", capsize=3, color=f"C{ci}", linestyle=styles[target],
+                                label=f"{condition}, {target}")
             ax.set_xlabel(klabel)
             ax.set_ylabel(mlabel)
             if kind == "latency":
                 levels = sorted({r["level"] for r in rows if r["kind"] == kind})
-                ax.set_xscale("symlog", linthresh=1.0)  # the cliff sits below one tick; keep 0–1 linear
+                ax.set_xscale("symlog", linthresh=1.0)
                 ax.set_xticks(levels, [f"{x:g}" for x in levels])
             ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=8)
-    fig.suptitle("MORPH and baselines under message faults (virtual time, mean ± sd over seeds)")
+    axes[0][0].legend(fontsize=7)
+    fig.suptitle(f"MORPH and baselines under message faults{f' ({scale})' if scale else ''}: late, not lost "
+                 "(mean ± sd over seeds)")
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
 
 
-def run_experiment(out_dir: str | Path, *, quick: bool = False, progress=None) -> dict:
-    """Run the sweep (``quick``: the reduced CI version), write ``faults.json`` and ``faults.png`` under
-    ``out_dir``; returns {"rows", "json", "png", "wall_s"}. The lead wires this to ``morph-sim experiment faults``."""
+def markdown(rows: list[dict]) -> str:
+    head = "| scale | target | condition | fault | level | deliveries | links | delay | msgs/delivery | expired |"
+    lines = [head, "|" + "---|" * 10]
+    for r in rows:
+        def f(v, fmt="{:.1f}"):
+            return "–" if v is None else fmt.format(v)
+        lines.append(f"| {r['scale']} | {r['target']} | {r['condition']} | {r['kind']} | {r['level']:g} | "
+                     f"{f(r['deliveries'])} ± {f(r['deliveries_sd'])} | {f(r['mean_links'])} | "
+                     f"{f(r['dispatch_delay'], '{:.2f}')} | {f(r['messages_per_delivery'])} | {r['expired']:.1f} |")
+    return "\n".join(lines)
+
+
+def run_experiment(out_dir: str | Path, *, quick: bool = False, progress=None, scales=("tiny",),
+                   seeds=None, steps: int | None = None, jobs: int = 1, conditions=None,
+                   targets=TARGETS) -> dict:
+    """Run the sweep (``quick``: the reduced CI version), write ``faults.json``, ``faults.md`` and one figure per
+    scale under ``out_dir``; returns {"rows", "json", "png" (the first figure), "pngs", "wall_s"}."""
     t0 = time.perf_counter()
     if quick:
-        episodes = sweep(seeds=(1,), conditions=("MORPH (reference)", "Full-Graph"), loss=(0, 30),
-                         latency=(0.0, 1.0), steps=150, progress=progress)
+        episodes = sweep(seeds=seeds or (1,), conditions=conditions or ("MORPH (reference)", "Full-Graph"),
+                         loss=(0, 30), latency=(0.0, 1.0), steps=steps or 150, scales=scales,
+                         targets=("dispatch",), jobs=jobs, progress=progress)
     else:
-        episodes = sweep(progress=progress)
+        episodes = sweep(seeds=seeds or tuple(range(1, 11)), conditions=conditions or tuple(CONDITIONS),
+                         steps=steps or 800, scales=scales, targets=targets, jobs=jobs, progress=progress)
     rows = summarize(episodes)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "faults.json").write_text(json.dumps(
         {"rows": rows, "episodes": [{k: None if isinstance(v, float) and math.isnan(v) else v
                                      for k, v in e.__dict__.items()} for e in episodes]}, indent=1))
-    png = plot(rows, out / "faults.png")
-    return {"rows": rows, "json": str(out / "faults.json"), "png": str(png), "wall_s": time.perf_counter() - t0}
+    (out / "faults.md").write_text(markdown(rows) + "\n")
+    pngs = [str(plot(rows, out / f"faults_{sc}.png", sc)) for sc in dict.fromkeys(e.scale for e in episodes)]
+    return {"rows": rows, "json": str(out / "faults.json"), "png": pngs[0], "pngs": pngs,
+            "wall_s": time.perf_counter() - t0}

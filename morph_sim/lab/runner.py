@@ -26,6 +26,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from schemas.faults import FaultSpec
 from services.agent.observation import TickObservation
 from services.agent.policies import (
     Coordinator,
@@ -36,11 +37,15 @@ from services.agent.policies import (
     make_policy,
 )
 from services.monitor import catalogue, metrics
+from services.protocol.dispatch import DEFAULT_REQUEST_TIMEOUT, gate
+from morph_sim.lab.network import FLEET_KEY, EventNetwork, LabDispatch, Team, dispatch_faults
 from services.sim.world.cta import CTAController, resolve_requests
 from services.sim.world.warehouse import Warehouse, WarehouseConfig
 
 SCALES = ("tiny", "small", "medium", "large")
 REFERENCE_SEEDS = (42, 7, 123, 999, 2024)
+DT = 1.0  # Δ, sim seconds per step
+BURST_LENGTH = 4.0  # mean burst of the loss_percent shorthand's Gilbert–Elliott loss, messages
 
 #: condition key -> (label, policy kind, MORPH ablation); the scale study's nine, in the reference's order
 CONDITIONS: dict[str, tuple[str, str, str | None]] = {
@@ -110,10 +115,14 @@ class EpisodeSpec(BaseModel):
     #: "requests": new requests drawn from the active half (the paper); "assignment": shift.py's filter;
     #: "none": phases only mark boundaries (the no-shift control: same episode length, same resets)
     demand_mode: Literal["requests", "assignment", "none"] = "requests"
-    #: bursty message loss (Gilbert–Elliott, mean burst 4 messages) on the dispatch messages, in percent; 0 = none.
-    #: The same model as the fault experiment (lab/faults_experiment.py): a gate that opened dispatches only if its
-    #: HelpRequest and Ack arrive on time, and the sim's Resolve and the picker's Commit too; Ticks are not faulted.
+    #: bursty message loss (Gilbert–Elliott, mean burst 4 messages) on the dispatch messages (request, reply,
+    #: commitment, refusal), in percent; 0 = none. Shorthand for one entry of ``faults``.
     loss_percent: float = Field(default=0.0, ge=0.0, lt=100.0)
+    #: network faults on the protocol's messages, scoped by key like the services' (docs/faults.md); the lab's
+    #: discrete-event network applies them per link (morph_sim/lab/network.py)
+    faults: tuple[FaultSpec, ...] = ()
+    #: an AGV's request timeout, sim seconds (RunConfig.request_timeout)
+    request_timeout: float = Field(default=DEFAULT_REQUEST_TIMEOUT, gt=0.0)
 
     @model_validator(mode="after")
     def _phases_fill_episode(self) -> EpisodeSpec:
@@ -141,97 +150,46 @@ class DispatchStats:
     p_sum: float = 0.0
     w_positive: int = 0  # decisions where the gate was above its floor
     divergent_ticks: int = 0  # ticks where the other dispatch mode would have committed differently
-    lost_messages: int = 0  # resolved requests whose Resolve/Commit was lost (message-loss runs)
+
+    def count(self, ask: bool, p: float) -> None:
+        self.decisions += 1
+        self.dispatched += int(ask)
+        self.p_sum += p
+        self.w_positive += int(p > 0.25 + 1e-12)
 
 
-def _gate(brains: Coordinator, agv: int, picker: int, obs: TickObservation, u: float | None) -> tuple[bool, float]:
-    p = brains.probability(agv, picker, obs)
-    if not brains.draws:
-        return p >= 1.0, p
-    return (u is not None and u < p), p
-
-
-def dispatch_tick(
-    obs: TickObservation,
-    brains: Coordinator,
-    mode: str,
-    shared_rng: np.random.RandomState | None,
-    stats: DispatchStats,
-) -> list[tuple[int, int]]:
-    """The tick's dispatch decisions; returns (picker, agv) commitments in mission order."""
-    draws: dict[int, float] = {}
-
-    def draw(agv: int) -> float:
-        if agv not in draws:
-            draws[agv] = float(shared_rng.random_sample()) if shared_rng is not None else brains.draw(agv)
-        return draws[agv]
-
-    requesters = obs.requesters()
-
-    def gate_passes(agv: int, cand: int, live: bool) -> bool:
-        # the live mode draws from the AGV's stream and counts; the other replays the same draws for comparison
-        u = (draw(agv) if live else draws.get(agv)) if brains.draws else None
-        ok, p = _gate(brains, agv, cand, obs, u)
-        if live:
-            _count(stats, ok, p, brains)
-        return ok
-
-    def sequential(live: bool) -> list[tuple[int, int]]:
-        free = obs.free_picker.copy()
-        cells: set[tuple[int, int]] = set()
-        commits = []
-        for agv in requesters.tolist():
-            cell = (int(obs.target[agv, 0]), int(obs.target[agv, 1]))
-            if cell in cells or not free.any():
-                continue
-            cand = brains.candidate(agv, obs, free)
-            if cand >= 0 and gate_passes(agv, cand, live):
-                commits.append((cand, agv))
-                free[cand] = False
-                cells.add(cell)
-        return commits
-
-    def concurrent(live: bool) -> list[tuple[int, int]]:
-        requests = []
-        for agv in requesters.tolist():
-            cand = brains.candidate(agv, obs)
-            if cand >= 0 and gate_passes(agv, cand, live):
-                requests.append((agv, cand))
-        # one picker per cell: a later request to an already served cell is dropped by the controller
-        return resolve_requests(requests)
-
-    if mode == "sequential":
-        commits = sequential(True)
-        other = concurrent(False)
-    else:
-        commits = concurrent(True)
-        other = sequential(False)
-    if _dedupe_cells(obs, commits) != _dedupe_cells(obs, other):
-        stats.divergent_ticks += 1
+def sequential_commits(obs: TickObservation, brains: Coordinator, draw, stats: DispatchStats | None = None
+                       ) -> list[tuple[int, int]]:
+    """The reference's sequential dispatch (a switch for exact comparison, spec §5): AGVs in mission order, each
+    asking the nearest picker still free after those taken earlier in the step; one picker per cell."""
+    free = obs.free_picker.copy()
+    cells: set[tuple[int, int]] = set()
+    commits = []
+    for agv in obs.requesters().tolist():
+        cell = (int(obs.target[agv, 0]), int(obs.target[agv, 1]))
+        if cell in cells or not free.any():
+            continue
+        g = gate(brains, agv, obs, lambda agv=agv: draw(agv), free)
+        if g.picker < 0:
+            continue
+        if stats is not None:
+            stats.count(g.ask, g.p)
+        if g.ask:
+            commits.append((g.picker, agv))
+            free[g.picker] = False
+            cells.add(cell)
     return commits
 
 
-def _lossy_dispatch(obs: TickObservation, brains: Coordinator, layer, stats: DispatchStats) -> list[tuple[int, int]]:
-    """Concurrent dispatch whose messages go through the fault layer's decision (lab/faults_experiment.py)."""
-    from morph_sim.lab import faults_experiment as fx
-
+def concurrent_commits(obs: TickObservation, brains: Coordinator, draw) -> list[tuple[int, int]]:
+    """What the protocol commits at zero latency (each picker takes the first requester in mission order), replayed
+    with given draws: the comparison the sequential switch reports."""
     requests = []
     for agv in obs.requesters().tolist():
-        cand = brains.candidate(agv, obs)
-        if cand < 0:
-            continue
-        ok, p = _gate(brains, agv, cand, obs, brains.draw(agv) if brains.draws else None)
-        _count(stats, ok, p, brains)
-        if ok and fx._on_time(layer, fx.K.request(agv, cand), agv, cand) and fx._on_time(
-                layer, fx.K.ack(agv), agv, "sim"):
-            requests.append((agv, cand))
-    commits = []
-    for picker, agv in resolve_requests(requests):
-        if fx._on_time(layer, fx.K.resolve, "sim", picker) and fx._on_time(layer, fx.K.commit(picker), picker, "sim"):
-            commits.append((picker, agv))
-            layer.fate(fx.K.reply(picker, agv), picker, agv)  # sent; a lost reply is healed by the next Tick
-    stats.lost_messages += len(requests) - len(commits)
-    return commits
+        g = gate(brains, agv, obs, lambda agv=agv: draw(agv))
+        if g.ask:
+            requests.append((agv, g.picker))
+    return resolve_requests(requests)
 
 
 def _dedupe_cells(obs: TickObservation, commits) -> set[tuple[int, int]]:
@@ -245,11 +203,15 @@ def _dedupe_cells(obs: TickObservation, commits) -> set[tuple[int, int]]:
     return out
 
 
-def _count(stats: DispatchStats, ok: bool, p: float, brains: Coordinator) -> None:
-    stats.decisions += 1
-    stats.dispatched += int(ok)
-    stats.p_sum += p
-    stats.w_positive += int(p > 0.25 + 1e-12)
+def episode_faults(spec: EpisodeSpec) -> list[FaultSpec]:
+    """The network faults of an episode: its ``faults`` and the ``loss_percent`` shorthand."""
+    faults = list(spec.faults)
+    if spec.loss_percent > 0:
+        from schemas.faults import Loss
+
+        faults += dispatch_faults(FaultSpec(id="loss", seed=spec.seed, loss=Loss(
+            model="gilbert_elliott", percent=spec.loss_percent, burst_length=BURST_LENGTH)))
+    return faults
 
 
 @dataclass
@@ -279,8 +241,30 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
     fleet = Fleet(cta.n_agvs, cta.n_pickers, spec.scale)
     n, T = fleet.n, spec.steps
     policy = spec.policy()
-    brains = policy.brains(fleet, range(n), spec.seed)
     shared = cta.shared_rng if spec.shared_stream else None
+    faults = episode_faults(spec)
+    driver: LabDispatch | None = None
+    if spec.dispatch == "concurrent":
+        net = EventNetwork(faults, seed=spec.seed)
+        if net.touches(FLEET_KEY):
+            # the fleet broadcast can be late or lost: every agent learns and gates from its own view
+            agent_brains = [policy.brains(fleet, [i], spec.seed) for i in range(n)]
+            brains = Team(agent_brains)
+            driver = LabDispatch(fleet.n_agvs, fleet.n_pickers, dt=DT, timeout=spec.request_timeout, network=net,
+                                 agent_brains=agent_brains)
+        else:
+            brains = policy.brains(fleet, range(n), spec.seed)
+            driver = LabDispatch(fleet.n_agvs, fleet.n_pickers, dt=DT, timeout=spec.request_timeout, network=net,
+                                 team_brain=brains)
+    else:
+        if faults:
+            raise ValueError("loss_percent/faults: network faults act on the dispatch protocol (concurrent dispatch);"
+                             " the reference's sequential switch has no messages to fault")
+        brains = policy.brains(fleet, range(n), spec.seed)
+    if shared is not None:
+        draw = lambda agv: float(shared.random_sample())  # noqa: E731 - the reference's one stream
+    else:
+        draw = brains.draw if driver is None or driver.agent_brains is None else None
     is_agv = np.arange(n) < fleet.n_agvs
     directed = isinstance(policy, MorphPolicy) and policy.params is not None and _rules(policy) == "paper"
     tracker = metrics.LinkTracker(n, directed=directed)
@@ -314,15 +298,6 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
             if k in cols:
                 cols[k][step] = v
 
-    layer = None
-    if spec.loss_percent > 0:
-        if spec.dispatch != "concurrent" or spec.shared_stream:
-            raise ValueError("loss_percent: message loss is modelled for concurrent dispatch with per-agent draws")
-        from services.faults.layer import FaultLayer
-        from morph_sim.lab import faults_experiment as fx
-
-        layer = FaultLayer(fx.RUN, base_seed=spec.seed)
-        layer.set(fx.fault_spec("bursty", spec.loss_percent, spec.seed))
     snaps = set(snapshot_ticks)
     snapshots: dict[int, np.ndarray] = {}
     for t in range(T):
@@ -333,7 +308,10 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
             elif spec.demand_mode == "assignment":
                 cta.assignment_side = side
         obs = cta.begin_tick()
-        brains.learn(obs)
+        if driver is not None:
+            driver.learn(obs)
+        else:
+            brains.learn(obs)
         if t in snaps:
             snapshots[t] = brains.team_weights().copy()
         if t > 0 and not brains.memoryless:
@@ -344,11 +322,26 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
             trace_hook(obs, brains)
         c = obs.cells
         dist_sum += np.abs(c[:, None, 0] - c[None, :, 0]) + np.abs(c[:, None, 1] - c[None, :, 1])
-        if layer is not None:
-            commits = _lossy_dispatch(obs, brains, layer, stats)
+        if driver is not None:
+            applied = driver.dispatch(obs, cta.commit, stats, draw)
+            if not faults and driver.team_brain is not None:
+                draws = driver.last_draws
+                other = sequential_commits(obs, brains, lambda agv: draws.get(agv, float("inf")))
+                rank = {int(a): i for i, a in enumerate(obs.request_order)}
+                sent = sorted(driver.sent_commits, key=lambda pa: rank.get(pa[1], len(rank)))
+                stats.divergent_ticks += _dedupe_cells(obs, sent) != _dedupe_cells(obs, other)
         else:
-            commits = dispatch_tick(obs, brains, spec.dispatch, shared, stats)
-        committed += len(cta.commit(commits))
+            draws: dict[int, float] = {}
+
+            def live(agv: int) -> float:
+                draws[agv] = draw(agv)
+                return draws[agv]
+
+            commits = sequential_commits(obs, brains, live, stats)
+            other = concurrent_commits(obs, brains, lambda agv: draws.get(agv, float("inf")))
+            stats.divergent_ticks += _dedupe_cells(obs, commits) != _dedupe_cells(obs, other)
+            applied = cta.commit(commits)
+        committed += len(applied)
         cta.finish_tick()
         cols["deliveries"][t] = cta.deliveries
         cols["dispatched"][t] = stats.dispatched  # gate successes (requests sent)
@@ -356,7 +349,10 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
         cols["gate_p_sum"][t] = stats.p_sum  # Σ P(respond) over the gate decisions so far
     final = cta.final_observation()
     if not brains.memoryless:
-        brains.learn(final)
+        if driver is not None:
+            driver.learn(final)
+        else:
+            brains.learn(final)
         record(T - 1)
         if T in snaps:
             snapshots[T] = brains.team_weights().copy()
@@ -385,6 +381,8 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
         "mean_p_respond": stats.p_sum / stats.decisions if stats.decisions else float("nan"),
         "share_above_floor": stats.w_positive / stats.decisions if stats.decisions else float("nan"),
         "divergent_dispatch_ticks": stats.divergent_ticks,
+        **({f"protocol_{k}": v for k, v in driver.outcomes.as_dict().items()} if driver is not None else {}),
+        **(_network_summary(driver) if driver is not None else {}),
         **catalogue.w_block_values(blocks),
         "w_asymmetry": float(np.abs(W - W.T).max()),
     }
@@ -403,6 +401,19 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
     summary["wall_s"] = time.perf_counter() - t0
     return EpisodeResult(spec, cols, summary, summary["wall_s"], W, A, mean_dist,
                          tracker if not brains.memoryless else None, snapshots)
+
+
+def _network_summary(driver: LabDispatch) -> dict:
+    st = driver.net.stats
+    out = {"messages_sent": st.sent, "messages_delivered": st.delivered, "messages_dropped": st.dropped,
+           "bytes_sent": st.bytes,
+           "dispatch_delay": float(np.mean(driver.dispatch_delays)) if driver.dispatch_delays else float("nan")}
+    if driver.view_ages:
+        ages = np.array(driver.view_ages, dtype=float)
+        out["view_age_mean"] = float(np.nanmean(ages)) if np.isfinite(ages).any() else float("nan")
+        finite = [a for a in driver.view_age_max if np.isfinite(a)]
+        out["view_age_max"] = float(max(finite)) if finite else float("nan")
+    return out
 
 
 def _rules(policy: MorphPolicy) -> str:

@@ -24,14 +24,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas import Ack, AgentState, Commit, Event, HelpReply, HelpRequest, Phase, Resolve, Stop, Tick
+from schemas import Ack, AgentState, Commit, Event, HelpReply, HelpRequest, Phase, Refusal, Resolve, Stop, Tick
 from schemas.codec import encode_fields, unpack_envelope
 from schemas.hot import decode_tick
 from schemas.keys import RunKeys
 from services.agent.policies import Fleet, MorphBrains
 from services.bus.base import Bus, Sample
+from services.protocol import dispatch as protocol
 from services.rejects import Rejects
 from services.runconfig import RunConfig
+from services.agent.observation import TickObservation
 from services.sim.service import observation_from_arrays
 from services.tickorder import TickOrder
 
@@ -90,6 +92,20 @@ class AgentService:
         self._lock = threading.RLock()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._virtual = faults is not None and faults.vtime is not None
+        # the dispatch protocol's endpoint of this robot (services/protocol), and what became of its messages
+        self.outcomes = protocol.Outcomes()
+        if self.is_agv:
+            self.endpoint = protocol.AgvEndpoint(agent_id, config.request_timeout, self._next_seq)
+        else:
+            self.endpoint = protocol.PickerEndpoint(agent_id, config.request_timeout, self._next_seq)
+        self._rank: dict[int, int] = {}  # the fleet's mission order in the latest tick (picker tie-break)
+        self._assigned = False  # on board: the picker has a mission (latest tick)
+        # AGV: replies that physically arrived, per picker decision step, and a decision point waiting for them
+        self._reply_arrivals: dict[int, int] = {}  # step the picker decided at -> replies arrived
+        self._reply_base = (0, 0)  # (step of the outstanding request, replies announced to this AGV before it)
+        self._holding = False  # picker: the request arriving right now is about to be held by the fault layer
+        self._replies_seen: set[tuple[str, int]] = set()
+        self._deferred: tuple | None = None
 
     def _reject(self, what: str, why: object) -> None:
         self._rejects.count(what, why)
@@ -114,6 +130,7 @@ class AgentService:
             await bus.subscribe(k.requests_to(self.id), self._on_request, inline=True)
         else:
             await bus.subscribe(k.replies_to(self.id), self._on_reply, inline=True)
+        await bus.subscribe(k.refusal(self.id), self._on_refusal, inline=True)
         # the token last: once the sim sees it, the subscriptions above are declared
         token = await bus.declare_token(k.alive(self.id))
         if restored is not None:  # published once the session is established, so the record does not miss it
@@ -231,6 +248,14 @@ class AgentService:
             except ValueError:
                 return  # the handler rejects it if it is ever delivered
             self.faults.skip(self.bus, self.id, t, phase)
+        elif missed and self.is_agv and "/reply/" in key:
+            try:
+                msg = sample.decode(HelpReply)
+            except ValueError:
+                return
+            if msg.agv == self.id:
+                with self._lock:
+                    self._count_reply(sample, msg.t)
         elif missed and not self.is_agv and "/request/" in key:
             try:
                 msg = sample.decode(HelpRequest)
@@ -240,7 +265,12 @@ class AgentService:
                 return
             with self._lock:
                 self._arrived.setdefault(msg.t, set()).add(msg.agv)
-                self._try_decide()
+                # this hook runs before the fault layer holds the sample: a decision taken now must count it as held
+                self._holding = bool(fate)
+                try:
+                    self._try_decide()
+                finally:
+                    self._holding = False
 
     def _advance_wall(self, sample: Sample) -> None:
         """Wall time: a Tick still marks its tick's start, where scheduled and ``at_tick`` commands apply (sim
@@ -279,19 +309,61 @@ class AgentService:
         if not final or not self.brains.memoryless:
             # the final tick only reports the last step: a memoryless brain has nothing to learn from it
             self.brains.learn(obs)
+        if self.is_agv and not final:
+            announced = tick.replied[self.id] if self.id < len(tick.replied) else 0
+            with self._lock:
+                if self.endpoint.outstanding is not None and self._replies_owed(announced) > 0:
+                    # an answer to this AGV's request is still on its way (another path than the Tick's): decide
+                    # once it has arrived, so what the AGV knows at its decision point does not depend on wall-clock
+                    # races between the two paths
+                    self._deferred = (tick, obs, final, announced)
+                    return
+        self._act(tick, obs, final)
+
+    def _replies_owed(self, announced: int) -> int:
+        """Replies sent to this AGV since its request (the sim's cumulative count minus the count when it asked) that
+        have not physically arrived yet; with ``_lock`` held."""
+        since, base = self._reply_base
+        arrived = sum(n for t, n in self._reply_arrivals.items() if t >= since)
+        return announced - base - arrived
+
+    def _count_reply(self, sample: Sample, t: int) -> None:
+        """A reply to this AGV, decided at step ``t``, physically arrived (once per copy sent, whatever the network
+        did to it); with ``_lock`` held. Resumes a deferred decision point whose replies are all in."""
+        key = (sample.sender, sample.seq)
+        if key in self._replies_seen:
+            return
+        self._replies_seen.add(key)
+        self._reply_arrivals[t] = self._reply_arrivals.get(t, 0) + 1
+        deferred = self._deferred
+        if deferred is not None and self._replies_owed(deferred[3]) <= 0:
+            self._deferred = None
+            self._act(*deferred[:3])
+
+    def _act(self, tick, obs: TickObservation, final: bool) -> None:
+        """This robot's decision point of step t (an AGV's gate and request), then its ack."""
         asked: list[int] = []
-        if self.is_agv and not final and obs.needs_picker[self.id]:
-            picker = self.brains.candidate(self.id, obs)
-            if picker >= 0:
-                p = self.brains.probability(self.id, picker, obs)
-                ask = self.brains.draw(self.id) < p if self.brains.draws else p >= 1.0
-                if ask:
-                    tx, ty = (int(v) for v in obs.target[self.id])
-                    self.bus.put(self.keys.request(self.id, picker), encode_fields(
-                        HelpRequest, t=tick.t, agv=self.id, picker=picker, target_x=tx, target_y=ty,
-                        mission=int(obs.mission[self.id]), seq=self._next_seq()))
+        now = tick.t * self.config.dt  # this robot's decision point of step t
+        if not self.is_agv:
+            with self._lock:
+                self._rank = {int(a): i for i, a in enumerate(obs.request_order)}
+                self._assigned = not bool(obs.free_picker[self.id])
+        elif not final:
+            with self._lock:
+                may_ask = self.endpoint.may_ask(now, bool(obs.needs_picker[self.id]), self.outcomes)
+            if may_ask:
+                g = protocol.gate(self.brains, self.id, obs)
+                if g.ask:
+                    with self._lock:
+                        req = self.endpoint.request(g.picker, obs.target[self.id], now, self.outcomes)
+                        self._reply_base = (tick.t, tick.replied[self.id] if self.id < len(tick.replied) else 0)
+                        self._reply_arrivals = {s: n for s, n in self._reply_arrivals.items() if s >= tick.t}
+                    tx, ty = req.cell
+                    self.bus.put(self.keys.request(self.id, g.picker), encode_fields(
+                        HelpRequest, t=tick.t, agv=self.id, picker=g.picker, target_x=tx, target_y=ty,
+                        mission=int(obs.mission[self.id]), seq=req.seq))
                     self.counters.requests += 1
-                    asked.append(picker)
+                    asked.append(g.picker)
         eta = float(self.brains.state.eta) if isinstance(self.brains, MorphBrains) else None
         publish_state = tick.t % self.config.state_every == 0 or final
         # encoded from plain values (no model round trip: the hot path, codec.encode_fields)
@@ -328,7 +400,6 @@ class AgentService:
 
     # -- AGV side --------------------------------------------------------------------------------------------------------
     def _on_reply(self, sample: Sample) -> None:
-        # World state is authoritative (the next tick tells the AGV whether a picker comes); replies are only checked.
         try:
             msg = sample.decode(HelpReply)
             self.keys.check_author(sample.key, msg.picker, "reply of picker")
@@ -337,6 +408,32 @@ class AgentService:
             return
         if msg.agv != self.id:
             self._reject(sample.key, f"reply addressed to AGV {msg.agv}")
+            return
+        with self._lock:  # takes effect at once: it only frees the AGV to ask again at its next decision point
+            self.endpoint.receive(protocol.Reply(msg.picker, msg.agv, msg.accepted, msg.t * self.config.dt,
+                                                 msg.request_seq), self.outcomes)
+            self._count_reply(sample, msg.t)
+
+    def _on_refusal(self, sample: Sample) -> None:
+        try:
+            msg = sample.decode(Refusal)
+        except ValueError as exc:
+            self._reject(sample.key, exc)
+            return
+        if sample.sender != "sim" or self.id not in (msg.agv, msg.picker):
+            self._reject(sample.key, f"refusal of {msg.picker}->{msg.agv} from {sample.sender!r}")
+            return
+        refusal = protocol.Refusal(msg.picker, msg.agv, msg.t * self.config.dt, msg.commit_seq)
+        with self._lock:
+            if self.is_agv:
+                self.endpoint.receive(refusal, self.outcomes)
+            else:
+                self.endpoint.receive(refusal, self._due(sample, msg.t * self.config.dt), self.outcomes)
+
+    def _due(self, sample: Sample, sent: float) -> float:
+        """A protocol message's delivery time, sim seconds: the fault layer's (send time + latency, continuous), or
+        its send time when nothing delayed it."""
+        return sample.due if sample.due >= 0.0 else sent
 
     # -- picker side -----------------------------------------------------------------------------------------------------
     def _on_request(self, sample: Sample) -> None:
@@ -351,13 +448,14 @@ class AgentService:
         if msg.picker != self.id or sender != msg.agv:
             self._reject(sample.key, f"request {msg.agv}->{msg.picker} on key of {sender}")
             return
-        if msg.t < self.last_t:
-            return  # stale: the protocol drops it
-        if self.last_t >= 0 and msg.t > self.last_t + self._ticks.max_gap:  # kept per tick until decided: a request
-            # for a far tick would stay forever
+        if self.last_t >= 0 and msg.t > self.last_t + self._ticks.max_gap:  # a request for a far future tick is
+            # forged or corrupt: kept, it would wait forever
             self._reject(sample.key, f"request for tick {msg.t}, this picker is at tick {self.last_t}")
             return
+        # never dropped for being late: it waits in the endpoint's inbox for this picker's next decision point
+        req = protocol.Request(msg.agv, msg.picker, (msg.target_x, msg.target_y), msg.t * self.config.dt, msg.seq)
         with self._lock:
+            self.endpoint.receive(req, self._due(sample, req.sent_at), self.outcomes)
             self._inbox.setdefault(msg.t, {})[msg.agv] = msg
             self._try_decide()
 
@@ -374,9 +472,9 @@ class AgentService:
         except ValueError as exc:
             self._reject(sample.key, exc)
             return
-        expected = msg.expected(self.id)
-        if not expected or msg.t < self.last_t or msg.t <= self._resolved_t:
+        if self.id not in msg.pickers or msg.t < self.last_t or msg.t <= self._resolved_t:
             return
+        expected = msg.expected(self.id)
         with self._lock:
             self._pending = (msg.t, expected)
             self._try_decide()
@@ -419,25 +517,30 @@ class AgentService:
         timer, self._pending_timer = self._pending_timer, None
         if timer is not None:
             self._loop.call_soon_threadsafe(timer.cancel)  # TimerHandle.cancel is not thread-safe
-        got = self._inbox.pop(t, {})
         for old in [s for s in self._inbox if s <= t]:
             del self._inbox[old]
         for old in [s for s in self._arrived if s <= t]:
             del self._arrived[old]
-        chosen = next((a for a in expected if a in got), None)  # first in the sim's mission order
-        self._answer(t, expected, got, chosen)
+        now = t * self.config.dt + self.config.dt / 2  # the picker's decision point of step t
+        commit, replies = self.endpoint.decide(now, self._assigned, self._rank, self.outcomes)
+        # requests delivered later, or still held by the network, need this picker's next decision point too
+        held = self._virtual and (self.faults.vtime.pending > 0 or self._holding)
+        self._answer(t, commit, replies, bool(self.endpoint.inbox) or held)
 
-    def _answer(self, t: int, expected: list[int], got: dict[int, HelpRequest], chosen: int | None) -> None:
+    def _answer(self, t: int, commit, replies, more: bool) -> None:
         k = self.keys
-        if chosen is not None:
-            self.bus.put(k.commit(self.id), Commit(t=t, picker=self.id, agv=chosen, seq=self._next_seq()))
+        if commit is not None:
+            # the commitment (communication, faultable) before the ack that announces it (synchronisation)
+            self.bus.put(k.commit(self.id), Commit(t=t, picker=self.id, agv=commit.agv, seq=commit.seq,
+                                                   target_x=commit.cell[0], target_y=commit.cell[1]))
             self.counters.commits += 1
-        else:
-            self.bus.put(k.ack(self.id), Ack(t=t, agent=self.id, phase=Phase.RESOLVE, seq=self._next_seq()))
-        for agv in expected:
-            if agv in got:
-                self.bus.put(k.reply(self.id, agv), HelpReply(
-                    t=t, picker=self.id, agv=agv, accepted=agv == chosen, seq=self._next_seq()))
+        for reply in replies:
+            self.bus.put(k.reply(self.id, reply.agv), HelpReply(
+                t=t, picker=self.id, agv=reply.agv, accepted=reply.accepted, request_seq=reply.request_seq,
+                seq=self._next_seq()))
+        self.bus.put(k.ack(self.id), Ack(t=t, agent=self.id, phase=Phase.RESOLVE, seq=self._next_seq(),
+                                         committed_to=None if commit is None else commit.agv, more=more,
+                                         replied_to=[r.agv for r in replies]))
 
 
 async def run_agent(config: RunConfig, bus: Bus, agent_id: int) -> AgentCounters:

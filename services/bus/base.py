@@ -58,6 +58,8 @@ class Sample(NamedTuple):
     sender: str = ""
     seq: int = 0
     sent_at: float = 0.0  # publisher's time.time() when it published
+    # virtual time: when a fault layer delivers it, sim seconds (send time + its latency, not rounded); -1 = unknown
+    due: float = -1.0
 
     def decode(self, expect: type[M] | None = None) -> M | Message:
         """Decode the payload as a message (raises DecodeError naming the bad field)."""

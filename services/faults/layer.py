@@ -289,8 +289,10 @@ class FaultLayer:
             return [0.0]  # control traffic (fault reset, stop) is never faulted: `reset` always works
         if at is not None and chunks[0] == "events":
             return [0.0]  # virtual time: the presence handshake runs before any boundary could release it
-        if len(chunks) == 3 and chunks[0] == "agent" and chunks[2] == "skip":
-            return [0.0]  # an agent's skip (virtual-time null message, faults/runtime.py): synchronisation, not traffic
+        if len(chunks) == 3 and chunks[0] == "agent" and chunks[2] in ("skip", "ack"):
+            return [0.0]  # acks and skips let the sim advance time (synchronisation): never faulted
+        if chunks[0] == "sim" and chunks[1:] == ["resolve"]:
+            return [0.0]  # the picker's decision point is synchronisation too
         rel = "/".join(chunks)
         delay = 0.0
         if self.network is not None and at is not None:
@@ -404,11 +406,12 @@ class FaultLayer:
             deliver = self._metered(deliver, receiver)
         for copy, delay in enumerate(fate):
             if delay <= 0.0:
-                deliver(sample)  # no latency: within its own phase, whatever clock stamped it
+                deliver(sample if at is None else sample._replace(due=at))  # no latency: within its own phase
             elif vt is not None:
                 # due at send time + latency, released at the first boundary at or after it; the tie order is the
-                # message's identity, not its arrival order (deterministic across processes)
-                vt.hold(at + delay, lambda s=sample: deliver(s),
+                # message's identity, not its arrival order (deterministic across processes). The receiver orders
+                # by ``due`` (continuous), the boundary is only when it gets to see it.
+                vt.hold(at + delay, lambda s=sample._replace(due=at + delay): deliver(s),
                         order=(sample.sender, sample.key, sample.seq, copy),
                         deadline=vt.deadline_of(at))
             elif self.schedule is not None:

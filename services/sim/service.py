@@ -32,11 +32,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from schemas import Ack, Commit, Event, Phase, Resolve, Stop, Tick
+from schemas import Ack, Commit, Event, Phase, Refusal, Resolve, Stop, Tick
 from schemas.hot import TickArrays, arrays_from_tick, encode_tick_body
 from schemas.keys import RunKeys
 from services.agent.observation import TickObservation
 from services.bus.base import Bus, LivelinessEvent, Sample
+from services.protocol import dispatch as protocol
 from services.rejects import Rejects
 from services.runconfig import RunConfig
 from services.sim.world.cta import CTAController
@@ -191,6 +192,7 @@ class SimResult:
     absences: int = 0
     wall_seconds: float = 0.0
     stopped_early: str | None = None
+    protocol: dict[str, int] = field(default_factory=dict)  # the dispatch protocol's outcome counters (sim side)
     network_stops: int = 0  # robot-steps a network profile's silence stop held a robot in place
     # wall seconds spent per part of the tick (where a distributed tick's time goes)
     phase_seconds: dict[str, float] = field(default_factory=lambda: {
@@ -213,6 +215,10 @@ class _Phase:
         self.phase = phase
         self.waiting = set(waiting)
         self.held: set[int] = set()  # answers held by the fault layer (virtual time): accepted if released in time
+        # RESOLVE: a picker's ack names the AGV it committed to; it has answered once that Commit has arrived too
+        # (delivered, or held / lost by the network: either way nothing more is coming from it this phase)
+        self.commit_wanted: dict[int, int] = {}
+        self.commit_arrived: set[int] = set()
         self.lock = threading.Lock()
         self.closed = False
         self._loop = asyncio.get_running_loop()
@@ -264,6 +270,12 @@ class SimService:
         self._requests: dict[int, list[int]] = {}  # AGV -> pickers asked, this tick
         self._commits: dict[int, int] = {}  # picker -> AGV committed, this tick
         self._expected: dict[int, list[int]] = {}  # picker -> requesters (the resolve)
+        # the dispatch protocol's sim side (services/protocol): commitments delivered and not yet applied
+        self.outcomes = protocol.Outcomes()
+        self.desk = protocol.CommitmentDesk(config.dt)
+        self._desk_lock = threading.Lock()
+        self._more: set[int] = set()  # pickers that asked for the next decision point (requests still to come)
+        self._replied = [0] * config.n_agvs  # replies sent to each AGV so far (each Tick tells the AGVs)
         self._probe_round = 0
         self._running = False  # between tick 0 and the end: only then does a leaving agent count as absent
         self._monitor_rows: int | None = None  # rows the monitor reported written (None: not heard since it joined)
@@ -349,8 +361,8 @@ class SimService:
 
     # -- tick traffic ------------------------------------------------------------------------------------------------
     def _on_arrival(self, sample: Sample, fate: list[float]) -> None:
-        """Fault layer hook: an ack or commit physically arrived. Dropped: the sender has answered (no action this
-        tick). Held: it has answered too, and its answer counts if released by the phase's boundary."""
+        """Fault layer hook: a sample physically arrived. A skip (an ack that cannot come, runtime.py) answers the
+        phase. A Commit held or lost by the network has arrived all the same: its picker owes nothing more."""
         if fate and min(fate) <= 0.0:
             return  # delivered now: the handler records it
         ph = self._phase
@@ -367,9 +379,19 @@ class SimService:
         with ph.lock:
             if ph.closed or who not in ph.waiting:
                 return
+            if rel == "commit":
+                self._commit_arrived(ph, who)
+                return
             if fate:
                 ph.held.add(who)
             ph.answered(who)
+
+    @staticmethod
+    def _commit_arrived(ph: _Phase, picker: int) -> None:
+        """With ``ph.lock`` held."""
+        ph.commit_arrived.add(picker)
+        if ph.commit_wanted.pop(picker, None) is not None:
+            ph.answered(picker)
 
     def _boundary(self, t: int, phase: int) -> None:
         """Virtual time: reach the boundary that closes ``phase`` of tick ``t`` (releases held answers)."""
@@ -394,33 +416,64 @@ class SimService:
             return
         ph = self._phase
         if ph is None or msg.t != ph.t or msg.phase != ph.phase:
-            return  # stale: the protocol ignores it
+            return  # an ack of another phase: synchronisation only, nothing to do
         with ph.lock:
             if ph.closed or (msg.agent not in ph.waiting and msg.agent not in ph.held):
-                return  # late or duplicate
+                return  # duplicate
             ph.held.discard(msg.agent)
             if ph.phase == Phase.TICK:
                 asked = [p for p in msg.requests_sent if self.config.n_agvs <= p < self.n]
                 if msg.agent < self.config.n_agvs and asked:
                     self._requests[msg.agent] = asked[:1]  # one request per AGV per tick
+            else:
+                if msg.more:
+                    self._more.add(msg.agent)
+                for a in msg.replied_to:
+                    if 0 <= a < self.config.n_agvs:
+                        self._replied[a] += 1
+                if msg.committed_to is not None and msg.agent not in ph.commit_arrived:
+                    ph.commit_wanted[msg.agent] = msg.committed_to  # answered when its Commit arrives
+                    return
             ph.answered(msg.agent)
 
     def _on_commit(self, sample: Sample) -> None:
         msg = self._decode_own(sample, Commit, "picker", "commit of picker")
         if msg is None:
             return
+        if not (self.config.n_agvs <= msg.picker < self.n and 0 <= msg.agv < self.config.n_agvs):
+            self._reject(sample.key, f"commit of robot {msg.picker} to robot {msg.agv}: not a picker and an AGV")
+            return
+        # never discarded for being late: it waits on the desk for the next step boundary, where it is applied if
+        # still valid (else refused, and both sides told)
+        sent = msg.t * self.config.dt + self.config.dt / 2
+        cell = (msg.target_x, msg.target_y) if msg.target_x >= 0 and msg.target_y >= 0 else None
+        with self._desk_lock:
+            self.desk.receive(protocol.Commitment(msg.picker, msg.agv, cell, sent, msg.seq),
+                              sample.due if sample.due >= 0.0 else sent, self.outcomes)
         ph = self._phase
-        if ph is None or ph.phase != Phase.RESOLVE or msg.t != ph.t:
-            return
-        if msg.agv not in self._expected.get(msg.picker, ()):
-            self._reject(sample.key, f"picker {msg.picker} committed to AGV {msg.agv}, which did not ask it")
-            return
-        with ph.lock:
-            if ph.closed or (msg.picker not in ph.waiting and msg.picker not in ph.held):
-                return
-            ph.held.discard(msg.picker)
-            self._commits[msg.picker] = msg.agv
-            ph.answered(msg.picker)
+        if ph is not None and ph.phase == Phase.RESOLVE and msg.t == ph.t:
+            with ph.lock:
+                if not ph.closed and msg.picker in ph.waiting:
+                    self._commit_arrived(ph, msg.picker)
+
+    async def _settle(self, obs: TickObservation) -> list[tuple[int, int]]:
+        """The step boundary: apply the commitments delivered by now (services/protocol), tell both sides of each
+        refused one."""
+        boundary = (obs.t + 1) * self.config.dt
+        rank = {int(a): i for i, a in enumerate(obs.request_order)}
+        wanted = {int(a): (int(obs.target[a, 0]), int(obs.target[a, 1])) for a in np.flatnonzero(obs.needs_picker)}
+        with self._desk_lock:
+            # a Commit that did not say its cell is checked against the AGV's current one
+            for i, (due, c) in enumerate(self.desk.inbox):
+                if c.cell is None:
+                    self.desk.inbox[i] = (due, protocol.Commitment(c.picker, c.agv, wanted.get(c.agv, (-1, -1)),
+                                                                   c.sent_at, c.seq))
+            applied, refusals = self.desk.settle(boundary, rank, wanted, self.ctl.commit, self.outcomes)
+        for r in refusals:
+            refusal = Refusal(t=obs.t + 1, picker=r.picker, agv=r.agv, commit_seq=r.commit_seq)
+            await self.bus.publish(self.keys.refusal(r.agv), refusal)
+            await self.bus.publish(self.keys.refusal(r.picker), refusal)
+        return applied
 
     # -- main ----------------------------------------------------------------------------------------------------------
     async def run(self) -> SimResult:
@@ -452,8 +505,10 @@ class SimService:
             except (asyncio.CancelledError, Exception):
                 pass
         r = self.result
+        r.protocol = self.outcomes.as_dict()
         await self._event("run.finished", steps=r.steps, deliveries=r.deliveries,
                           stopped_early=r.stopped_early, rejected=r.rejected, absences=r.absences,
+                          protocol=self.outcomes.as_dict(),
                           **({"network_stops": r.network_stops} if self.config.network is not None else {}),
                           wall_seconds=round(r.wall_seconds, 3),
                           phase_seconds={k: round(v, 3) for k, v in r.phase_seconds.items()})
@@ -477,8 +532,10 @@ class SimService:
         return r
 
     def _wire_tick(self, obs: TickObservation) -> bytes:
-        """The encoded Tick of ``obs``: observation and world, stamped with its sim time."""
-        return encode_tick_body(tick_fields(obs, obs.t * self.config.dt, world_fields(self.ctl, obs)))
+        """The encoded Tick of ``obs``: observation and world, stamped with its sim time, and the replies sent to each
+        AGV so far (synchronisation for the AGVs)."""
+        return encode_tick_body(tick_fields(obs, obs.t * self.config.dt,
+                                            {**world_fields(self.ctl, obs), "replied": list(self._replied)}))
 
     async def _event(self, kind: str, **details) -> None:
         t = self.ctl.t
@@ -611,10 +668,12 @@ class SimService:
             await self._collect(ph, self._deadline(started, Phase.TICK))
             t2 = time.monotonic()
             spent["tick_phase"] += t2 - t1
-            commits: list[tuple[int, int]] = []
-            if self._requests:
+            more, self._more = self._more, set()
+            if cfg.mode == "paced":
+                more = set(range(cfg.n_agvs, self.n))  # a real-time fleet: every picker decides every step
+            if self._requests or more:
                 order = [int(a) for a in obs.request_order if int(a) in self._requests]
-                expected: dict[int, list[int]] = {}
+                expected: dict[int, list[int]] = {p: [] for p in more}
                 for agv in order:
                     for picker in self._requests[agv]:
                         expected.setdefault(picker, []).append(agv)
@@ -625,11 +684,11 @@ class SimService:
                 await self.bus.publish(k.resolve, Resolve(t=t, pickers=pickers,
                                                           requesters=[expected[p] for p in pickers]))
                 await self._collect(ph, self._deadline(started, Phase.RESOLVE))
-                rank = {agv: i for i, agv in enumerate(order)}
-                commits = sorted(((p, a) for p, a in self._commits.items()), key=lambda pa: rank[pa[1]])
+            if self.faults is not None:
+                self.faults.advance((t + 1) * cfg.dt)  # the step boundary: what is due by now is delivered
             t3 = time.monotonic()
             spent["resolve_phase"] += t3 - t2
-            applied = self.ctl.commit(commits)
+            applied = await self._settle(obs)
             self.ctl.idle = set(range(self.n)) - self.present()  # an absent agent's robot gets no new target
             net = self.faults.network if self.faults is not None else None
             if net is not None and net.profile.silence_stop is not None:

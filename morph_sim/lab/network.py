@@ -1,0 +1,323 @@
+"""The lab's in-process discrete-event network and its driver of the dispatch protocol (services/protocol).
+
+:class:`EventNetwork` carries protocol messages between the robots and the sim: each message's fate (delays, loss,
+duplicate) comes from the fault layer's per-link decision (:meth:`FaultLayer.fate`, the one fault interface), and a
+message sent at sim time ``s`` with delay ``L`` is delivered at ``s + L`` exactly, never dropped for being late.
+
+:class:`LabDispatch` runs one step of the protocol on the pure core: the AGVs' gates at ``t·Δ``, the pickers'
+decisions at ``t·Δ + Δ/2``, the sim's commitments at ``(t+1)·Δ`` (services.protocol.dispatch.decision_points).
+When a fault can touch the fleet broadcast (the Tick), every agent has its own brain and learns and gates from its
+own latest view of the fleet; otherwise one brain owns the whole team (identical results, vectorised).
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from schemas.faults import FaultSpec
+from schemas.keys import RunKeys, matches
+from services.agent.observation import TickObservation
+from services.faults.layer import FaultLayer
+from services.protocol.dispatch import (
+    EPS,
+    Commitment,
+    Endpoints,
+    FleetView,
+    Refusal,
+    Reply,
+    Request,
+    decision_points,
+    gate,
+)
+
+RUN = "lab"
+FLEET_KEY = "sim/tick"
+#: the dispatch protocol's keys (relative to morph/<run>/), the scope of "faults on dispatch messages"
+DISPATCH_KEYS = ("agent/*/request/*", "agent/*/reply/*", "agent/*/commit", "sim/refusal/*")
+
+
+@dataclass(frozen=True, slots=True)
+class FleetBroadcast:
+    """The sim's fleet state of one tick, as one agent receives it."""
+
+    view: TickObservation
+    stamp: float
+
+
+@dataclass
+class NetworkStats:
+    sent: int = 0  # dispatch messages sent (request, reply, commitment, refusal)
+    broadcasts: int = 0  # fleet-state copies sent through the network (one per receiver)
+    delivered: int = 0  # copies delivered (a duplicate counts twice)
+    dropped: int = 0
+    delay_sum: float = 0.0  # over delivered copies, sim seconds
+    bytes: int = 0  # wire bytes sent (each message's encoded size, schemas.codec)
+
+
+_WIRE_SIZES: dict[type, int] = {}
+
+
+def wire_size(msg) -> int:
+    """Encoded size of a protocol message on the wire (its schemas.messages form), bytes. Sizes of one kind differ
+    only by a few bytes of integers, so one representative per kind is measured once."""
+    kind = type(msg)
+    size = _WIRE_SIZES.get(kind)
+    if size is None:
+        from schemas import Commit, HelpReply, HelpRequest
+        from schemas.codec import encode
+
+        if kind is Request:
+            wire = HelpRequest(t=100, agv=msg.agv, picker=msg.picker, target_x=10, target_y=10, seq=100)
+        elif kind is Reply:
+            wire = HelpReply(t=100, picker=msg.picker, agv=msg.agv, accepted=msg.accepted, seq=100)
+        else:  # Commitment, Refusal: the same three numbers and a sequence number
+            wire = Commit(t=100, picker=msg.picker, agv=msg.agv, seq=100)
+        size = _WIRE_SIZES[kind] = len(encode(wire))
+    return size
+
+
+class EventNetwork:
+    """Messages in flight, delivered in (delivery time, send order). ``faults``: fault specs (schemas.faults) with
+    their scopes; none = a perfect network."""
+
+    def __init__(self, faults: Sequence[FaultSpec] = (), *, seed: int = 0, run: str = RUN):
+        self.keys = RunKeys(run)
+        self.now = 0.0
+        self.layer: FaultLayer | None = None
+        if faults:
+            self.layer = FaultLayer(run, base_seed=seed, clock=lambda: self.now)
+            for spec in faults:
+                self.layer.set(spec, at=0.0)
+        self.faults = tuple(faults)
+        self._heap: list[tuple[float, int, object, object]] = []
+        self._order = itertools.count()
+        self.stats = NetworkStats()
+
+    def touches(self, rel_key: str) -> bool:
+        """Whether some fault's scope can apply to messages on ``rel_key``."""
+        return any(matches(f.scope.key_expr, rel_key) for f in self.faults)
+
+    def send(self, key: str, sender, receiver, msg, at: float) -> None:
+        fate = self.layer.fate(key, sender, receiver) if self.layer is not None else [0.0]
+        if isinstance(msg, FleetBroadcast):
+            self.stats.broadcasts += 1
+        else:
+            self.stats.sent += 1
+            self.stats.bytes += wire_size(msg)
+        if not fate:
+            self.stats.dropped += 1
+        for delay in fate:
+            heapq.heappush(self._heap, (at + delay, next(self._order), receiver, msg))
+
+    def until(self, t: float) -> list[tuple[float, object, object]]:
+        """Every copy due by ``t``: (delivery time, receiver, message), in delivery order."""
+        self.now = max(self.now, t)
+        out = []
+        heap = self._heap
+        while heap and heap[0][0] <= t + EPS:
+            due, _, receiver, msg = heapq.heappop(heap)
+            out.append((due, receiver, msg))
+        self.stats.delivered += len(out)
+        return out
+
+    def observe_delay(self, due: float, sent_at: float) -> None:
+        self.stats.delay_sum += due - sent_at
+
+
+class Team:
+    """The whole fleet's brains as one: one brain per agent (own views), with the team views metrics need."""
+
+    def __init__(self, brains: list):
+        self.brains = brains
+        self.memoryless = brains[0].memoryless
+        self.draws = brains[0].draws
+
+    def team_links(self) -> np.ndarray:
+        return np.vstack([b.link_rows() for b in self.brains])
+
+    def team_weights(self) -> np.ndarray:
+        return np.vstack([b.weight_rows() for b in self.brains])
+
+    def extra_metrics(self) -> dict[str, float]:
+        rows = [b.extra_metrics() for b in self.brains]
+        return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} if rows and rows[0] else {}
+
+    def h(self) -> np.ndarray:
+        return np.concatenate([b.h() for b in self.brains])
+
+
+@dataclass
+class GateCount:
+    """The dispatch statistics the lab reports (one gate decision = one AGV that reached a candidate)."""
+
+    decisions: int = 0
+    dispatched: int = 0
+    p_sum: float = 0.0
+    w_positive: int = 0
+
+    def count(self, ask: bool, p: float) -> None:
+        self.decisions += 1
+        self.dispatched += int(ask)
+        self.p_sum += p
+        self.w_positive += int(p > 0.25 + 1e-12)
+
+
+class LabDispatch:
+    """One fleet's protocol endpoints on an :class:`EventNetwork`, stepped by the lab's tick loop."""
+
+    def __init__(self, n_agvs: int, n_pickers: int, *, dt: float, timeout: float, network: EventNetwork,
+                 team_brain=None, agent_brains: list | None = None):
+        self.n_agvs, self.n = n_agvs, n_agvs + n_pickers
+        self.dt = dt
+        self.net = network
+        self.keys = network.keys
+        self.ep = Endpoints(n_agvs, n_pickers, dt, timeout)
+        self.team_brain = team_brain
+        self.agent_brains = agent_brains
+        self.views = [FleetView() for _ in range(self.n)] if agent_brains is not None else None
+        self._learnt = [-1.0] * self.n
+        self.view_ages: list[float] = []  # per tick: mean age over agents, sim seconds (per-agent views only)
+        self.view_age_max: list[float] = []
+        self.last_draws: dict[int, float] = {}
+        self.sent_commits: list[tuple[int, int]] = []
+        self._waiting_since: dict[int, int] = {}  # AGV -> first tick of its current wait for a picker
+        self.dispatch_delays: list[int] = []  # ticks each served AGV waited for its picker
+
+    @property
+    def outcomes(self):
+        return self.ep.outcomes
+
+    def brains(self):
+        return self.team_brain if self.team_brain is not None else Team(self.agent_brains)
+
+    # -- delivery -------------------------------------------------------------------------------------------------
+    def _deliver(self, until: float) -> None:
+        ep, out = self.ep, self.ep.outcomes
+        for due, receiver, msg in self.net.until(until):
+            if isinstance(msg, FleetBroadcast):
+                self.views[receiver].update(msg.view, msg.stamp)
+                continue
+            self.net.observe_delay(due, msg.sent_at)
+            if isinstance(msg, Request):
+                ep.pickers[receiver].receive(msg, due, out)
+            elif isinstance(msg, Commitment):
+                ep.desk.receive(msg, due, out)
+            elif isinstance(msg, Reply):
+                ep.agvs[receiver].receive(msg, out)
+            elif isinstance(msg, Refusal):
+                if receiver < self.n_agvs:
+                    ep.agvs[receiver].receive(msg, out)
+                else:
+                    ep.pickers[receiver].receive(msg, due, out)
+
+    # -- step t -----------------------------------------------------------------------------------------------------
+    def learn(self, obs: TickObservation) -> None:
+        """Tick start: the fleet broadcast goes out, what is due arrives, every agent learns from its view."""
+        s = obs.t * self.dt
+        if self.agent_brains is None:
+            self._deliver(s)
+            self.team_brain.learn(obs)
+            return
+        for agent in range(self.n):
+            self.net.send(self.keys.tick, "sim", agent, FleetBroadcast(obs, s), s)
+        self._deliver(s)
+        ages = []
+        for agent, (brain, view) in enumerate(zip(self.agent_brains, self.views)):
+            if view.view is not None and view.stamp > self._learnt[agent] + EPS:
+                self._learnt[agent] = view.stamp
+                if not (view.view.final and brain.memoryless):
+                    brain.learn(view.view)
+            ages.append(view.age(s))
+        finite = [a for a in ages if np.isfinite(a)]
+        self.view_ages.append(float(np.mean(finite)) if finite else float("nan"))
+        self.view_age_max.append(max(ages) if ages else float("nan"))
+
+    def _gating(self, agv: int, obs: TickObservation):
+        """(brain, view) an AGV gates with: its fleet view, with its own cell and target from on board."""
+        if self.agent_brains is None:
+            return self.team_brain, obs
+        view = self.views[agv].view
+        if view is None:
+            return self.agent_brains[agv], None
+        if view is obs:
+            return self.agent_brains[agv], obs
+        cells, target = view.cells.copy(), view.target.copy()
+        cells[agv], target[agv] = obs.cells[agv], obs.target[agv]
+        return self.agent_brains[agv], replace(view, cells=cells, target=target)
+
+    def dispatch(self, obs: TickObservation, apply: Callable, count: GateCount,
+                 draw: Callable[[int], float] | None = None) -> list[tuple[int, int]]:
+        """AGVs ask, pickers decide, the sim applies what has arrived; returns the (picker, AGV) pairs applied."""
+        ep, out, net, k = self.ep, self.ep.outcomes, self.net, self.keys
+        s_agv, s_pick, s_sim = decision_points(obs.t, self.dt)
+        needs = obs.needs_picker
+        for agv, endpoint in enumerate(ep.agvs):
+            if not needs[agv]:
+                endpoint.may_ask(s_agv, False, out)
+                self._waiting_since.pop(agv, None)
+            else:
+                self._waiting_since.setdefault(agv, obs.t)
+        self.last_draws = draws = {}
+        for agv in obs.requesters().tolist():  # mission order: a shared stream is drawn in this order
+            endpoint = ep.agvs[agv]
+            if not endpoint.may_ask(s_agv, True, out):
+                continue
+            brain, view = self._gating(agv, obs)
+            if view is None:
+                continue  # no fleet view yet: nothing to choose a picker from
+
+            def u(agv=agv):
+                draws[agv] = draw(agv) if draw is not None else brain.draw(agv)
+                return draws[agv]
+
+            g = gate(brain, agv, view, u)
+            if g.picker < 0:
+                continue
+            count.count(g.ask, g.p)
+            if g.ask:
+                req = endpoint.request(g.picker, obs.target[agv], s_agv, out)
+                net.send(k.request(agv, g.picker), agv, g.picker, req, s_agv)
+        self._deliver(s_pick)
+        self.sent_commits = []
+        for picker, endpoint in ep.pickers.items():
+            if not endpoint.inbox and endpoint.pending is None:
+                continue
+            view = obs if self.views is None else self.views[picker].view
+            order = view.request_order if view is not None else ()
+            rank = {int(a): i for i, a in enumerate(order)}
+            commit, replies = endpoint.decide(s_pick, not obs.free_picker[picker], rank, out)
+            if commit is not None:
+                self.sent_commits.append((picker, commit.agv))
+                net.send(k.commit(picker), picker, "sim", commit, s_pick)
+            for reply in replies:
+                net.send(k.reply(picker, reply.agv), picker, reply.agv, reply, s_pick)
+        self._deliver(s_sim)
+        if not ep.desk.inbox:
+            return []
+        rank = {int(a): i for i, a in enumerate(obs.request_order)}
+        wanted = {a: (int(obs.target[a, 0]), int(obs.target[a, 1])) for a in np.flatnonzero(needs).tolist()}
+        applied, refusals = ep.desk.settle(s_sim, rank, wanted, apply, out)
+        for _, agv in applied:
+            self.dispatch_delays.append(obs.t - self._waiting_since.pop(agv, obs.t))
+        for r in refusals:
+            net.send(k.refusal(r.agv), "sim", r.agv, r, s_sim)
+            net.send(k.refusal(r.picker), "sim", r.picker, r, s_sim)
+        return applied
+
+
+def dispatch_faults(spec: FaultSpec) -> list[FaultSpec]:
+    """``spec`` on every dispatch-protocol key (request, reply, commit, refusal), one fault per key class."""
+    base = spec.id or "dispatch"
+    return [spec.model_copy(update={"id": f"{base}-{i}", "scope": spec.scope.model_copy(update={"key_expr": key})})
+            for i, key in enumerate(DISPATCH_KEYS)]
+
+
+def fleet_faults(spec: FaultSpec) -> list[FaultSpec]:
+    """``spec`` on the fleet broadcast (the Tick)."""
+    return [spec.model_copy(update={"id": (spec.id or "fleet") + "-tick",
+                                    "scope": spec.scope.model_copy(update={"key_expr": FLEET_KEY})})]

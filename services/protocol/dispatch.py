@@ -1,0 +1,336 @@
+"""Dispatch between AGVs, pickers and the sim, written once (docs/faults.md, "Late, not lost").
+
+Nothing here does I/O or reads a clock: every method takes the sim time it happens at and returns the messages to
+send. A driver (the lab's discrete-event network, a service over a bus) carries those messages, decides their fate
+(delay, loss, duplicate) and hands each delivered message to its receiver with its delivery time. A message is never
+discarded for being late: it waits in the receiver's inbox until the receiver's next decision point.
+
+Decision points of step ``t`` (Δ sim seconds per step, :func:`decision_points`):
+
+* ``t·Δ`` — an AGV: its on-board state says whether its mission needs a picker; if so and no request of its own is
+  outstanding, it draws its gate (:func:`gate`) and may send one :class:`Request`;
+* ``t·Δ + Δ/2`` — a picker: over the requests delivered to it by then, in delivery-time order with ties broken by
+  the fleet's mission order, it takes the first if it is free and has no commitment in flight, and declines the
+  others: one :class:`Commitment` to the sim and a :class:`Reply` to every requester;
+* ``(t+1)·Δ`` — the sim: it applies the commitments delivered by then, in delivery order (ties: mission order), each
+  only if still valid (the AGV still needs a picker at that cell, the picker is still free); a refused one is
+  answered with a :class:`Refusal` to both sides.
+
+An AGV waits for the answer to its request up to ``timeout`` sim seconds (then the request *expires* and it may ask
+again); a picker holds itself for its commitment as long. Duplicated requests and commitments are recognised by
+(sender, sequence number) and count once. With zero latency every message of step ``t`` is delivered within step
+``t`` and the outcome is the concurrent resolution of the reference: each picker takes the first requester in
+mission order.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field, fields
+
+# Timestamps are sums of floats (t·Δ + Δ/2 + L): compare them with a tolerance, so that a message due exactly at a
+# decision point is delivered by it.
+EPS = 1e-9
+
+#: An AGV's default request timeout, sim seconds (RunConfig.request_timeout). At zero latency the answer comes Δ/2
+#: after the request and the commitment lands Δ later; a one-way latency L adds 2L to that. Five steps of Δ = 1 s
+#: cover one-way delays up to 2 s (a slow Wi-Fi roam) before an AGV gives up, and bound what one lost message costs
+#: an AGV to five steps of waiting.
+DEFAULT_REQUEST_TIMEOUT = 5.0
+
+
+def decision_points(t: int, dt: float) -> tuple[float, float, float]:
+    """(AGV, picker, sim) decision times of step ``t``, sim seconds."""
+    return t * dt, t * dt + dt / 2, (t + 1) * dt
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# messages (the protocol's own records; the wire forms live in schemas.messages)
+# ---------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class Request:
+    """AGV → picker: come to ``cell``, my mission's target."""
+
+    agv: int
+    picker: int
+    cell: tuple[int, int]
+    sent_at: float
+    seq: int
+
+
+@dataclass(frozen=True, slots=True)
+class Reply:
+    """Picker → AGV: the answer to one request."""
+
+    picker: int
+    agv: int
+    accepted: bool
+    sent_at: float
+    request_seq: int
+
+
+@dataclass(frozen=True, slots=True)
+class Commitment:
+    """Picker → sim: I take the mission of ``agv`` at ``cell``."""
+
+    picker: int
+    agv: int
+    cell: tuple[int, int]
+    sent_at: float
+    seq: int
+
+
+@dataclass(frozen=True, slots=True)
+class Refusal:
+    """Sim → AGV and picker: this commitment reached the sim when it was no longer valid."""
+
+    picker: int
+    agv: int
+    sent_at: float
+    commit_seq: int
+
+
+@dataclass
+class Outcomes:
+    """What became of the protocol's messages; one set per run (or per endpoint, summed)."""
+
+    requests: int = 0  # requests sent
+    declined: int = 0  # requests a picker answered with no
+    expired: int = 0  # requests unanswered within the AGV's timeout
+    commitment_expired: int = 0  # a picker's commitment neither applied nor refused within the timeout
+    on_time: int = 0  # commitments applied at the boundary of the step they were sent in
+    late_applied: int = 0  # commitments applied at a later boundary
+    refused_stale: int = 0  # commitments no longer valid when they reached the sim
+    duplicates: int = 0  # copies of a request or commitment already seen
+
+    def add(self, other: Outcomes) -> None:
+        for f in fields(self):
+            setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
+
+    def as_dict(self) -> dict[str, int]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the gate: the one place where an AGV decides whether to ask
+# ---------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class Gate:
+    picker: int  # the candidate, -1 if none is free
+    p: float  # P(respond) of the policy for that pair
+    ask: bool
+
+
+def gate(coordinator, agv: int, view, draw: Callable[[], float] | None = None, free=None) -> Gate:
+    """AGV ``agv``'s gate over its fleet ``view`` (a TickObservation): the policy's candidate picker, its
+    probability, and whether to ask. Policies that draw consume one uniform from ``draw`` (default: the agent's own
+    stream) per candidate; the others ask iff P = 1, as in the reference. ``free`` overrides the view's free pickers
+    (the reference's sequential dispatch removes those taken earlier in the step)."""
+    picker = coordinator.candidate(agv, view, free)
+    if picker < 0:
+        return Gate(-1, 0.0, False)
+    p = coordinator.probability(agv, picker, view)
+    if not coordinator.draws:
+        return Gate(picker, p, p >= 1.0)
+    u = draw() if draw is not None else coordinator.draw(agv)
+    return Gate(picker, p, u < p)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# endpoints
+# ---------------------------------------------------------------------------------------------------------------
+class AgvEndpoint:
+    """One AGV's side: at most one request outstanding, answered, refused or expired."""
+
+    def __init__(self, agv: int, timeout: float = DEFAULT_REQUEST_TIMEOUT, next_seq: Callable[[], int] | None = None):
+        self.agv = agv
+        self.timeout = float(timeout)
+        self.outstanding: Request | None = None
+        self.accepted = False  # the outstanding request was accepted: its commitment is on its way
+        self._seq = 0
+        self._next_seq = next_seq  # a service numbers all its messages in one sequence
+
+    def receive(self, msg: Reply | Refusal, outcomes: Outcomes) -> None:
+        """A reply or refusal delivered to this AGV (takes effect at once: it only frees the AGV to ask again)."""
+        out = self.outstanding
+        if out is None or msg.picker != out.picker:
+            return  # the answer to an earlier request, already given up
+        if isinstance(msg, Reply):
+            if msg.request_seq and msg.request_seq != out.seq:
+                return
+            if msg.accepted:
+                self.accepted = True
+            else:
+                self.outstanding = None
+        elif isinstance(msg, Refusal):
+            self.outstanding = None
+
+    def may_ask(self, now: float, needs_picker: bool, outcomes: Outcomes) -> bool:
+        """At this AGV's decision point: whether it may send a request, given its on-board state.
+
+        A mission that no longer needs a picker (one was assigned, or the mission moved on) ends the outstanding
+        request; one unanswered for ``timeout`` expires and is counted."""
+        out = self.outstanding
+        if out is not None:
+            if not needs_picker:
+                self.outstanding = None
+            elif now - out.sent_at >= self.timeout - EPS:
+                outcomes.expired += 1
+                self.outstanding = None
+        return needs_picker and self.outstanding is None
+
+    def request(self, picker: int, cell: tuple[int, int], now: float, outcomes: Outcomes) -> Request:
+        self._seq = self._next_seq() if self._next_seq is not None else self._seq + 1
+        req = Request(self.agv, picker, (int(cell[0]), int(cell[1])), now, self._seq)
+        self.outstanding = req
+        self.accepted = False
+        outcomes.requests += 1
+        return req
+
+
+class PickerEndpoint:
+    """One picker's side: an inbox of delivered requests and at most one commitment in flight."""
+
+    def __init__(self, picker: int, timeout: float = DEFAULT_REQUEST_TIMEOUT,
+                 next_seq: Callable[[], int] | None = None):
+        self.picker = picker
+        self.timeout = float(timeout)
+        self._next_seq = next_seq
+        self.inbox: list[tuple[float, Request]] = []  # (delivery time, request)
+        self.pending: Commitment | None = None
+        self._seen: set[tuple[int, int]] = set()  # (agv, seq) of every request delivered
+        self._seq = 0
+
+    def receive(self, msg: Request | Refusal, due: float, outcomes: Outcomes) -> None:
+        if isinstance(msg, Request):
+            key = (msg.agv, msg.seq)
+            if key in self._seen:
+                outcomes.duplicates += 1
+                return
+            self._seen.add(key)
+            self.inbox.append((due, msg))
+        elif isinstance(msg, Refusal):
+            if self.pending is not None and self.pending.seq == msg.commit_seq:
+                self.pending = None
+
+    def decide(self, now: float, assigned: bool, rank: Mapping[int, int],
+               outcomes: Outcomes) -> tuple[Commitment | None, list[Reply]]:
+        """At the picker's decision point ``now``: the commitment to send (or None) and the replies.
+
+        ``assigned``: the picker's on-board state says it has a mission (then its commitment, if any, took effect).
+        ``rank``: the fleet's mission order as the picker last saw it (AGV → position), the tie-break between
+        requests delivered at the same time. Requests delivered after ``now`` wait for the next decision point."""
+        if self.pending is not None and (assigned or now - self.pending.sent_at >= self.timeout - EPS):
+            if not assigned:
+                outcomes.commitment_expired += 1
+            self.pending = None
+        if not self.inbox:
+            return None, []
+        ready = [(due, req) for due, req in self.inbox if due <= now + EPS]
+        if not ready:
+            return None, []
+        self.inbox = [(due, req) for due, req in self.inbox if due > now + EPS]
+        last = len(rank)
+        ready.sort(key=lambda dr: (dr[0], rank.get(dr[1].agv, last), dr[1].agv, dr[1].seq))
+        commit = None
+        replies = []
+        for _, req in ready:
+            take = commit is None and not assigned and self.pending is None
+            if take:
+                self._seq = self._next_seq() if self._next_seq is not None else self._seq + 1
+                commit = Commitment(self.picker, req.agv, req.cell, now, self._seq)
+                self.pending = commit
+            else:
+                outcomes.declined += 1
+            replies.append(Reply(self.picker, req.agv, take, now, req.seq))
+        return commit, replies
+
+
+class CommitmentDesk:
+    """The sim's side: commitments delivered and not yet applied, applied in order at each step boundary."""
+
+    def __init__(self, dt: float):
+        self.dt = float(dt)
+        self.inbox: list[tuple[float, Commitment]] = []
+        self._seen: set[tuple[int, int]] = set()  # (picker, seq)
+
+    def receive(self, msg: Commitment, due: float, outcomes: Outcomes) -> None:
+        key = (msg.picker, msg.seq)
+        if key in self._seen:
+            outcomes.duplicates += 1
+            return
+        self._seen.add(key)
+        self.inbox.append((due, msg))
+
+    def settle(self, boundary: float, rank: Mapping[int, int], wanted: Mapping[int, tuple[int, int]],
+               apply: Callable[[list[tuple[int, int]]], Iterable[tuple[int, int]]],
+               outcomes: Outcomes) -> tuple[list[tuple[int, int]], list[Refusal]]:
+        """At the step boundary: apply every commitment delivered by then, in delivery order (ties: mission order).
+
+        ``wanted``: AGV → the cell its mission needs a picker at, now; a commitment to another cell (or to an AGV
+        that needs none) is refused before it reaches the world. ``apply(pairs)`` is the world's own check (picker
+        free, one picker per cell), given (picker, AGV) pairs in order and returning those it applied.
+        Returns (applied pairs, refusals to send)."""
+        ready = [(due, c) for due, c in self.inbox if due <= boundary + EPS]
+        if not ready:
+            return [], []
+        self.inbox = [(due, c) for due, c in self.inbox if due > boundary + EPS]
+        last = len(rank)
+        ready.sort(key=lambda dc: (dc[0], rank.get(dc[1].agv, last), dc[1].picker, dc[1].seq))
+        valid = [c for _, c in ready if wanted.get(c.agv) == c.cell]
+        applied = set(apply([(c.picker, c.agv) for c in valid]))
+        done: list[tuple[int, int]] = []
+        refusals: list[Refusal] = []
+        for _, c in ready:
+            pair = (c.picker, c.agv)
+            if pair in applied and pair not in done:
+                done.append(pair)
+                if c.sent_at > boundary - self.dt - EPS:
+                    outcomes.on_time += 1
+                else:
+                    outcomes.late_applied += 1
+            else:
+                outcomes.refused_stale += 1
+                refusals.append(Refusal(c.picker, c.agv, boundary, c.seq))
+        return done, refusals
+
+
+@dataclass
+class FleetView:
+    """An agent's latest view of the fleet state (a broadcast), with the sim time it describes."""
+
+    view: object | None = None
+    stamp: float = -1.0
+    received: int = 0  # broadcasts delivered (an older one arriving after a newer one is ignored)
+
+    def update(self, view, stamp: float) -> bool:
+        """Take ``view`` if it is newer than the one held; returns whether it was."""
+        if self.view is not None and stamp <= self.stamp + EPS:
+            return False
+        self.view, self.stamp = view, float(stamp)
+        self.received += 1
+        return True
+
+    def age(self, now: float) -> float:
+        """Sim seconds since the held view was taken (infinite before the first)."""
+        return now - self.stamp if self.view is not None else float("inf")
+
+
+@dataclass
+class Endpoints:
+    """Every robot's protocol endpoint of one fleet (AGVs ``0..n_agvs-1``, then pickers)."""
+
+    n_agvs: int
+    n_pickers: int
+    dt: float
+    timeout: float = DEFAULT_REQUEST_TIMEOUT
+    agvs: list[AgvEndpoint] = field(init=False)
+    pickers: dict[int, PickerEndpoint] = field(init=False)
+    desk: CommitmentDesk = field(init=False)
+    outcomes: Outcomes = field(default_factory=Outcomes)
+
+    def __post_init__(self) -> None:
+        self.agvs = [AgvEndpoint(a, self.timeout) for a in range(self.n_agvs)]
+        n = self.n_agvs + self.n_pickers
+        self.pickers = {p: PickerEndpoint(p, self.timeout) for p in range(self.n_agvs, n)}
+        self.desk = CommitmentDesk(self.dt)

@@ -1,0 +1,210 @@
+"""The dispatch protocol (services/protocol) and the lab's discrete-event network: late, not lost.
+
+Unit tests drive the pure endpoints with explicit sim times; the episode tests run the lab's tick loop with faults
+on the protocol's messages and on the fleet broadcast."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from schemas.faults import FaultSpec, Latency, Loss, Scope
+from morph_sim.lab.network import (
+    EventNetwork,
+    LabDispatch,
+    dispatch_faults,
+    fleet_faults,
+)
+from morph_sim.lab.runner import DispatchStats, EpisodeSpec, run_episode
+from services.agent.policies import Fleet, MorphPolicy
+from services.protocol.dispatch import (
+    AgvEndpoint,
+    Commitment,
+    CommitmentDesk,
+    Outcomes,
+    PickerEndpoint,
+    Refusal,
+    Request,
+    decision_points,
+)
+from services.sim.world.cta import CTAController
+from services.sim.world.warehouse import Warehouse, WarehouseConfig
+
+DT = 1.0
+
+
+def test_request_delayed_a_tenth_is_handled_before_one_delayed_three_tenths():
+    """No rounding to phase boundaries: delivery time orders the requests, not the mission order."""
+    out = Outcomes()
+    picker = PickerEndpoint(5)
+    _, decide_at, _ = decision_points(0, DT)
+    first_in_mission_order = Request(agv=0, picker=5, cell=(1, 1), sent_at=0.0, seq=1)
+    second = Request(agv=1, picker=5, cell=(2, 2), sent_at=0.0, seq=1)
+    picker.receive(first_in_mission_order, 0.0 + 0.3 * DT, out)
+    picker.receive(second, 0.0 + 0.1 * DT, out)
+    commit, replies = picker.decide(decide_at, assigned=False, rank={0: 0, 1: 1}, outcomes=out)
+    assert commit is not None and commit.agv == 1
+    assert [(r.agv, r.accepted) for r in replies] == [(1, True), (0, False)]
+    # at equal delivery times the fleet's mission order breaks the tie
+    tie = PickerEndpoint(5)
+    tie.receive(second, 0.2, out)
+    tie.receive(first_in_mission_order, 0.2, out)
+    assert tie.decide(decide_at, False, {0: 0, 1: 1}, out)[0].agv == 0
+
+
+def test_request_delivered_after_the_decision_point_waits_for_the_next_one():
+    out = Outcomes()
+    picker = PickerEndpoint(5)
+    picker.receive(Request(0, 5, (1, 1), 0.0, 1), 0.0 + 0.6 * DT, out)  # after t·Δ + Δ/2
+    assert picker.decide(decision_points(0, DT)[1], False, {0: 0}, out) == (None, [])
+    commit, _ = picker.decide(decision_points(1, DT)[1], False, {0: 0}, out)
+    assert commit is not None and commit.agv == 0
+
+
+def test_commitment_delayed_two_and_a_half_ticks_is_applied_at_the_boundary_after_it_arrives():
+    out = Outcomes()
+    desk = CommitmentDesk(DT)
+    sent = decision_points(0, DT)[1]  # the picker decides at 0.5
+    desk.receive(Commitment(5, 0, (1, 1), sent, 1), sent + 2.5 * DT, out)  # arrives at 3.0
+    applied_at = []
+
+    def apply(pairs):
+        return pairs
+
+    for t in range(4):
+        boundary = decision_points(t, DT)[2]
+        done, refusals = desk.settle(boundary, {0: 0}, {0: (1, 1)}, apply, out)
+        if done:
+            applied_at.append(boundary)
+        assert not refusals
+    assert applied_at == [3.0]
+    assert (out.on_time, out.late_applied, out.refused_stale) == (0, 1, 0)
+
+
+def test_stale_commitment_is_refused_counted_and_both_sides_learn_it():
+    out = Outcomes()
+    agv, picker, desk = AgvEndpoint(0), PickerEndpoint(5), CommitmentDesk(DT)
+    req = agv.request(5, (1, 1), 0.0, out)
+    picker.receive(req, 0.0, out)
+    commit, replies = picker.decide(0.5, False, {0: 0}, out)
+    agv.receive(replies[0], out)
+    assert agv.accepted and agv.outstanding is not None and picker.pending is not None
+    desk.receive(commit, 3.0, out)
+    # by the time it arrives the AGV needs no picker any more (wanted is empty): refused
+    done, refusals = desk.settle(3.0, {}, {}, lambda pairs: pairs, out)
+    assert done == [] and refusals == [Refusal(5, 0, 3.0, commit.seq)] and out.refused_stale == 1
+    agv.receive(refusals[0], out)
+    picker.receive(refusals[0], 3.0, out)
+    assert agv.outstanding is None and picker.pending is None
+    # the world's own check (picker no longer free) refuses too
+    desk.receive(Commitment(5, 0, (1, 1), 3.5, 2), 3.5, out)
+    done, refusals = desk.settle(4.0, {0: 0}, {0: (1, 1)}, lambda pairs: [], out)
+    assert done == [] and len(refusals) == 1 and out.refused_stale == 2
+
+
+def test_duplicates_are_idempotent_and_counted():
+    out = Outcomes()
+    picker, desk = PickerEndpoint(5), CommitmentDesk(DT)
+    req = Request(0, 5, (1, 1), 0.0, 1)
+    picker.receive(req, 0.1, out)
+    picker.receive(req, 0.2, out)
+    commit, replies = picker.decide(0.5, False, {0: 0}, out)
+    assert len(replies) == 1
+    desk.receive(commit, 0.5, out)
+    desk.receive(commit, 0.7, out)
+    done, _ = desk.settle(1.0, {0: 0}, {0: (1, 1)}, lambda pairs: pairs, out)
+    assert done == [(5, 0)] and out.duplicates == 2 and out.on_time == 1
+
+
+def test_request_timeout_expires_an_unanswered_request():
+    out = Outcomes()
+    agv = AgvEndpoint(0, timeout=3.0)
+    agv.request(5, (1, 1), 0.0, out)
+    assert not agv.may_ask(2.0, True, out)
+    assert agv.may_ask(3.0, True, out) and out.expired == 1
+    # a mission that no longer needs a picker ends the request without counting it as expired
+    agv.request(5, (1, 1), 3.0, out)
+    assert not agv.may_ask(4.0, False, out) and agv.outstanding is None and out.expired == 1
+
+
+def _tiny_latency(delay: float, jitter: float = 0.0, key: str | None = None) -> tuple[FaultSpec, ...]:
+    spec = FaultSpec(latency=Latency(delay=delay, jitter=jitter, distribution="normal"), seed=1)
+    if key is not None:
+        return (spec.model_copy(update={"id": "one", "scope": Scope(key_expr=key)}),)
+    return tuple(dispatch_faults(spec))
+
+
+def test_commitments_delayed_two_and_a_half_ticks_are_all_applied_late_in_an_episode():
+    ep = run_episode(EpisodeSpec(scale="tiny", condition="full", seed=3, steps=300, fiedler_every=1000,
+                                 faults=_tiny_latency(2.5, key="agent/*/commit")))
+    s = ep.summary
+    assert s["protocol_on_time"] == 0 and s["protocol_late_applied"] > 20
+    assert s["deliveries"] > 0
+    # no commitment is lost: each one sent was applied late, refused as stale, or still in flight at the end
+    sent = s["protocol_requests"] - s["protocol_declined"] - s["protocol_expired"]
+    assert s["protocol_late_applied"] + s["protocol_refused_stale"] >= sent - 5
+
+
+@pytest.mark.parametrize("condition", ["full", "morph", "tsg", "proximity"])
+def test_no_policy_falls_to_zero_deliveries_at_five_ticks_of_latency(condition):
+    clean = run_episode(EpisodeSpec(scale="tiny", condition=condition, seed=1, steps=300, radius=4,
+                                    fiedler_every=1000))
+    late = run_episode(EpisodeSpec(scale="tiny", condition=condition, seed=1, steps=300, radius=4,
+                                   fiedler_every=1000, faults=_tiny_latency(5.0, 1.25)))
+    assert late.summary["deliveries"] > 0.4 * clean.summary["deliveries"] > 0
+
+
+def test_zero_effect_fleet_fault_gives_the_team_episode():
+    """One brain per agent with its own view (the driver used when the broadcast can be faulted) equals the
+    vectorised team brain when nothing is actually lost or delayed."""
+    noop = tuple(fleet_faults(FaultSpec(loss=Loss(percent=0.0), seed=1)))
+    for preset in ("reference", "paper"):
+        kw = dict(scale="tiny", condition="morph", preset=preset, seed=42, steps=150, fiedler_every=1000)
+        team, own = run_episode(EpisodeSpec(**kw)), run_episode(EpisodeSpec(faults=noop, **kw))
+        for col in ("deliveries", "committed", "gate_p_sum", "links"):
+            np.testing.assert_array_equal(team.ticks[col], own.ticks[col], err_msg=f"{preset} {col}")
+        np.testing.assert_allclose(team.final_weights, own.final_weights)
+        assert own.summary["view_age_mean"] == 0.0
+
+
+def test_same_seed_and_faults_same_run():
+    faults = (*_tiny_latency(2.5, 0.6), *dispatch_faults(FaultSpec(id="ge", seed=2, loss=Loss(
+        model="gilbert_elliott", percent=20, burst_length=4))), *fleet_faults(FaultSpec(loss=Loss(percent=20), seed=3)))
+    spec = EpisodeSpec(scale="tiny", condition="morph", seed=7, steps=200, fiedler_every=1000, faults=faults)
+    a, b = run_episode(spec), run_episode(spec)
+    for col in ("deliveries", "committed", "gate_p_sum", "links"):
+        np.testing.assert_array_equal(a.ticks[col], b.ticks[col])
+    assert {k: v for k, v in a.summary.items() if k != "wall_s"} == {k: v for k, v in b.summary.items()
+                                                                      if k != "wall_s"}
+    assert a.summary["messages_dropped"] > 0 and a.summary["protocol_late_applied"] > 0
+
+
+def test_agent_whose_fleet_broadcast_is_lost_for_k_ticks_learns_from_a_view_k_ticks_old():
+    k, start, victim = 4, 10, 2
+    cfg = WarehouseConfig.named("tiny", max_steps=40)
+    cta = CTAController(Warehouse(cfg))
+    cta.reset(5)
+    fleet = Fleet(cta.n_agvs, cta.n_pickers, "tiny")
+    brains = [MorphPolicy().brains(fleet, [i], 5) for i in range(fleet.n)]
+    learnt: list[int] = []
+    inner = brains[victim].learn
+    brains[victim].learn = lambda view: (learnt.append(view.t), inner(view))
+    net = EventNetwork(fleet_faults(FaultSpec(loss=Loss(percent=0.0), seed=1)), seed=5)
+    driver = LabDispatch(fleet.n_agvs, fleet.n_pickers, dt=DT, timeout=5.0, network=net, agent_brains=brains)
+    stats = DispatchStats()
+    ages = []
+    for t in range(start + k + 2):
+        if t == start:  # the broadcast to one agent is lost from now on, for k steps
+            net.layer.set(FaultSpec(id="blackout", loss=Loss(percent=100.0), duration=k * DT,
+                                    scope=Scope(key_expr="sim/tick", agents=[victim])), at=t * DT)
+        obs = cta.begin_tick()
+        driver.learn(obs)
+        ages.append(driver.views[victim].age(t * DT))
+        driver.dispatch(obs, cta.commit, stats)
+        cta.finish_tick()
+    assert ages[start - 1] == 0.0
+    assert ages[start + k - 1] == k * DT  # the last lost tick: its view is k ticks old
+    assert ages[start + k] == 0.0  # the broadcast is back
+    # it learnt nothing new while the broadcast was lost, and resumed from the fresh view
+    assert start - 1 in learnt and not set(range(start, start + k)) & set(learnt) and start + k in learnt
+    assert driver.view_age_max[start + k - 1] == k * DT
