@@ -211,3 +211,14 @@ async def until(condition, timeout: float = 3.0, what: str = "condition") -> Non
     while not condition():
         assert time.monotonic() < deadline, f"{what} not met within {timeout} s"
         await asyncio.sleep(0.005)
+
+
+def sample_rss(pid: int, name: str, into: list[int]) -> None:
+    """Append the resident memory of each descendant of ``pid`` whose command line names ``name`` (a live process's
+    memory while a run goes on; a process that just ended is passed over)."""
+    for proc in psutil.Process(pid).children(recursive=True):
+        try:
+            if name in proc.cmdline():
+                into.append(proc.memory_info().rss)
+        except psutil.Error:
+            pass

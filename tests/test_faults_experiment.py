@@ -4,7 +4,6 @@ per seed, loss and latency cost what the protocol says (late, not lost), and the
 from __future__ import annotations
 
 import json
-import math
 
 import pytest
 

@@ -16,14 +16,13 @@ import subprocess
 import sys
 import time
 
-import psutil
 import pytest
 
 from services.bus.zenoh_bus import free_port
 from services.monitor.recorder import read_metrics
 from services.monitor.catalogue import CATALOGUE
 
-from _procs import kill_tree, wait_for_port
+from _procs import kill_tree, sample_rss, wait_for_port
 from test_long_run import END_LAG, MONITOR_RSS_BOUND
 
 # A default-settings client (a user's script): per one-second window, the streams seen; the last deliveries_total.
@@ -98,12 +97,7 @@ def test_streams_flow_every_second_and_live_views_end_on_the_record(tmp_path, st
                                  stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
         deadline = time.monotonic() + 240
         while up.poll() is None and time.monotonic() < deadline:  # the monitor's memory while the run goes on
-            for proc in psutil.Process(up.pid).children(recursive=True):
-                try:
-                    if "monitor" in proc.cmdline():
-                        rss.append(proc.memory_info().rss)
-                except psutil.Error:
-                    pass
+            sample_rss(up.pid, "monitor", rss)
             time.sleep(0.5)
         out, _ = up.communicate(timeout=30)
         sub_out, sub_err = sub.communicate(timeout=30)

@@ -12,12 +12,11 @@ import subprocess
 import sys
 import time
 
-import psutil
 import pytest
 
 from services.monitor.recorder import read_metrics
 
-from _procs import alive, descendants, kill_all
+from _procs import alive, descendants, kill_all, sample_rss
 
 MONITOR_RSS_BOUND = 200 * 2**20  # measured: 141 MB after the start, 157 MB at 50,000 ticks (tiny)
 END_LAG = 10.0  # seconds between the sim's end of run and the monitor's summary
@@ -37,12 +36,7 @@ def test_a_long_run_keeps_every_row_with_bounded_monitor_memory(tmp_path, steps)
     try:
         while up.poll() is None and time.monotonic() < deadline:
             seen |= descendants(up.pid)
-            for proc in psutil.Process(up.pid).children(recursive=True):
-                try:
-                    if "monitor" in proc.cmdline():
-                        rss.append(proc.memory_info().rss)
-                except psutil.Error:
-                    pass
+            sample_rss(up.pid, "monitor", rss)
             time.sleep(0.5)
         if up.poll() is None:
             up.kill()

@@ -48,7 +48,7 @@ def test_judged_by_where_the_robot_was_when_it_sent_whatever_was_reported_since(
     """Tick t's cells take effect at (t+1)·Δ: a message of tick t is judged the same whether the receiving process
     has seen tick t's Tick yet or not (distributed runs see them in wall order)."""
     profile = load_profile("wifi-legacy-roaming")
-    rack = next((x, y) for y in range(TINY.H) for x in range(TINY.W) if not TINY.is_highway(x, y))
+    rack = next((x, y) for y in range(TINY.H) for x in range(TINY.W) if not TINY.highway[y, x])
     cells_t0 = [(0, 0), (13, 0)]
     cells_t1 = [rack, (0, 0)]  # robot 0 drives into a dead zone, robot 1 across to the other AP
 
@@ -124,7 +124,7 @@ def test_dead_zone_loss_within_one_point_over_10000_messages(zone_loss):
     base = quiet("wifi-legacy-roaming")
     zone = load_profile("wifi-legacy-roaming").dead_zones[0].model_copy(update={"loss": zone_loss})
     model = NetworkModel(base.model_copy(update={"dead_zones": [zone]}), TINY, seed=11)
-    rack = next((x, y) for y in range(TINY.H) for x in range(TINY.W) if not TINY.is_highway(x, y))
+    rack = next((x, y) for y in range(TINY.H) for x in range(TINY.W) if not TINY.highway[y, x])
     model.move(0, 0.0, rack)
     n = 10_000
     lost = sum(model.fate(i * 0.1, 0, "sim", ("agent/0/ack", i)).lost for i in range(n))

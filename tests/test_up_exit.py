@@ -4,7 +4,6 @@ taken, or someone else stopped the run. Real processes; every pid is checked gon
 
 from __future__ import annotations
 
-import asyncio
 import json
 import resource
 import subprocess
@@ -12,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-from services.bus.zenoh_bus import ZenohBus, endpoint, free_port
+from services.bus.zenoh_bus import endpoint, free_port
 from services.monitor.recorder import read_metrics
 
 from _procs import alive, descendants, kill_all, wait_for_port

@@ -271,7 +271,7 @@ class LabDispatch:
             if view is None:
                 continue  # no fleet view yet: nothing to choose a picker from
 
-            def u(agv=agv):
+            def u(agv=agv, brain=brain):
                 draws[agv] = draw(agv) if draw is not None else brain.draw(agv)
                 return draws[agv]
 

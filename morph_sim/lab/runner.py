@@ -326,19 +326,19 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
             applied = driver.dispatch(obs, cta.commit, stats, draw)
             if not faults and driver.team_brain is not None:
                 draws = driver.last_draws
-                other = sequential_commits(obs, brains, lambda agv: draws.get(agv, float("inf")))
+                other = sequential_commits(obs, brains, lambda agv, draws=draws: draws.get(agv, float("inf")))
                 rank = {int(a): i for i, a in enumerate(obs.request_order)}
                 sent = sorted(driver.sent_commits, key=lambda pa: rank.get(pa[1], len(rank)))
                 stats.divergent_ticks += _dedupe_cells(obs, sent) != _dedupe_cells(obs, other)
         else:
             draws: dict[int, float] = {}
 
-            def live(agv: int) -> float:
+            def live(agv: int, draws=draws) -> float:
                 draws[agv] = draw(agv)
                 return draws[agv]
 
             commits = sequential_commits(obs, brains, live, stats)
-            other = concurrent_commits(obs, brains, lambda agv: draws.get(agv, float("inf")))
+            other = concurrent_commits(obs, brains, lambda agv, draws=draws: draws.get(agv, float("inf")))
             stats.divergent_ticks += _dedupe_cells(obs, commits) != _dedupe_cells(obs, other)
             applied = cta.commit(commits)
         committed += len(applied)

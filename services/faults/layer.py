@@ -411,7 +411,8 @@ class FaultLayer:
                 # due at send time + latency, released at the first boundary at or after it; the tie order is the
                 # message's identity, not its arrival order (deterministic across processes). The receiver orders
                 # by ``due`` (continuous), the boundary is only when it gets to see it.
-                vt.hold(at + delay, lambda s=sample._replace(due=at + delay): deliver(s),
+                # the default binds this copy's stamped sample now, as the callback runs later
+                vt.hold(at + delay, lambda s=sample._replace(due=at + delay): deliver(s),  # noqa: B008
                         order=(sample.sender, sample.key, sample.seq, copy),
                         deadline=vt.deadline_of(at))
             elif self.schedule is not None:
