@@ -160,8 +160,9 @@ class DispatchStats:
 
 def sequential_commits(obs: TickObservation, brains: Coordinator, draw, stats: DispatchStats | None = None
                        ) -> list[tuple[int, int]]:
-    """The reference's sequential dispatch (a switch for exact comparison, spec §5): AGVs in mission order, each
-    asking the nearest picker still free after those taken earlier in the step; one picker per cell."""
+    """The reference's sequential dispatch, kept as a switch for exact comparison with the reference code: AGVs in
+    mission order, each asking the nearest picker still free after those taken earlier in the step; one picker per
+    cell."""
     free = obs.free_picker.copy()
     cells: set[tuple[int, int]] = set()
     commits = []
