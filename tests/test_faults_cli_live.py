@@ -20,7 +20,7 @@ import subprocess
 import sys
 import time
 
-from schemas.hot import decode_tick
+from schemas.tick import decode_tick
 from schemas.keys import RunKeys
 from services.bus.zenoh_bus import endpoint, free_port
 from services.monitor.recorder import read_metrics
