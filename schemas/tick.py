@@ -7,15 +7,12 @@ The model
 
 The fast codec
 --------------
-Validated-but-cheap decode and encode of the tick, the one big message every process handles every tick.
-
-Why: a distributed tick runs ~20 processes on 2 cores, so each process wakes up with cold caches, and the work it
+Validated-but-cheap decode and encode of the tick. Why: a distributed tick runs ~20 processes on 2 cores, so each process wakes up with cold caches, and the work it
 touches per tick is what costs (docs/services.md, Performance). Validating a ``Tick`` through pydantic walks ~650
 list elements one by one; here the per-robot lists become two numpy blocks (integers, flags) in one conversion each,
 and their types, shapes and ranges are checked on the blocks.
 
-The contract stays the one of :class:`Tick`: :func:`decode_tick` accepts a payload
-only if the model would (exact types, every constraint of the model and of its ``_shape`` check); whenever the cheap
+The contract stays the one of :class:`Tick`: :func:`decode_tick` accepts a payload only if the model would (exact types, every constraint of the model and of its ``_shape`` check); whenever the cheap
 check is not sure — an unusual type pydantic may coerce, a value out of range, a missing or foreign field, another
 schema version — it hands the payload to the full :func:`~schemas.codec.decode`, which either raises the
 typed :class:`~schemas.base.DecodeError` naming the field or returns the validated model. Both paths give
@@ -26,9 +23,9 @@ Per-robot rows of the decoded blocks are reached by field name (:data:`INT_ROWS`
 
 The observation
 ---------------
-What an agent sees at one tick: the plain-array content of the sim's ``Tick`` message.
-
-An agent's brain learns only from a sequence of :class:`TickObservation` objects and decides dispatch
+:class:`TickObservation` is what an agent sees at one tick: the plain-array content of the Tick; the sim
+builds the Tick from it (:func:`tick_fields`), an agent rebuilds it from the decoded arrays
+(:func:`observation_from_arrays`). An agent's brain learns only from a sequence of :class:`TickObservation` objects and decides dispatch
 requests from the latest one; it never reads the warehouse or another agent's memory. The sim's
 controller (``services.sim.world.cta``) produces one observation per tick, and the distributed
 services carry exactly these fields.

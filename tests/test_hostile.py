@@ -22,8 +22,8 @@ from pathlib import Path
 import pytest
 
 from schemas import Ack, Commit, Event, FaultCommand, HelpReply, Stop, encode
-from schemas.tick import encode_tick_body, tick_fields
 from schemas.keys import RunKeys
+from schemas.tick import encode_tick_body, tick_fields
 from services.bus.base import pack_header
 from services.bus.zenoh_bus import endpoint, free_port, zenoh_config
 from services.monitor.recorder import read_metrics

@@ -26,8 +26,8 @@ import numpy as np
 
 from schemas import Ack, AgentState, Commit, Event, HelpReply, HelpRequest, Phase, Refusal, Resolve, Stop, Tick
 from schemas.codec import encode_fields, unpack_envelope
-from schemas.tick import TickObservation, decode_tick, observation_from_arrays
 from schemas.keys import RunKeys
+from schemas.tick import TickObservation, decode_tick, observation_from_arrays
 from services.agent.policies import Fleet, MorphBrains
 from services.bus.base import Bus, Sample
 from services.protocol import dispatch as protocol

@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from schemas import Ack, AgentState, Commit, Event, MetricSample, Phase, Stop
-from schemas.tick import TickArrays, decode_tick
 from schemas.keys import RunKeys, intersects
+from schemas.tick import TickArrays, decode_tick
 from services.bus.base import Bus, Query, Sample
 from services.monitor import catalogue
 from services.monitor import metrics as M
