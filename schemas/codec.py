@@ -16,7 +16,6 @@ from pydantic import ValidationError
 
 from schemas.base import DecodeError, Message
 from schemas.errors import error_field, error_message
-from schemas.messages import MESSAGES
 
 M = TypeVar("M", bound=Message)
 KIND_FIELD = "k"
@@ -86,6 +85,10 @@ def decode(data, expect=None):
 
     Raises :class:`DecodeError` (a ValueError) naming the bad field.
     """
+    # The registry is read at call time: schemas.messages imports the Tick module, whose fast decoder falls back to
+    # this function, so neither module may need the other while it loads.
+    from schemas.messages import MESSAGES
+
     kind, body = unpack_envelope(data)
     cls = MESSAGES.get(kind)
     if cls is None:

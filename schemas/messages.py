@@ -1,48 +1,24 @@
 """Every wire message of a run: the tick protocol, faults, records (docs/services.md).
 
-Per-robot data travels as parallel arrays indexed by robot id (0..N−1), never as per-robot dicts: a Tick of 128
-robots stays a few kilobytes of msgpack. ``-1`` means "none" in id and cell arrays.
+The Tick, its fast codec and its observation live in :mod:`schemas.tick`; the shared field types in
+:mod:`schemas.fields`. Both are re-exported here for importers of the whole contract.
 """
 
 from __future__ import annotations
 
 from enum import Enum, IntEnum
-from typing import Annotated, ClassVar
+from typing import Annotated
 
 from pydantic import Field, JsonValue, field_validator, model_validator
 from pydantic_core import PydanticCustomError
 
 from schemas.base import Message
 from schemas.faults import FaultOp, FaultSpec
+from schemas.fields import (
+    Coord, Finite, Heading, MissionType, OptCoord, RobotId, Seq, SimTime, TickNo, length_mismatch,
+)
 from schemas.keys import check_chunk
-
-MAX_ROBOTS = 4096
-RobotId = Annotated[int, Field(ge=0, lt=MAX_ROBOTS)]
-OptRobotId = Annotated[int, Field(ge=-1, lt=MAX_ROBOTS)]  # -1 = none
-Coord = Annotated[int, Field(ge=0, lt=65536)]
-OptCoord = Annotated[int, Field(ge=-1, lt=65536)]  # -1 = no target
-TickNo = Annotated[int, Field(ge=0)]
-SimTime = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
-Seq = Annotated[int, Field(ge=0, lt=2**63)]
-Finite = Annotated[float, Field(allow_inf_nan=False)]
-
-
-class Heading(IntEnum):
-    """TA-RWARE's direction enum order."""
-
-    UP = 0
-    DOWN = 1
-    LEFT = 2
-    RIGHT = 3
-
-
-class MissionType(IntEnum):
-    """A robot's current mission kind (TA-RWARE heuristic vocabulary, 0 = none)."""
-
-    NONE = 0
-    PICKING = 1  # AGV: fetch the requested shelf at a rack cell; picker: help at that rack cell
-    DELIVERING = 2  # AGV: carry the shelf to a goal cell
-    RETURNING = 3  # AGV: put the shelf back on an empty rack cell
+from schemas.tick import Tick
 
 
 class Role(str, Enum):
@@ -55,125 +31,6 @@ class Phase(IntEnum):
 
     TICK = 0
     RESOLVE = 1
-
-
-def _mismatch(field: str, got: int, want: int) -> PydanticCustomError:
-    return PydanticCustomError(
-        "length_mismatch", "{field} has {got} entries, expected {want} (one per robot)",
-        {"field": field, "got": got, "want": want},
-    )
-
-
-def _out_of_range(field: str, value: int, n: int) -> PydanticCustomError:
-    return PydanticCustomError(
-        "robot_id_range", "{field} holds robot id {value}, but the tick has {n} robots",
-        {"field": field, "value": value, "n": n},
-    )
-
-
-# ------------------------------------------------------------------------------------------------------------------
-# Tick protocol (docs/services.md)
-# ------------------------------------------------------------------------------------------------------------------
-class Tick(Message):
-    """Phase 1 of tick ``t``: the world snapshot after step t−1, published by the sim on ``sim/tick``.
-
-    Everything an agent needs for its plasticity update of step t−1 and for dispatch at t comes from here.
-    """
-
-    KIND = "tick"
-
-    t: TickNo
-    sim_time: SimTime = Field(description="t·Δ, seconds of robot time")
-    grid_rows: Annotated[int, Field(ge=1, lt=65536)]
-    grid_cols: Annotated[int, Field(ge=1, lt=65536)]
-    # -- per robot (index = robot id; AGVs first, then pickers, as in TA-RWARE), state at the start of tick t ----
-    x: list[Coord]
-    y: list[Coord]
-    heading: list[Annotated[int, Field(ge=0, le=3)]] = Field(description="Heading: UP=0 DOWN=1 LEFT=2 RIGHT=3")
-    is_agv: list[bool]
-    busy: list[bool]
-    carrying: list[bool] = Field(description="AGV carries a shelf")
-    carrying_requested: list[bool] = Field(description="the carried shelf is in the request queue")
-    # missions of step t before dispatch
-    mission: list[Annotated[int, Field(ge=0, le=3)]] = Field(description="MissionType of the current mission")
-    target_x: list[OptCoord] = Field(description="target cell of the current mission, -1 = none")
-    target_y: list[OptCoord]
-    task: list[Annotated[int, Field(ge=0)]] = Field(
-        description="requested-shelf id the robot works on (1-based), 0 = none; a picker's is its AGV's")
-    needs_picker: list[bool] = Field(description="AGV whose mission needs a picker at its target and has none")
-    partner: list[OptRobotId] = Field(
-        description="AGV: picker committed to its target cell; picker: AGV it serves; -1 = none")
-    # -- fleet-level ---------------------------------------------------------------------------------------------
-    mission_order: list[RobotId] = Field(description="AGVs holding a mission, in the controller's mission order "
-                                                     "(requests are resolved in this order)")
-    free_pickers: list[RobotId] = Field(description="pickers with no assignment, ascending id")
-    request_queue: list[Annotated[int, Field(ge=0)]] = Field(description="requested shelf ids, queue order")
-    # -- what happened in step t−1 (the plasticity update of step t−1 reads only this block) ----------------------
-    has_previous: bool = Field(description="false at t = 0: the prev_* block describes no step")
-    prev_mission: list[Annotated[int, Field(ge=0, le=3)]]
-    prev_target_x: list[OptCoord] = Field(description="mission targets during step t−1 (co-assignment J^{t−1})")
-    prev_target_y: list[OptCoord]
-    prev_task: list[Annotated[int, Field(ge=0)]]
-    reward: list[Finite] = Field(description="each robot's individual reward in step t−1")
-    delivered_by: list[RobotId] = Field(description="AGVs that delivered in step t−1 (len = deliveries)")
-    loader: list[OptRobotId] = Field(description="for an AGV that delivered in step t−1: the picker that loaded "
-                                                 "the delivered shelf, else -1")
-    loads: list[tuple[RobotId, RobotId]] = Field(description="(AGV, picker) co-located at a load in step t−1")
-    unloads: list[tuple[RobotId, RobotId]] = Field(description="(AGV, picker) co-located at an unload in step t−1")
-    deliveries_total: Annotated[int, Field(ge=0, lt=2**63)] | None = Field(
-        default=None, description="cumulative deliveries up to step t−1 (a monitor that joins late continues the "
-                                  "cumulative count from it); None = not given")
-    handled: list[bool] = Field(description="robots that took part in a load or unload in step t−1")
-    final: bool = Field(default=False, description="the report after the last step: agents learn, nobody asks")
-    # synchronisation, not world state: an AGV takes its decision of step t once this many replies to it have arrived
-    # (delivered, held or lost by the network), so whether it heard an answer does not depend on wall-clock races
-    # between the pickers' path and the sim's (cumulative, so a Tick an AGV missed hides nothing)
-    replied: list[Annotated[int, Field(ge=0)]] = Field(
-        default_factory=list, description="per AGV: HelpReplies sent to it so far (cumulative; empty: none)")
-
-    PER_ROBOT: ClassVar[tuple[str, ...]] = (
-        "y", "heading", "is_agv", "busy", "carrying", "carrying_requested", "mission", "target_x", "target_y",
-        "task", "needs_picker", "partner", "prev_mission", "prev_target_x", "prev_target_y", "prev_task", "reward",
-        "loader", "handled",
-    )
-    ROBOT_IDS: ClassVar[tuple[str, ...]] = ("mission_order", "free_pickers", "delivered_by", "partner", "loader")
-
-    @property
-    def n(self) -> int:
-        return len(self.x)
-
-    @property
-    def n_agvs(self) -> int:
-        return sum(self.is_agv)
-
-    @property
-    def deliveries(self) -> int:
-        return len(self.delivered_by)
-
-    @model_validator(mode="after")
-    def _shape(self) -> Tick:
-        d = self.__dict__  # plain attribute reads: this runs for every tick in every agent
-        n = len(d["x"])
-        if any(len(d[name]) != n for name in self.PER_ROBOT):
-            name = next(name for name in self.PER_ROBOT if len(d[name]) != n)
-            raise _mismatch(name, len(d[name]), n)
-        for name in self.ROBOT_IDS:
-            top = max(d[name], default=-1)
-            if top >= n:
-                raise _out_of_range(name, top, n)
-        for name in ("loads", "unloads"):
-            top = max((max(pair) for pair in d[name]), default=-1)
-            if top >= n:
-                raise _out_of_range(name, top, n)
-        cols, rows = d["grid_cols"], d["grid_rows"]
-        for name, limit in (("x", cols), ("target_x", cols), ("prev_target_x", cols),
-                            ("y", rows), ("target_y", rows), ("prev_target_y", rows)):
-            top = max(d[name], default=-1)
-            if top >= limit:
-                raise PydanticCustomError(
-                    "off_grid", "{field} holds {value}, outside the {limit}-cell grid dimension",
-                    {"field": name, "value": top, "limit": limit})
-        return self
 
 
 class Ack(Message):
@@ -305,10 +162,10 @@ class AgentState(Message):
         for name in ("a_row", "theta_row", "age_row"):
             got = len(getattr(self, name))
             if got != n:
-                raise _mismatch(name, got, n)
+                raise length_mismatch(name, got, n)
         for key, row in self.rows.items():
             if len(row) != n:
-                raise _mismatch(f"rows.{key}", len(row), n)
+                raise length_mismatch(f"rows.{key}", len(row), n)
         return self
 
 

@@ -7,7 +7,8 @@ with the rotation-aware A*): Full-Graph per-seed deliveries for seeds 42, 7, 123
 import numpy as np
 import pytest
 
-from services.agent.observation import NEEDS_PICKER, NO_CELL, MissionType
+from schemas.fields import MissionType
+from schemas.tick import NEEDS_PICKER, NO_CELL
 from services.sim.world.cta import CTAController, resolve_requests
 from services.sim.world.warehouse import Warehouse, WarehouseConfig
 

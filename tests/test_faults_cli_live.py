@@ -20,8 +20,8 @@ import subprocess
 import sys
 import time
 
-from schemas.hot import decode_tick
 from schemas.keys import RunKeys
+from schemas.tick import decode_tick
 from services.bus.zenoh_bus import endpoint, free_port
 from services.monitor.recorder import read_metrics
 from services.monitor.report import load

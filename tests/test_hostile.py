@@ -22,13 +22,13 @@ from pathlib import Path
 import pytest
 
 from schemas import Ack, Commit, Event, FaultCommand, HelpReply, Stop, encode
-from schemas.hot import encode_tick_body
 from schemas.keys import RunKeys
+from schemas.tick import encode_tick_body, tick_fields
 from services.bus.base import pack_header
 from services.bus.zenoh_bus import endpoint, free_port, zenoh_config
 from services.monitor.recorder import read_metrics
 from services.runconfig import RunConfig
-from services.sim.service import make_controller, tick_fields, world_fields
+from services.sim.service import make_controller, world_fields
 from services.supervisor.local import run_local
 
 import zenoh  # noqa: E402  (after zenoh_bus set the runtime environment)

@@ -1,4 +1,4 @@
-"""The hot path's cheap codec (schemas/hot.py, codec.encode_fields) agrees with the pydantic models exactly.
+"""The hot path's cheap codec (schemas/tick.py, codec.encode_fields) agrees with the pydantic models exactly.
 
 Every tick of a short run, and a list of malformed variants of one tick, are decoded both ways: either both accept with
 the same arrays, or both raise a DecodeError naming the same field.
@@ -15,9 +15,11 @@ import pytest
 
 from schemas import Ack, Commit, DecodeError, HelpReply, HelpRequest, Phase, Tick, decode
 from schemas.codec import encode_fields
-from schemas.hot import FLAG_ROWS, INT_ROWS, TickArrays, arrays_from_tick, decode_tick, encode_tick_body
-from services.sim.service import (make_controller, observation_from_arrays, observation_from_tick, tick_fields,
-                                          tick_from_observation, world_fields)
+from schemas.tick import (
+    FLAG_ROWS, INT_ROWS, TickArrays, arrays_from_tick, decode_tick, encode_tick_body, observation_from_arrays,
+    observation_from_tick, tick_fields, tick_from_observation,
+)
+from services.sim.service import make_controller, world_fields
 from services.runconfig import RunConfig
 
 
@@ -167,3 +169,32 @@ def test_malformed_ticks_are_rejected_naming_the_same_field_as_the_model():
 ])
 def test_encode_fields_decodes_to_the_model(cls, fields):
     assert decode(encode_fields(cls, **fields), cls) == cls(**fields)
+
+
+def test_rows_by_name_match_the_tick_fields():
+    """Every named row and cell block of the decoded arrays is the Tick field of that name."""
+    for _obs, fields in _ticks(6):
+        arrays = decode_tick(encode_tick_body(fields))
+        for name in INT_ROWS + FLAG_ROWS:
+            assert arrays.row(name).tolist() == fields[name], name
+        for x, y in (("x", "y"), ("target_x", "target_y"), ("prev_target_x", "prev_target_y")):
+            assert arrays.cells(x, y).tolist() == [list(c) for c in zip(fields[x], fields[y])]
+            assert arrays.cells(x, y).base is not None  # a view of the block, not a copy
+    with pytest.raises(KeyError):
+        arrays.cells("x", "target_y")
+
+
+def test_sim_and_agent_services_do_not_import_each_other():
+    """The tick's shared pieces live in schemas.tick: neither service package reaches into the other's modules
+    (the agent may use the sim's registration helpers only through its command, never its service)."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "services"
+    for own, other in (("sim", "services.agent"), ("agent", "services.sim.service"), ("agent", "services.sim.world")):
+        for path in (root / own).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                if isinstance(node, ast.ImportFrom) and node.module:
+                    assert not node.module.startswith(other), f"{path}: imports {node.module}"
+                elif isinstance(node, ast.Import):
+                    assert not any(a.name.startswith(other) for a in node.names), f"{path}: imports {other}"

@@ -16,7 +16,8 @@ from morph_sim.lab.runner import EpisodeSpec, run_episode
 from services.monitor.catalogue import COLUMNS
 from services.monitor.recorder import read_metrics, read_snapshots
 from services.runconfig import RunConfig, add_config_arguments, config_from_args
-from services.sim.service import make_controller, observation_from_tick, tick_from_observation, world_fields
+from schemas.tick import observation_from_tick, tick_from_observation
+from services.sim.service import make_controller, world_fields
 from services.supervisor.graph import PROGRAM, process_graph
 from services.supervisor.local import run_local
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from schemas.faults import FaultSpec
 from schemas.keys import RunKeys, matches
-from services.agent.observation import TickObservation
+from schemas.tick import TickObservation
 from services.faults.layer import FaultLayer
 from services.protocol.dispatch import (
     EPS,

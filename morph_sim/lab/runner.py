@@ -27,7 +27,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from schemas.faults import FaultSpec
-from services.agent.observation import TickObservation
+from schemas.tick import TickObservation
 from services.agent.policies import (
     Coordinator,
     CoordinationPolicy,

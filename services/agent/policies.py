@@ -23,7 +23,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from services.agent.observation import NEEDS_PICKER, TickObservation
+from schemas.tick import NEEDS_PICKER, TickObservation
 from services.agent.plasticity import PaperInputs, PaperState, ReferenceState
 from services.agent.presets import ABLATIONS, MorphParams, load_preset
 

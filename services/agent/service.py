@@ -26,15 +26,13 @@ import numpy as np
 
 from schemas import Ack, AgentState, Commit, Event, HelpReply, HelpRequest, Phase, Refusal, Resolve, Stop, Tick
 from schemas.codec import encode_fields, unpack_envelope
-from schemas.hot import decode_tick
 from schemas.keys import RunKeys
+from schemas.tick import TickObservation, decode_tick, observation_from_arrays
 from services.agent.policies import Fleet, MorphBrains
 from services.bus.base import Bus, Sample
 from services.protocol import dispatch as protocol
 from services.rejects import Rejects
 from services.runconfig import RunConfig
-from services.agent.observation import TickObservation
-from services.sim.service import observation_from_arrays
 from services.tickorder import TickOrder
 
 log = logging.getLogger("morph_sim.agent")
@@ -294,7 +292,7 @@ class AgentService:
         try:
             if sample.sender != "sim":
                 raise ValueError(f"tick published by {sample.sender!r}, not the sim")
-            tick = decode_tick(sample.payload)  # validated, straight into arrays (schemas/hot.py)
+            tick = decode_tick(sample.payload)  # validated, straight into arrays (schemas/tick.py)
             if tick.n != self.config.n_agents:
                 raise ValueError(f"tick has {tick.n} robots, this fleet {self.config.n_agents}")
             obs = observation_from_arrays(tick, self.config.steps)

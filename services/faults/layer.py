@@ -348,7 +348,7 @@ class FaultLayer:
     def _observe_tick(self, sample: Sample) -> None:
         """Feed the robots' cells of a Tick of the sim to the network model (every process sees every Tick
         physically, whatever its fate, so every process's model follows the same trajectories)."""
-        from schemas.hot import decode_tick
+        from schemas.tick import decode_tick
 
         assert self.network is not None and self.vtime is not None
         try:

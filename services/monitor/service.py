@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from schemas import Ack, AgentState, Commit, Event, MetricSample, Phase, Stop
-from schemas.hot import TickArrays, decode_tick
 from schemas.keys import RunKeys, intersects
+from schemas.tick import TickArrays, decode_tick
 from services.bus.base import Bus, Query, Sample
 from services.monitor import catalogue
 from services.monitor import metrics as M
@@ -241,7 +241,7 @@ class MonitorService:
             if head == "sim" and rel[1:] == ["tick"]:
                 if sample.sender != "sim":
                     raise ValueError(f"tick published by {sample.sender!r}, not the sim")
-                self._on_tick(decode_tick(sample.payload))  # validated, as arrays (schemas/hot.py)
+                self._on_tick(decode_tick(sample.payload))  # validated, as arrays (schemas/tick.py)
             elif head == "agent" and len(rel) == 3:
                 if rel[2] == "ack":
                     self._on_ack(sample.decode(Ack), rel[1])

@@ -32,10 +32,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from schemas import Ack, Commit, Event, Phase, Refusal, Resolve, Stop, Tick
-from schemas.hot import TickArrays, arrays_from_tick, encode_tick_body
+from schemas import Ack, Commit, Event, Phase, Refusal, Resolve, Stop
 from schemas.keys import RunKeys
-from services.agent.observation import TickObservation
+from schemas.tick import TickObservation, encode_tick_body, tick_fields
 from services.bus.base import Bus, LivelinessEvent, Sample
 from services.protocol import dispatch as protocol
 from services.rejects import Rejects
@@ -58,61 +57,6 @@ MONITOR = "monitor"
 # this bound a monitor slower than the run builds an unbounded backlog (memory, a record that ends long after the
 # run, live streams that lag by minutes). Larger than PROGRESS_EVERY plus the rows a monitor may hold back.
 MONITOR_WINDOW = 200
-
-
-def tick_from_observation(obs: TickObservation, sim_time: float, extra: dict | None = None) -> Tick:
-    """The wire form of an observation (every field an agent's policy reads)."""
-    return Tick(**tick_fields(obs, sim_time, extra))
-
-
-def tick_fields(obs: TickObservation, sim_time: float, extra: dict | None = None) -> dict:
-    """The Tick's field map as plain Python values. The sim encodes it directly (:func:`encode_tick_body`): the
-    model's validation of the sim's own arrays is the tests' job, not every tick's."""
-    cells = obs.cells
-    return dict(
-        t=int(obs.t), sim_time=float(sim_time),
-        grid_rows=int(obs.grid_shape[0]), grid_cols=int(obs.grid_shape[1]),
-        x=cells[:, 0].tolist(), y=cells[:, 1].tolist(),
-        is_agv=[True] * obs.n_agvs + [False] * obs.n_pickers,
-        mission=obs.mission.tolist(), target_x=obs.target[:, 0].tolist(), target_y=obs.target[:, 1].tolist(),
-        task=obs.task.tolist(), needs_picker=obs.needs_picker.tolist(),
-        mission_order=obs.request_order.tolist(),
-        free_pickers=np.flatnonzero(obs.free_picker).tolist(),
-        has_previous=bool(obs.has_previous),
-        prev_mission=obs.prev_mission.tolist(), prev_target_x=obs.prev_target[:, 0].tolist(),
-        prev_target_y=obs.prev_target[:, 1].tolist(), prev_task=obs.prev_task.tolist(),
-        delivered_by=np.flatnonzero(obs.delivered).tolist(),
-        reward=np.asarray(obs.reward, dtype=float).tolist(), loader=obs.loader.tolist(),
-        handled=np.asarray(obs.handled, dtype=bool).tolist(), final=bool(obs.final),
-        **(extra or {}),
-    )
-
-
-def observation_from_tick(tick: Tick, steps: int | None = None) -> TickObservation:
-    """The policy's observation rebuilt from a Tick message alone (inverse of :func:`tick_from_observation`)."""
-    return observation_from_arrays(arrays_from_tick(tick), steps)
-
-
-def observation_from_arrays(tick: TickArrays, steps: int | None = None) -> TickObservation:
-    """The observation of a decoded tick (:func:`schemas.hot.decode_tick`): views of its two blocks.
-
-    Each agent does this every tick, so it is a handful of slices; the blocks are the agent's own (fresh per tick).
-    """
-    ints, flags = tick.ints, tick.flags
-    n = ints.shape[1]
-    n_agvs = int(np.count_nonzero(flags[0]))
-    free = np.zeros(n, dtype=bool)
-    free[tick.free_pickers] = True
-    delivered = np.zeros(n, dtype=bool)
-    delivered[tick.delivered_by] = True
-    return TickObservation(
-        t=tick.t, n_agvs=n_agvs, n_pickers=n - n_agvs, grid_shape=(tick.grid_rows, tick.grid_cols),
-        cells=ints[0:2].T, mission=ints[6].astype(np.int8), target=ints[2:4].T, task=ints[8],
-        needs_picker=flags[1], free_picker=free, request_order=np.array(tick.mission_order, dtype=np.int64),
-        has_previous=tick.has_previous, prev_mission=ints[7].astype(np.int8), prev_target=ints[4:6].T,
-        prev_task=ints[9], delivered=delivered, reward=tick.reward, loader=ints[10], handled=flags[5],
-        final=tick.final or (steps is not None and tick.t >= steps),
-    )
 
 
 def world_fields(ctl: CTAController, obs: TickObservation) -> dict:

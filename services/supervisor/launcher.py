@@ -364,7 +364,7 @@ class Supervisor:
 
     async def _watch(self, bus) -> int:
         from schemas import MetricSample, Stop
-        from schemas.hot import decode_tick
+        from schemas.tick import decode_tick
         from schemas.keys import RunKeys
 
         keys = RunKeys(self.config.run_id)

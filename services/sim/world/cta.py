@@ -21,7 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.agent.observation import NEEDS_PICKER, NO_CELL, MissionType, TickObservation
+from schemas.fields import MissionType
+from schemas.tick import NEEDS_PICKER, NO_CELL, TickObservation
 from services.sim.world.warehouse import StepResult, Warehouse
 
 PICKING, DELIVERING, RETURNING = MissionType.PICKING, MissionType.DELIVERING, MissionType.RETURNING
