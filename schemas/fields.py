@@ -6,7 +6,7 @@ Per-robot data travels as parallel arrays indexed by robot id (0..N−1); ``-1``
 from __future__ import annotations
 
 from enum import IntEnum
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import Field
 from pydantic_core import PydanticCustomError
@@ -20,6 +20,13 @@ TickNo = Annotated[int, Field(ge=0)]
 SimTime = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
 Seq = Annotated[int, Field(ge=0, lt=2**63)]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
+
+#: What became of the dispatch protocol's messages, counted at the robots and the sim, by name on the wire (the
+#: counters of ``services.protocol.dispatch.Outcomes``, which checks it has exactly these fields)
+DISPATCH_OUTCOMES = ("requests", "declined", "expired", "commitment_expired", "on_time", "late_applied",
+                     "refused_stale", "duplicates")
+#: cumulative counts of one endpoint (a robot, or the sim); a counter left out is zero
+OutcomeCounts = dict[Literal[DISPATCH_OUTCOMES], Annotated[int, Field(ge=0, lt=2**63)]]
 
 
 class Heading(IntEnum):

@@ -15,7 +15,7 @@ from pydantic_core import PydanticCustomError
 from schemas.base import Message
 from schemas.faults import FaultOp, FaultSpec
 from schemas.fields import (
-    Coord, Finite, Heading, MissionType, OptCoord, RobotId, Seq, SimTime, TickNo, length_mismatch,
+    Coord, Finite, Heading, MissionType, OptCoord, OutcomeCounts, RobotId, Seq, SimTime, TickNo, length_mismatch,
 )
 from schemas.keys import check_chunk
 from schemas.tick import Tick
@@ -48,6 +48,11 @@ class Ack(Message):
     links: list[RobotId] | None = Field(
         default=None, description="out-links after the plasticity update of step t−1 (robot ids j with A[i,j]=1)")
     eta: Finite | None = Field(default=None, description="the agent's η after that update")
+    # Phase TICK, telemetry for the record (acks are never faulted, so the counts are exact): what became of this
+    # robot's dispatch messages up to the previous step boundary (requests, expiries, declines, duplicates)
+    outcomes: OutcomeCounts | None = Field(
+        default=None, description="this robot's cumulative dispatch outcome counters as they stood at the start of "
+                                  "tick t (before its decision of step t); a counter left out is zero")
     # Phase RESOLVE only (synchronisation, never faulted): what the sim must wait for before the step boundary
     committed_to: RobotId | None = Field(
         default=None, description="RESOLVE: the AGV this picker sent a Commit for (the sim waits for it to arrive)")

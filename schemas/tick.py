@@ -60,8 +60,8 @@ from pydantic_core import PydanticCustomError
 from schemas.base import DecodeError, Message
 from schemas.codec import KIND_FIELD, VERSION_FIELD, decode, unpack_envelope
 from schemas.fields import (
-    MAX_ROBOTS, Coord, Finite, MissionType, OptCoord, OptRobotId, RobotId, SimTime, TickNo, length_mismatch,
-    robot_id_out_of_range,
+    DISPATCH_OUTCOMES, MAX_ROBOTS, Coord, Finite, MissionType, OptCoord, OptRobotId, OutcomeCounts, RobotId, SimTime,
+    TickNo, length_mismatch, robot_id_out_of_range,
 )
 
 
@@ -124,6 +124,10 @@ class Tick(Message):
     # between the pickers' path and the sim's (cumulative, so a Tick an AGV missed hides nothing)
     replied: list[Annotated[int, Field(ge=0)]] = Field(
         default_factory=list, description="per AGV: HelpReplies sent to it so far (cumulative; empty: none)")
+    # telemetry for the record (the monitor's ticks are never faulted): the sim's side of the dispatch protocol
+    outcomes: OutcomeCounts | None = Field(
+        default=None, description="the sim's cumulative dispatch outcome counters (commitments applied on time or "
+                                  "late, refused as stale, duplicates) after the step boundary t·Δ; None = not given")
 
     PER_ROBOT: ClassVar[tuple[str, ...]] = (
         "y", "heading", "is_agv", "busy", "carrying", "carrying_requested", "mission", "target_x", "target_y",
@@ -191,6 +195,7 @@ _CELL_ROW = {pair: INT_ROW[pair[0]] for pair in _PAIRS}
 _COORD, _TASK = 65536, 2**63
 _FIELDS = frozenset(Tick.model_fields)
 _REQUIRED = frozenset(name for name, f in Tick.model_fields.items() if f.is_required())
+_OUTCOMES = frozenset(DISPATCH_OUTCOMES)
 
 
 @dataclass(slots=True, eq=False)
@@ -214,6 +219,7 @@ class TickArrays:
     final: bool
     replied: list[int] = field(default_factory=list)
     deliveries_total: int | None = None
+    outcomes: dict[str, int] | None = None
 
     @property
     def n(self) -> int:
@@ -271,6 +277,10 @@ def _cheap(body: dict[str, Any]) -> TickArrays | None:
     total = body.get("deliveries_total")
     if not (total is None or (type(total) is int and 0 <= total < _TASK)):
         return None
+    outcomes = body.get("outcomes")
+    if not (outcomes is None or (type(outcomes) is dict and outcomes.keys() <= _OUTCOMES
+                                 and _exact_ints(list(outcomes.values()), 0, _TASK))):
+        return None
     if not (type(t) is int and t >= 0 and type(sim_time) is float and math.isfinite(sim_time) and sim_time >= 0.0
             and type(rows) is int and 1 <= rows < _COORD and type(cols) is int and 1 <= cols < _COORD
             and type(has_previous) is bool and type(final) is bool):
@@ -305,7 +315,7 @@ def _cheap(body: dict[str, Any]) -> TickArrays | None:
     pairs = [[(a, b) for a, b in loads], [(a, b) for a, b in unloads]]
     split = len(INT_ROWS)
     return TickArrays(t, sim_time, rows, cols, block[:split], block[split:] != 0, reward, *lists,
-                      body["request_queue"], *pairs, has_previous, final, replied, total)
+                      body["request_queue"], *pairs, has_previous, final, replied, total, outcomes)
 
 
 def arrays_from_tick(tick: Tick) -> TickArrays:
@@ -325,7 +335,7 @@ def arrays_from_tick(tick: Tick) -> TickArrays:
         np.array(tick.reward, dtype=float), list(tick.mission_order), list(tick.free_pickers),
         list(tick.delivered_by), list(tick.request_queue), [tuple(p) for p in tick.loads],
         [tuple(p) for p in tick.unloads], bool(tick.has_previous), bool(tick.final), list(tick.replied),
-        tick.deliveries_total)
+        tick.deliveries_total, None if tick.outcomes is None else dict(tick.outcomes))
 
 
 def decode_tick(data: bytes | bytearray | memoryview) -> TickArrays:

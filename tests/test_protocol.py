@@ -95,7 +95,9 @@ def test_stale_commitment_is_refused_counted_and_both_sides_learn_it():
     assert done == [] and refusals == [Refusal(5, 0, 3.0, commit.seq)] and out.refused_stale == 1
     agv.receive(refusals[0], out)
     picker.receive(refusals[0], 3.0, out)
-    assert agv.outstanding is None and picker.pending is None
+    assert agv.outstanding is None and picker.pending is not None  # the picker hears it at its decision point
+    picker.check_pending(3.5, False, out)
+    assert picker.pending is None and out.commitment_expired == 0
     # the world's own check (picker no longer free) refuses too
     desk.receive(Commitment(5, 0, (1, 1), 3.5, 2), 3.5, out)
     done, refusals = desk.settle(4.0, {0: 0}, {0: (1, 1)}, lambda pairs: [], out)

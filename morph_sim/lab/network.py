@@ -90,7 +90,7 @@ class EventNetwork:
         self.now = 0.0
         self.layer: FaultLayer | None = None
         if faults:
-            self.layer = FaultLayer(run, base_seed=seed, clock=lambda: self.now)
+            self.layer = FaultLayer(run, base_seed=seed, clock=lambda: self.now, per_key=True)
             for spec in faults:
                 self.layer.set(spec, at=0.0)
         self.faults = tuple(faults)

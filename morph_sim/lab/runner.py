@@ -278,6 +278,8 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
             "eta", "h_mean", "formed", "pruned",
         )
     }
+    if driver is not None:  # the dispatch outcomes by the end of each step, as the monitor's rows have them
+        cols.update((name, np.zeros(T)) for name in catalogue.outcome_values({}))
     dist_sum = np.zeros((n, n))
     committed = 0
 
@@ -348,6 +350,9 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
         cols["dispatched"][t] = stats.dispatched  # gate successes (requests sent)
         cols["committed"][t] = committed  # pickers actually sent
         cols["gate_p_sum"][t] = stats.p_sum  # Σ P(respond) over the gate decisions so far
+        if driver is not None:
+            for name, v in catalogue.outcome_values(driver.outcomes.as_dict()).items():
+                cols[name][t] = v
     final = cta.final_observation()
     if not brains.memoryless:
         if driver is not None:

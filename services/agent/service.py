@@ -342,6 +342,14 @@ class AgentService:
         """This robot's decision point of step t (an AGV's gate and request), then its ack."""
         asked: list[int] = []
         now = tick.t * self.config.dt  # this robot's decision point of step t
+        with self._lock:
+            if not self.is_agv and tick.t > 0:
+                # the decision point of step t−1 (again, if requests were decided there: idempotent): a commitment in
+                # flight ends there (refused, took effect, expired) with what the picker knew then, requests or not
+                self.endpoint.check_pending((tick.t - 1) * self.config.dt + self.config.dt / 2, self._assigned,
+                                            self.outcomes)
+            # what became of this robot's dispatch messages by this boundary, for the record (on the ack)
+            counts = self.outcomes.counts()
         if not self.is_agv:
             with self._lock:
                 self._rank = {int(a): i for i, a in enumerate(obs.request_order)}
@@ -366,7 +374,7 @@ class AgentService:
         publish_state = tick.t % self.config.state_every == 0 or final
         # encoded from plain values (no model round trip: the hot path, codec.encode_fields)
         ack = encode_fields(Ack, t=tick.t, agent=self.id, phase=int(Phase.TICK), requests_sent=asked,
-                            seq=self._next_seq(), links=self.brains.out_links(self.id), eta=eta)
+                            seq=self._next_seq(), links=self.brains.out_links(self.id), eta=eta, outcomes=counts)
         if final:
             # Before the ack, on the same link: the last state must reach the monitor before the run ends.
             self.bus.put(self.keys.agent_state(self.id), self.state_message(tick.t))

@@ -4,7 +4,8 @@ The monitor's per-tick rows (``metrics.csv`` columns), its metric streams ``metr
 wire), the Prometheus exporter, the README's table of streams and the lab's W-block summaries all read this module;
 nothing else lists metric names. Each entry says where its value comes from:
 
-* ``row`` — the monitor's per-tick row, from the sim's ticks and the agents' acks, commits and state rows;
+* ``row`` — the monitor's per-tick row, from the sim's ticks and the agents' acks, commits and state rows (the
+  dispatch outcomes: the sim's counters on its ticks plus each robot's on its acks);
 * ``messages`` — the monitor's statistics of the messages themselves (counts, sequence gaps, latency, dispatch);
 * ``link`` — the per key class link statistics (``services.faults.linkstats``), every ``--state-every`` ticks;
 * ``network`` — the network model's counters, under a network profile (``--network``).
@@ -12,6 +13,7 @@ nothing else lists metric names. Each entry says where its value comes from:
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from schemas import MetricSample
@@ -26,6 +28,17 @@ LINK_COUNTERS = {
     "late": "messages delivered after their phase deadline",
 }
 LINK_LATENCIES = ("mean", "p50", "p90", "p99", "max")
+#: what became of the dispatch protocol's messages (services.protocol.dispatch.Outcomes), cumulative up to the end of
+#: step t: the sim's counters (on its ticks) plus the robots' (on their acks, which are never faulted)
+DISPATCH_OUTCOMES = {
+    "on_time": "commitments applied at the boundary of the step they were sent in",
+    "late_applied": "commitments applied at a later step boundary (late, not lost)",
+    "expired": "help requests unanswered within the AGV's request timeout",
+    "commitment_expired": "picker commitments neither applied nor refused within the timeout",
+    "refused_stale": "commitments no longer valid when they reached the sim (refused, both sides told)",
+    "duplicates": "copies of a request or commitment already seen (counted once)",
+    "declined": "help requests a picker answered with no",
+}
 
 
 @dataclass(frozen=True)
@@ -53,6 +66,8 @@ CATALOGUE: tuple[Metric, ...] = (
     Metric("w_agv_agv", "1", "mean W between AGVs (every --state-every ticks)", "row", "morph_w_agv_agv"),
     Metric("w_agv_picker", "1", "mean W between AGVs and pickers", "row", "morph_w_agv_picker"),
     Metric("w_picker_picker", "1", "mean W between pickers", "row", "morph_w_picker_picker"),
+    *(Metric(f"dispatch_{name}", "messages", f"cumulative {what}", "row", f"morph_dispatch_{name}", "counter")
+      for name, what in DISPATCH_OUTCOMES.items()),
     Metric("delivery_rate", "deliveries/s", f"deliveries per sim second over the last {RATE_WINDOW} steps",
            "messages", "morph_delivery_rate_per_second"),
     Metric("agents_alive", "agents", "agents heard from (acked) in tick t; labels: the missing ids", "messages",
@@ -105,6 +120,11 @@ def w_block_values(blocks) -> dict[str, float | None]:
     if blocks is None:
         return dict.fromkeys(W_BLOCKS)
     return {"w_agv_agv": blocks.agv_agv, "w_agv_picker": blocks.agv_picker, "w_picker_picker": blocks.picker_picker}
+
+
+def outcome_values(counts: Mapping[str, int]) -> dict[str, int]:
+    """The dispatch outcome columns of a row from the protocol's counters (``Outcomes.as_dict()``)."""
+    return {f"dispatch_{name}": int(counts.get(name, 0)) for name in DISPATCH_OUTCOMES}
 
 
 def markdown_table() -> str:

@@ -73,6 +73,9 @@ class Row:
     ackers: set[int] = field(default_factory=set)
     links: dict[int, list[int]] = field(default_factory=dict)
     etas: list[float] = field(default_factory=list)
+    # dispatch outcomes by the end of step t: each robot's counts (its ack of t+1), the sim's (its tick t+1)
+    outcomes: dict[int, dict[str, int]] = field(default_factory=dict)
+    sim_outcomes: dict[str, int] | None = None
 
 
 @dataclass
@@ -156,6 +159,10 @@ class MonitorService:
             self.network = NetworkModel(load_profile(config.network), layout_for(LayoutConfig.named(config.scale)),
                                         seed=config.seed)
         self._links_due = False
+        from services.protocol.dispatch import OutcomeTally
+
+        self.outcomes = OutcomeTally()  # the robots' dispatch outcome counts, taken in row order
+        self._sim_outcomes: dict[str, int] = {}
 
     def _reject(self, what: str, why: object) -> None:
         self._rejects.count(what, why)
@@ -283,6 +290,7 @@ class MonitorService:
             prev = self._row(tick.t - 1)
             if prev is not None:
                 prev.deliveries = tick.deliveries
+                prev.sim_outcomes = tick.outcomes
         if tick.t < self.config.steps:
             row = self._row(tick.t)
             if row is not None:
@@ -335,6 +343,11 @@ class MonitorService:
                 row.requests += len(ack.requests_sent)
                 if ack.requests_sent:
                     self.stats.requested(ack.t, ack.agent)
+        if ack.outcomes is not None and 0 < ack.t <= self.config.steps:
+            # counts as they stood at the start of tick t: the end of step t−1
+            row = self._row(ack.t - 1)
+            if row is not None:
+                row.outcomes.setdefault(ack.agent, ack.outcomes)
         self._links_from(ack.t, ack.agent, ack.links or [], ack.eta)
 
     def _links_from(self, t: int, agent: int, links: list[int], eta: float | None) -> None:
@@ -417,7 +430,7 @@ class MonitorService:
 
     # -- rows ------------------------------------------------------------------------------------------------------------
     def _row_complete(self, row: Row) -> bool:
-        return len(row.ackers) >= self.n and len(row.links) >= self.n
+        return len(row.ackers) >= self.n and len(row.links) >= self.n and len(row.outcomes) >= self.n
 
     def _finalize(self, upto: int, grace: int = 0) -> None:
         while self._next_row <= upto:
@@ -449,6 +462,7 @@ class MonitorService:
             "requests": row.requests, "commits": row.commits, "links": link_count,
             "lambda2": lambda2, "eta": float(np.mean(row.etas)) if row.etas else None,
             "acks": len(row.ackers), **catalogue.w_block_values(block),
+            **self._outcome_values(row),
         }
         self.result.deliveries_total = self._total
         self._last_values = values
@@ -461,6 +475,15 @@ class MonitorService:
         self._queue_metrics(values)
         if (row.t + 1) % PROGRESS_EVERY == 0:
             self._progress(row.t + 1)
+
+    def _outcome_values(self, row: Row) -> dict[str, int]:
+        """The dispatch outcome columns of ``row``: a robot or sim whose report of this row is missing (absent, or
+        joined late) counts with its latest report."""
+        for agent, counts in row.outcomes.items():
+            self.outcomes.report(agent, row.t, counts)
+        if row.sim_outcomes is not None:
+            self._sim_outcomes = row.sim_outcomes
+        return catalogue.outcome_values(self.outcomes.total(self._sim_outcomes))
 
     def _progress(self, rows: int) -> None:
         """Tell the sim that rows ``< rows`` are written (never dropped: the sim may be waiting for it)."""

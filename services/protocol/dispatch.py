@@ -28,6 +28,8 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, fields
 
+from schemas.fields import DISPATCH_OUTCOMES
+
 # Timestamps are sums of floats (t·Δ + Δ/2 + L): compare them with a tolerance, so that a message due exactly at a
 # decision point is delivered by it.
 EPS = 1e-9
@@ -109,6 +111,42 @@ class Outcomes:
 
     def as_dict(self) -> dict[str, int]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def counts(self) -> dict[str, int]:
+        """The nonzero counters (the wire form, schemas.fields.OutcomeCounts: a counter left out is zero)."""
+        return {f.name: v for f in fields(self) if (v := getattr(self, f.name))}
+
+
+if tuple(f.name for f in fields(Outcomes)) != DISPATCH_OUTCOMES:  # the wire names the same counters
+    raise ImportError("Outcomes and schemas.fields.DISPATCH_OUTCOMES must list the same counters in the same order")
+
+
+class OutcomeTally:
+    """A run's outcome counters summed over endpoints that each report their own cumulative counts (the robots, on
+    their acks). Each endpoint's latest report counts once; a report below the previous one comes from an endpoint
+    that restarted from zero, and what it had counted before is kept."""
+
+    def __init__(self) -> None:
+        self._latest: dict[object, dict[str, int]] = {}
+        self._tick: dict[object, int] = {}
+        self._sum = dict.fromkeys(DISPATCH_OUTCOMES, 0)
+
+    def report(self, who, t: int, counts: Mapping[str, int]) -> None:
+        """``who``'s counts as of its report at tick ``t``; an older report than one already taken is ignored."""
+        if t <= self._tick.get(who, -1):
+            return
+        self._tick[who] = t
+        prev = self._latest.get(who, {})
+        restarted = any(counts.get(name, 0) < v for name, v in prev.items())
+        for name, v in counts.items():
+            self._sum[name] += v if restarted else v - prev.get(name, 0)
+        self._latest[who] = dict(counts)
+
+    def total(self, plus: Mapping[str, int] | None = None) -> dict[str, int]:
+        """Every counter (zeros included), with ``plus`` (another endpoint's counts, e.g. the sim's) added."""
+        if not plus:
+            return dict(self._sum)
+        return {name: v + plus.get(name, 0) for name, v in self._sum.items()}
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -198,6 +236,7 @@ class PickerEndpoint:
         self._next_seq = next_seq
         self.inbox: list[tuple[float, Request]] = []  # (delivery time, request)
         self.pending: Commitment | None = None
+        self.refusals: list[tuple[float, Refusal]] = []  # (delivery time, refusal) not yet taken into account
         self._seen: set[tuple[int, int]] = set()  # (agv, seq) of every request delivered
         self._seq = 0
 
@@ -210,8 +249,22 @@ class PickerEndpoint:
             self._seen.add(key)
             self.inbox.append((due, msg))
         elif isinstance(msg, Refusal):
-            if self.pending is not None and self.pending.seq == msg.commit_seq:
+            self.refusals.append((due, msg))  # takes effect at the first decision point after it was delivered
+
+    def check_pending(self, now: float, assigned: bool, outcomes: Outcomes) -> None:
+        """At the picker's decision point ``now``: a commitment in flight ends when its refusal was delivered by
+        then, when the on-board state says the picker has a mission (it took effect), or expires unanswered after
+        ``timeout``. Called at every decision point of a picker with a commitment in flight, whether or not
+        requests wait (idempotent at one ``now``)."""
+        if self.refusals:
+            due = [r for d, r in self.refusals if d <= now + EPS]
+            self.refusals = [(d, r) for d, r in self.refusals if d > now + EPS]
+            if self.pending is not None and any(r.commit_seq == self.pending.seq for r in due):
                 self.pending = None
+        if self.pending is not None and (assigned or now - self.pending.sent_at >= self.timeout - EPS):
+            if not assigned:
+                outcomes.commitment_expired += 1
+            self.pending = None
 
     def decide(self, now: float, assigned: bool, rank: Mapping[int, int],
                outcomes: Outcomes) -> tuple[Commitment | None, list[Reply]]:
@@ -220,10 +273,7 @@ class PickerEndpoint:
         ``assigned``: the picker's on-board state says it has a mission (then its commitment, if any, took effect).
         ``rank``: the fleet's mission order as the picker last saw it (AGV → position), the tie-break between
         requests delivered at the same time. Requests delivered after ``now`` wait for the next decision point."""
-        if self.pending is not None and (assigned or now - self.pending.sent_at >= self.timeout - EPS):
-            if not assigned:
-                outcomes.commitment_expired += 1
-            self.pending = None
+        self.check_pending(now, assigned, outcomes)
         if not self.inbox:
             return None, []
         ready = [(due, req) for due, req in self.inbox if due <= now + EPS]

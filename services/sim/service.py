@@ -136,7 +136,7 @@ class SimResult:
     absences: int = 0
     wall_seconds: float = 0.0
     stopped_early: str | None = None
-    protocol: dict[str, int] = field(default_factory=dict)  # the dispatch protocol's outcome counters (sim side)
+    protocol: dict[str, int] = field(default_factory=dict)  # the dispatch protocol's outcome counters (sim + robots)
     network_stops: int = 0  # robot-steps a network profile's silence stop held a robot in place
     # wall seconds spent per part of the tick (where a distributed tick's time goes)
     phase_seconds: dict[str, float] = field(default_factory=lambda: {
@@ -217,6 +217,7 @@ class SimService:
         # the dispatch protocol's sim side (services/protocol): commitments delivered and not yet applied
         self.outcomes = protocol.Outcomes()
         self.desk = protocol.CommitmentDesk(config.dt)
+        self.robot_outcomes = protocol.OutcomeTally()  # the robots' own counts, as their acks report them
         self._desk_lock = threading.Lock()
         self._more: set[int] = set()  # pickers that asked for the next decision point (requests still to come)
         self._replied = [0] * config.n_agvs  # replies sent to each AGV so far (each Tick tells the AGVs)
@@ -358,6 +359,9 @@ class SimService:
         msg = self._decode_own(sample, Ack, "agent", "ack of agent")
         if msg is None:
             return
+        if msg.outcomes is not None and msg.phase == Phase.TICK:
+            with self._desk_lock:
+                self.robot_outcomes.report(msg.agent, msg.t, msg.outcomes)
         ph = self._phase
         if ph is None or msg.t != ph.t or msg.phase != ph.phase:
             return  # an ack of another phase: synchronisation only, nothing to do
@@ -449,10 +453,11 @@ class SimService:
             except (asyncio.CancelledError, Exception):
                 pass
         r = self.result
-        r.protocol = self.outcomes.as_dict()
+        with self._desk_lock:  # the run's outcomes: the sim's own and the robots' (their acks of the final tick)
+            r.protocol = self.robot_outcomes.total(self.outcomes.as_dict())
         await self._event("run.finished", steps=r.steps, deliveries=r.deliveries,
                           stopped_early=r.stopped_early, rejected=r.rejected, absences=r.absences,
-                          protocol=self.outcomes.as_dict(),
+                          protocol=r.protocol,
                           **({"network_stops": r.network_stops} if self.config.network is not None else {}),
                           wall_seconds=round(r.wall_seconds, 3),
                           phase_seconds={k: round(v, 3) for k, v in r.phase_seconds.items()})
@@ -479,7 +484,8 @@ class SimService:
         """The encoded Tick of ``obs``: observation and world, stamped with its sim time, and the replies sent to each
         AGV so far (synchronisation for the AGVs)."""
         return encode_tick_body(tick_fields(obs, obs.t * self.config.dt,
-                                            {**world_fields(self.ctl, obs), "replied": list(self._replied)}))
+                                            {**world_fields(self.ctl, obs), "replied": list(self._replied),
+                                             "outcomes": self.outcomes.counts()}))
 
     async def _event(self, kind: str, **details) -> None:
         t = self.ctl.t
