@@ -34,7 +34,7 @@ KINDS: dict[str, tuple[str, ...]] = {
     ),
     "services": (
         "test_bus_zenoh", "test_faults_control", "test_faults_crash", "test_faults_lockstep", "test_faults_restore",
-        "test_faults_services", "test_metric_streams", "test_monitoring", "test_prometheus", "test_record_replay",
+        "test_faults_services", "test_dispatch_outcomes", "test_metric_streams", "test_monitoring", "test_prometheus", "test_record_replay",
         "test_registry", "test_services_local", "test_zenoh_acl",
     ),
     "e2e": (
@@ -42,7 +42,7 @@ KINDS: dict[str, tuple[str, ...]] = {
         "test_dockerfile", "test_equivalence", "test_experiment_flags", "test_faults_at_tick", "test_faults_cli_live",
         "test_faults_distributed", "test_faults_up", "test_fuzz_services", "test_hostile", "test_network_services",
         "test_readme_example", "test_report", "test_secure_defaults", "test_sweep", "test_up", "test_warehouse_cli", "test_watch",
-        "test_live_streams", "test_long_run", "test_no_run", "test_restore_lockstep", "test_start_lines", "test_up_exit",
+        "test_live_streams", "test_long_run", "test_no_run", "test_outcome_streams", "test_realtime_fleet", "test_restore_lockstep", "test_start_lines", "test_up_exit",
     ),
 }
 KIND_OF = {name: kind for kind, names in KINDS.items() for name in names}

@@ -307,7 +307,9 @@ class AgentService:
         if not final or not self.brains.memoryless:
             # the final tick only reports the last step: a memoryless brain has nothing to learn from it
             self.brains.learn(obs)
-        if self.is_agv and not final:
+        if self.is_agv and not final and self.config.mode == "lockstep":
+            # (paced: a real-time robot acts on what it has when the Tick comes; an answer still on its way is
+            # taken into account when it arrives)
             announced = tick.replied[self.id] if self.id < len(tick.replied) else 0
             with self._lock:
                 if self.endpoint.outstanding is not None and self._replies_owed(announced) > 0:

@@ -515,10 +515,9 @@ class MonitorService:
             self.latest_links = self.link_meter.metrics(t, sim_time, self.bus.identity)
             self._links_due = True
         now = time.monotonic()
-        due = self.max_rate > 0 and now - self._last_publish >= 1.0 / self.max_rate
-        if due or self.max_rate <= 0:
-            self._build_samples(values)
+        due = self.max_rate <= 0 or now - self._last_publish >= 1.0 / self.max_rate  # 0: every row
         if due:
+            self._build_samples(values)
             self._last_publish = now
             self.bus._spawn(self._publish_pending(), "metrics")
 
@@ -533,6 +532,9 @@ class MonitorService:
         if self._links_due:
             samples += self.latest_links
             self._links_due = False
+        if self.max_rate <= 0:  # every row's samples, in order
+            self._pending_publish += samples
+            return
         # per stream the newest sample since the last publication: a sparse stream (dispatch_delay) is not lost
         pending = {s.name: s for s in self._pending_publish}
         pending.update((s.name, s) for s in samples)
@@ -545,7 +547,7 @@ class MonitorService:
         while True:
             await asyncio.sleep(HEARTBEAT)
             now = time.monotonic()
-            if self.max_rate <= 0 or self._done or now - self._last_publish < HEARTBEAT:
+            if self._done or now - self._last_publish < HEARTBEAT:
                 continue
             if self._unbuilt:
                 self._build_samples(self._last_values)  # rows noted since the last publication

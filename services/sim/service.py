@@ -127,6 +127,36 @@ def make_controller(config: RunConfig) -> FleetController:
 
 
 @dataclass
+class Pace:
+    """When the ticks of a paced run started (wall clock): what the fleet saw of its real-time period."""
+
+    period: float = 0.0
+    ticks: int = 0
+    interval_max: float = 0.0  # wall seconds between two tick starts, at most
+    interval_sum: float = 0.0
+    late: int = 0  # intervals longer than 1.5 periods
+    rescheduled: int = 0  # times the sim was more than a period behind and started again from the present
+    worst: list[tuple[int, float]] = field(default_factory=list)  # the 5 longest intervals: (tick, seconds)
+    _last: float | None = None
+
+    def started(self, t: int, now: float) -> None:
+        if self._last is not None:
+            gap = now - self._last
+            self.interval_sum += gap
+            self.interval_max = max(self.interval_max, gap)
+            self.late += gap > 1.5 * self.period
+            self.worst = sorted([*self.worst, (t, gap)], key=lambda w: -w[1])[:5]
+        self._last = now
+        self.ticks += 1
+
+    def summary(self) -> dict:
+        n = max(1, self.ticks - 1)
+        return {"period": self.period, "ticks": self.ticks, "interval_mean": round(self.interval_sum / n, 4),
+                "interval_max": round(self.interval_max, 4), "late": self.late, "rescheduled": self.rescheduled,
+                "worst": [[t, round(g, 4)] for t, g in self.worst]}
+
+
+@dataclass
 class SimResult:
     steps: int = 0
     deliveries: int = 0
@@ -138,6 +168,7 @@ class SimResult:
     stopped_early: str | None = None
     protocol: dict[str, int] = field(default_factory=dict)  # the dispatch protocol's outcome counters (sim + robots)
     network_stops: int = 0  # robot-steps a network profile's silence stop held a robot in place
+    pace: Pace = field(default_factory=Pace)  # paced mode: the tick starts' intervals
     # wall seconds spent per part of the tick (where a distributed tick's time goes)
     phase_seconds: dict[str, float] = field(default_factory=lambda: {
         "controller": 0.0, "tick_phase": 0.0, "resolve_phase": 0.0, "step": 0.0})
@@ -205,6 +236,7 @@ class SimService:
         self.on_tick = on_tick
         self.ctl = make_controller(config)
         self.result = SimResult()
+        self.result.pace.period = config.period
         self.alive: set[int | str] = set()  # liveliness tokens visible
         self.ready: set[int | str] = set()  # answered a probe since their token appeared
         self._ready_changed = asyncio.Event()
@@ -218,6 +250,7 @@ class SimService:
         self.outcomes = protocol.Outcomes()
         self.desk = protocol.CommitmentDesk(config.dt)
         self.robot_outcomes = protocol.OutcomeTally()  # the robots' own counts, as their acks report them
+        self._reported_outcomes: dict[str, int] = {}  # the sim's counts on its latest tick
         self._desk_lock = threading.Lock()
         self._more: set[int] = set()  # pickers that asked for the next decision point (requests still to come)
         self._replied = [0] * config.n_agvs  # replies sent to each AGV so far (each Tick tells the AGVs)
@@ -453,12 +486,14 @@ class SimService:
             except (asyncio.CancelledError, Exception):
                 pass
         r = self.result
-        with self._desk_lock:  # the run's outcomes: the sim's own and the robots' (their acks of the final tick)
-            r.protocol = self.robot_outcomes.total(self.outcomes.as_dict())
+        with self._desk_lock:  # the run's outcomes by the end of its last step: the sim's own, as its final tick
+            # reported them, and the robots' (their acks of the final tick): the record's last row
+            r.protocol = self.robot_outcomes.total(self._reported_outcomes)
         await self._event("run.finished", steps=r.steps, deliveries=r.deliveries,
                           stopped_early=r.stopped_early, rejected=r.rejected, absences=r.absences,
                           protocol=r.protocol,
                           **({"network_stops": r.network_stops} if self.config.network is not None else {}),
+                          **({"pace": r.pace.summary()} if self.config.mode == "paced" else {}),
                           wall_seconds=round(r.wall_seconds, 3),
                           phase_seconds={k: round(v, 3) for k, v in r.phase_seconds.items()})
         await bus.publish(k.stop, Stop(reason="finished" if r.stopped_early is None else r.stopped_early))
@@ -483,9 +518,10 @@ class SimService:
     def _wire_tick(self, obs: TickObservation) -> bytes:
         """The encoded Tick of ``obs``: observation and world, stamped with its sim time, and the replies sent to each
         AGV so far (synchronisation for the AGVs)."""
+        self._reported_outcomes = self.outcomes.counts()
         return encode_tick_body(tick_fields(obs, obs.t * self.config.dt,
                                             {**world_fields(self.ctl, obs), "replied": list(self._replied),
-                                             "outcomes": self.outcomes.counts()}))
+                                             "outcomes": self._reported_outcomes}))
 
     async def _event(self, kind: str, **details) -> None:
         t = self.ctl.t
@@ -595,7 +631,13 @@ class SimService:
                         continue
                     except asyncio.TimeoutError:
                         pass
+                elif delay < -cfg.period:
+                    # more than a period behind (the machine stalled): this tick starts now and the schedule starts
+                    # again from here; a real-time fleet does not run the missed ticks back to back
+                    next_start = time.monotonic()
+                    self.result.pace.rescheduled += 1
                 next_start += cfg.period
+                self.result.pace.started(self.result.steps, time.monotonic())
             if cfg.mode == "lockstep" and self.wait_for_monitor:
                 await self._keep_monitor_window(self.result.steps)
             started = time.monotonic()

@@ -1,0 +1,88 @@
+"""The dispatch outcome streams of a live ``morph-sim up`` under 2.5 ticks of dispatch latency, as a user's Zenoh client
+receives them: tick after tick, each value the record's, the last ones the run's totals (``run.finished``)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+from morph_sim.lab.network import dispatch_faults
+from services.monitor import catalogue
+from services.monitor.recorder import read_metrics
+
+from test_dispatch_outcomes import BURSTY, LATE, OUTCOME_COLUMNS, _finished, schedule_toml
+
+# A default-settings Zenoh client with the run's operator credentials (the README's subscriber): every sample of the
+# dispatch outcome streams, and the end of the run.
+SUBSCRIBER = r'''
+import json, sys, time, msgpack, zenoh
+port, run, credentials, duration = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4])
+while True:  # `up` writes the operator's credentials before it starts the sim
+    try:
+        conf = zenoh.Config.from_file(credentials)
+        break
+    except Exception:
+        time.sleep(0.1)
+conf.insert_json5("mode", '"client"'); conf.insert_json5("connect/endpoints", '["tcp/127.0.0.1:%s"]' % port)
+got, end = {}, {}
+def on_metric(s):
+    m = msgpack.unpackb(s.payload.to_bytes())
+    if m["name"].startswith("dispatch_") and m["name"] != "dispatch_delay":
+        got.setdefault(m["name"], []).append([m["t"], m["value"], m["unit"]])
+def on_event(s):
+    if b"run.finished" in s.payload.to_bytes():
+        end["at"] = time.monotonic()
+while True:  # and opens its endpoint
+    try:
+        session = zenoh.open(conf)
+        break
+    except Exception:
+        time.sleep(0.1)
+with session:
+    session.declare_subscriber(f"morph/{run}/metrics/**", on_metric)
+    session.declare_subscriber(f"morph/{run}/events/*", on_event)
+    print("subscribed", flush=True)
+    deadline = time.monotonic() + duration
+    while time.monotonic() < deadline and "at" not in end:
+        time.sleep(0.05)
+    time.sleep(1.5)  # the monitor's last publications follow the sim's end
+print(json.dumps(got))
+'''
+
+
+def test_a_live_up_streams_every_outcome_every_tick_and_ends_on_the_record(tmp_path, live_run):
+    """``morph-sim up`` with 2.5 ticks of dispatch latency (and loss): a user's Zenoh client receives the outcome
+    streams tick after tick, each value the record's for that tick, the last ones the run's totals."""
+    steps = 300
+    (tmp_path / "faults.toml").write_text(schedule_toml((*dispatch_faults(LATE), *dispatch_faults(BURSTY))))
+    up = live_run("live-oc", "--policy", "full", "--seed", "5", "--steps", str(steps), "--max-rate", "0",
+                  "--phase-timeout", "20", "--fault-schedule", str(tmp_path / "faults.toml"))
+    env = {k: v for k, v in os.environ.items() if not k.startswith("ZENOH_")}
+    sub = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, str(up.port), "live-oc",
+                            str(up.record / "credentials" / "operator.json5"), "120"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        assert up.wait(timeout=150) == 0, up.stderr()[-3000:]
+        out, err = sub.communicate(timeout=30)
+    finally:
+        if sub.poll() is None:
+            sub.kill()
+            sub.communicate()
+    assert sub.returncode == 0, err[-2000:]
+    got = json.loads(out.splitlines()[-1])
+    rows = read_metrics(up.record)
+    finished = _finished(up.record)["protocol"]
+    assert len(rows) == steps
+    assert sorted(got) == sorted(OUTCOME_COLUMNS)
+    for name in OUTCOME_COLUMNS:
+        samples = got[name]
+        # continuity: one sample per row as the monitor writes it (--max-rate 0), tick after tick
+        ticks = [t for t, _, _ in samples]
+        assert ticks == sorted(ticks) and len(set(ticks)) >= 0.9 * steps, (name, len(set(ticks)))
+        assert {u for _, _, u in samples} == {"messages"}
+        # each value is the record's for that tick; the last is the run's total
+        assert all(v == int(rows[t][name]) for t, v, _ in samples), name
+        assert ticks[-1] == steps - 1 and samples[-1][1] == catalogue.outcome_values(finished)[name]
+    assert finished["late_applied"] > 0 and finished["on_time"] == 0 and finished["expired"] > 0
