@@ -1,11 +1,20 @@
-"""``morph-sim bench distributed``: the CPU-per-tick accounting (no timing is asserted)."""
+"""``morph-sim bench distributed``: the CPU-per-tick accounting, and before/after against another checkout (no timing
+is asserted)."""
 
 from __future__ import annotations
 
+import json
 import os
+import subprocess
+import sys
+from pathlib import Path
 from types import SimpleNamespace
 
-from morph_sim.bench.distributed import CpuMeter
+import pytest
+
+from morph_sim.bench.distributed import CpuMeter, code_cwd, code_env, code_of
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _meter() -> CpuMeter:
@@ -42,3 +51,36 @@ def test_samples_read_the_live_processes():
                           "agent-0": SimpleNamespace(pid=None, alive=lambda: False)}
     sample = meter._sample()
     assert set(sample) == {f"sim:{os.getpid()}", f"supervisor:{os.getpid()}"} and all(v > 0 for v in sample.values())
+
+
+def _copy_of_head(tmp_path: Path) -> Path:
+    """This repository's committed code, as another checkout would hold it."""
+    copy = tmp_path / "before"
+    copy.mkdir()
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", "HEAD"], capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(copy)], input=archive, check=True)
+    return copy
+
+
+def test_a_measurement_of_another_checkout_runs_that_checkout_s_code(tmp_path):
+    copy = _copy_of_head(tmp_path)
+    assert code_of(code_env(copy.resolve()), code_cwd(copy.resolve())) == copy.resolve()
+    assert code_of(code_env(None), code_cwd(None)) == ROOT
+    bad = subprocess.run([sys.executable, "-m", "morph_sim.cli", "bench", "distributed", "--against", str(tmp_path)],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and bad.stderr.strip().endswith(
+        f"--against: {tmp_path.resolve()} is not a morph-sim checkout (no morph_sim/ and services/ there)")
+
+
+@pytest.mark.slow
+def test_before_after_measures_both_checkouts_in_one_invocation(tmp_path):
+    copy = _copy_of_head(tmp_path)
+    done = subprocess.run([sys.executable, "-m", "morph_sim.cli", "bench", "distributed", "--against", str(copy),
+                           "--scale", "tiny", "--steps", "80", "--barrier-ticks", "200", "--json"],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    assert out["runs"]["before"][0]["code"] == str(copy.resolve()) and out["runs"]["after"][0]["code"] == str(ROOT)
+    for label in ("before", "after"):
+        assert out["summary"][label]["ticks_per_s"] > 0 and out["summary"][label]["cpu_ms_per_tick"] > 0
+    assert out["summary"]["after_over_before"]["ticks_per_s"] > 0

@@ -43,6 +43,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=42)
     parser.add_argument("--output-dir", default=None, help="keep the run record here (default: a temporary dir)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--code", default=None, metavar="DIR",
+                        help="measure the code of this git checkout (its working tree) instead of the installed one")
+    parser.add_argument("--against", default=None, metavar="DIR",
+                        help="before/after: measure the code of this git checkout and the installed one "
+                             "alternately, --rounds times each, and print both with their ratio")
+    parser.add_argument("--rounds", type=int, default=1, help="with --against: measurements of each (default 1)")
 
 
 CPU_SAMPLE_S = 0.05  # seconds between CPU samples of the run's processes
@@ -148,7 +154,143 @@ def distributed_rate(config) -> dict:
             "total_wall_s": time.monotonic() - started, "cpu_ms_per_tick": meter.per_tick_ms()}
 
 
+def checkout(path: str, flag: str) -> Path:
+    """A git checkout of morph-sim to measure (ValueError naming ``flag`` if it is not one)."""
+    root = Path(path).expanduser().resolve()
+    if not (root / "morph_sim" / "__init__.py").is_file() or not (root / "services").is_dir():
+        raise ValueError(f"{flag}: {root} is not a morph-sim checkout (no morph_sim/ and services/ there)")
+    return root
+
+
+def revision(root: Path) -> str:
+    """The checkout's git revision, ``+dirty`` with uncommitted changes."""
+    import subprocess
+
+    try:
+        rev = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                             timeout=10, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return rev + ("+dirty" if dirty else "")
+
+
+def code_env(root: Path | None) -> dict[str, str]:
+    """The environment of a measurement of checkout ``root`` (None: the installed code): the checkout first on the
+    import path, which every process of the run inherits."""
+    env = dict(os.environ)
+    if root is not None:
+        env["PYTHONPATH"] = os.pathsep.join([str(root), *filter(None, [env.get("PYTHONPATH")])])
+    return env
+
+
+def code_cwd(root: Path | None) -> str:
+    """The working directory of a measurement: the checkout itself, or (installed code) one holding no code, since
+    ``python -m``/``-c`` put the working directory first on the import path."""
+    return str(root) if root is not None else tempfile.gettempdir()
+
+
+def code_of(env: dict[str, str], cwd: str) -> Path | None:
+    """The checkout whose ``morph_sim`` and ``services`` a process started with ``env`` in ``cwd`` imports."""
+    import subprocess
+    import sys
+
+    where = subprocess.run(
+        [sys.executable, "-c", "import morph_sim, services; print(morph_sim.__file__); print(services.__file__)"],
+        capture_output=True, text=True, env=env, cwd=cwd, timeout=60)
+    if where.returncode != 0:
+        return None
+    roots = {Path(line).resolve().parents[1] for line in where.stdout.split()}
+    return roots.pop() if len(roots) == 1 else None
+
+
+def measure_code(args: argparse.Namespace, root: Path | None) -> dict:
+    """One measurement in a fresh process: the code of checkout ``root`` (first on the import path of the bench and
+    of every process of its run), or the installed code (None). Checks which code ran."""
+    import subprocess
+    import sys
+
+    env, cwd = code_env(root), code_cwd(root)
+    code = code_of(env, cwd)
+    if root is not None and code != root:
+        raise RuntimeError(f"code: the measurement would import {code}, not {root}")
+    argv = [sys.executable, "-m", "morph_sim.cli", "bench", "distributed", "--json", "--scale", args.scale,
+            "--policy", args.policy, "--preset", args.preset, "--steps", str(args.steps),
+            "--barrier-ticks", str(args.barrier_ticks), "--seed", str(args.seed),
+            *(["--agvs", str(args.agvs)] if args.agvs is not None else []),
+            *(["--pickers", str(args.pickers)] if args.pickers is not None else [])]
+    done = subprocess.run(argv, capture_output=True, text=True, env=env, cwd=cwd, timeout=3600)
+    lines = done.stdout.strip().splitlines()
+    if done.returncode != 0 or not lines:
+        raise RuntimeError(f"the bench of {code} ended with status {done.returncode}: {done.stderr[-2000:]}")
+    result = json.loads(lines[-1])
+    result["code"] = str(code)
+    result["revision"] = revision(code) if code is not None else "unknown"
+    return result
+
+
+def _line(label: str, r: dict) -> str:
+    cpu = r.get("cpu_ms_per_tick", {}).get("total")
+    return (f"{label} {r['revision']}: {r['distributed_ticks_per_s']:.0f} ticks/s, "
+            + (f"{cpu:.1f} ms CPU per tick, " if cpu is not None else "")
+            + f"{r['ratio']:.0%} of the raw barrier ({r['barrier_ticks_per_s']:.0f} ticks/s), load {r['loadavg']}")
+
+
+def before_after(args: argparse.Namespace) -> int:
+    """``--against DIR``: the checkout (before) and the installed code (after), alternately, same flags."""
+    import statistics
+
+    before_root = checkout(args.against, "--against")
+    runs: dict[str, list[dict]] = {"before": [], "after": []}
+    for i in range(args.rounds):
+        for label, root in (("before", before_root), ("after", None)):
+            r = measure_code(args, root)
+            runs[label].append(r)
+            if not args.json:
+                print(f"round {i + 1}/{args.rounds} " + _line(label, r), flush=True)
+
+    def median(label: str, key: str) -> float | None:
+        values = [r[key] if key != "cpu" else r.get("cpu_ms_per_tick", {}).get("total") for r in runs[label]]
+        values = [v for v in values if v is not None]
+        return statistics.median(values) if values else None
+
+    summary = {label: {"revision": runs[label][0]["revision"], "ticks_per_s": median(label, "distributed_ticks_per_s"),
+                       "cpu_ms_per_tick": median(label, "cpu"), "ratio_to_barrier": median(label, "ratio")}
+               for label in runs}
+    b, a = summary["before"], summary["after"]
+    summary["after_over_before"] = {
+        "ticks_per_s": a["ticks_per_s"] / b["ticks_per_s"] if b["ticks_per_s"] else None,
+        "cpu_ms_per_tick": (a["cpu_ms_per_tick"] / b["cpu_ms_per_tick"]
+                            if a["cpu_ms_per_tick"] and b["cpu_ms_per_tick"] else None)}
+    if args.json:
+        print(json.dumps({"summary": summary, "runs": runs}))
+        return 0
+    print(f"medians over {args.rounds} round(s), {args.scale} {args.policy}:")
+    for label in ("before", "after"):
+        m = summary[label]
+        print(f"  {label} {m['revision']}: {m['ticks_per_s']:.0f} ticks/s, "
+              + (f"{m['cpu_ms_per_tick']:.1f} ms CPU per tick, " if m["cpu_ms_per_tick"] else "")
+              + f"{m['ratio_to_barrier']:.0%} of the raw barrier")
+    ratio = summary["after_over_before"]
+    print(f"  after / before: {ratio['ticks_per_s']:.2f}× ticks/s"
+          + (f", {ratio['cpu_ms_per_tick']:.2f}× CPU per tick" if ratio["cpu_ms_per_tick"] else ""))
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.rounds < 1:
+        raise ValueError(f"--rounds: {args.rounds} must be at least 1")
+    if args.against is not None:
+        return before_after(args)
+    if args.code is not None:
+        r = measure_code(args, checkout(args.code, "--code"))
+        print(json.dumps(r) if args.json else _line("code", r))
+        return 0
+    return measure(args)
+
+
+def measure(args: argparse.Namespace) -> int:
     from services.bus.barrier_bench import run_barrier
     from services.runconfig import RunConfig
 
