@@ -30,14 +30,14 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
+from services.monitor import catalogue
 from services.runconfig import RunConfig
 
 DATA_HINT = "pip install 'morph-sim[data]'"
 
 #: the documented columns of each table (docs/notebook-example.md); ``episodes`` and ``ticks`` depend on the record
 RUN_TABLES: dict[str, tuple[str, ...]] = {
-    "metrics": ("t", "sim_time", "deliveries", "deliveries_total", "requests", "commits", "links", "lambda2", "eta",
-                "acks", "w_agv_agv", "w_agv_picker", "w_picker_picker"),
+    "metrics": catalogue.COLUMNS,
     "events": ("t", "sim_time", "kind", "source", "details", "wall_time"),
     "links": ("t", "i", "j"),
     "positions": ("t", "agent", "x", "y", "heading", "carrying"),

@@ -11,6 +11,8 @@ import asyncio
 import time
 from dataclasses import dataclass, field
 
+from services.monitor.catalogue import DISPATCH_OUTCOMES
+
 NAME = "watch"
 HELP = "live terminal view of an ongoing run: progress, deliveries, links, agents, counters"
 SPARK = "▁▂▃▄▅▆▇█"
@@ -106,6 +108,9 @@ class WatchState:
         for kind, count in sorted((msgs.labels if msgs else {}).items()):
             counters.add_row(f"  {kind}", count)
         counters.add_row("drops", self.value("drops_total"))
+        counters.add_row("dispatch", "")  # what became of the protocol's messages (services/monitor/catalogue.py)
+        for name in DISPATCH_OUTCOMES:
+            counters.add_row(f"  {name.replace('_', ' ')}", self.value(f"dispatch_{name}"))
         for kind, count in sorted(self.faults.items()):
             counters.add_row(kind, str(count))
         agents = Table(title="agents", show_header=True)
