@@ -83,3 +83,29 @@ def test_zero_faults_every_commitment_is_on_time_and_nothing_expires(tmp_path):
     assert on_time == sorted(on_time) and on_time[-1] == run.sim.commits_applied > 0
     for name in ("late_applied", "expired", "commitment_expired", "refused_stale", "duplicates"):
         assert rows[-1][f"dispatch_{name}"] == "0", name
+
+
+def test_forged_or_corrupt_outcome_counts_are_refused_naming_the_field():
+    from schemas import Ack
+    from schemas.base import DecodeError
+    from schemas.codec import decode, encode_fields
+    from schemas.tick import decode_tick, encode_tick_body, tick_fields
+    from services.sim.service import make_controller, world_fields
+
+    ctl = make_controller(RunConfig(run_id="x", scale="tiny", steps=5))
+    obs = ctl.begin_tick()
+    for bad, field in (({"bogus": 1}, "outcomes.bogus"), ({"expired": -1}, "outcomes.expired"),
+                       ({"expired": 1.5}, "outcomes.expired"), ([1, 2], "outcomes")):
+        body = tick_fields(obs, 0.0, {**world_fields(ctl, obs), "outcomes": bad})
+        try:
+            decode_tick(encode_tick_body(body))
+            raise AssertionError(f"tick with outcomes {bad!r} accepted")
+        except DecodeError as exc:
+            assert f"field '{field}" in str(exc), str(exc)
+        try:
+            decode(encode_fields(Ack, t=1, agent=0, phase=0, outcomes=bad), Ack)
+            raise AssertionError(f"ack with outcomes {bad!r} accepted")
+        except DecodeError as exc:
+            assert f"field '{field}" in str(exc), str(exc)
+    good = tick_fields(obs, 0.0, {**world_fields(ctl, obs), "outcomes": {"late_applied": 3}})
+    assert decode_tick(encode_tick_body(good)).outcomes == {"late_applied": 3}

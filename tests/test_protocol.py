@@ -210,3 +210,17 @@ def test_agent_whose_fleet_broadcast_is_lost_for_k_ticks_learns_from_a_view_k_ti
     # it learnt nothing new while the broadcast was lost, and resumed from the fresh view
     assert start - 1 in learnt and not set(range(start, start + k)) & set(learnt) and start + k in learnt
     assert driver.view_age_max[start + k - 1] == k * DT
+
+
+def test_outcome_tally_sums_each_endpoint_once_and_keeps_what_a_restarted_one_counted():
+    from services.protocol.dispatch import OutcomeTally
+
+    tally = OutcomeTally()
+    tally.report(0, 3, {"requests": 4, "expired": 1})
+    tally.report(5, 4, {"declined": 2})
+    tally.report(0, 4, {"requests": 5, "expired": 1})  # cumulative: counts once
+    tally.report(0, 2, {"requests": 1})  # an older report arriving late changes nothing
+    assert tally.total() == {**Outcomes().as_dict(), "requests": 5, "expired": 1, "declined": 2}
+    tally.report(0, 9, {"requests": 2})  # AGV 0 restarted from zero: its earlier counts stay
+    assert tally.total({"on_time": 3})["requests"] == 7 and tally.total({"on_time": 3})["on_time"] == 3
+    assert Outcomes(expired=2).counts() == {"expired": 2}

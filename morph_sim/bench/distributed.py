@@ -172,7 +172,7 @@ def revision(root: Path) -> str:
         dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
                                capture_output=True, text=True, timeout=10).stdout.strip()
     except (OSError, subprocess.SubprocessError):
-        return "unknown"
+        return "(no git revision)"
     return rev + ("+dirty" if dirty else "")
 
 
@@ -226,7 +226,7 @@ def measure_code(args: argparse.Namespace, root: Path | None) -> dict:
         raise RuntimeError(f"the bench of {code} ended with status {done.returncode}: {done.stderr[-2000:]}")
     result = json.loads(lines[-1])
     result["code"] = str(code)
-    result["revision"] = revision(code) if code is not None else "unknown"
+    result["revision"] = revision(code) if code is not None else "(no git revision)"
     return result
 
 
