@@ -69,6 +69,13 @@ async def test_scrape_during_and_after_a_run(tmp_path):
     assert _value(text, "morph_dispatch_delay_seconds_count") > 0
     assert _value(text, "morph_messages_total", 'kind="ack",run="prom"') >= config.n_agents * config.steps
     assert _value(text, "morph_dropped_messages_total", 'reason="sequence_gap",run="prom"') == 0
+    # the dispatch outcomes: counters that end on the run's totals (the record's last row)
+    outcomes = sim.result().protocol
+    assert outcomes["on_time"] > 0
+    for name in ("on_time", "late_applied", "expired", "commitment_expired", "refused_stale", "duplicates", "declined"):
+        assert f"# TYPE morph_dispatch_{name}_total counter" in text
+        assert _value(text, f"morph_dispatch_{name}_total") == outcomes[name] == monitor.result.rows[-1][
+            f"dispatch_{name}"], name
 
 
 def test_the_monitor_command_has_the_flag_and_its_variable():
