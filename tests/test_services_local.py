@@ -185,6 +185,27 @@ async def test_paced_agvs_act_on_what_they_have_while_answers_are_on_their_way(t
     assert len(missing) <= 2, missing  # (a loaded machine may miss the 45 ms ack deadline once or twice)
 
 
+async def test_a_paced_sim_that_stalled_starts_its_schedule_again_instead_of_running_missed_ticks(tmp_path):
+    """A stall of ten periods (the machine froze) costs the fleet that time once: the next ticks keep the period,
+    no burst of missed ticks back to back, and ``run.finished`` says so (``pace``)."""
+    import time
+
+    period = 0.05
+
+    def stall(t: int, _deliveries: int) -> None:
+        if t == 10:
+            time.sleep(10 * period)
+
+    config = cfg(tmp_path, policy="full", steps=30, mode="paced", period=period)
+    run = await run_local(config, record=False, progress=stall)
+    pace = run.sim.pace.summary()
+    assert run.sim.steps == 30 and pace["rescheduled"] == 1, pace
+    assert pace["worst"][0][0] == 11 and pace["worst"][0][1] >= 10 * period
+    # every other interval is about a period: none shorter than half of one (a catch-up burst would be)
+    assert pace["interval_min"] > period / 2 and pace["late"] <= 3, pace
+    assert run.monitor.finished["pace"] == pace
+
+
 # -- configuration -------------------------------------------------------------------------------------------------
 def test_runconfig_env_flags_and_argv_agree():
     c = RunConfig(run_id="r1", scale="small", policy="proximity", radius=3, seed=5, steps=77, mode="paced")

@@ -133,6 +133,7 @@ class Pace:
     period: float = 0.0
     ticks: int = 0
     interval_max: float = 0.0  # wall seconds between two tick starts, at most
+    interval_min: float = float("inf")  # ... and at least
     interval_sum: float = 0.0
     late: int = 0  # intervals longer than 1.5 periods
     rescheduled: int = 0  # times the sim was more than a period behind and started again from the present
@@ -144,6 +145,7 @@ class Pace:
             gap = now - self._last
             self.interval_sum += gap
             self.interval_max = max(self.interval_max, gap)
+            self.interval_min = min(self.interval_min, gap)
             self.late += gap > 1.5 * self.period
             self.worst = sorted([*self.worst, (t, gap)], key=lambda w: -w[1])[:5]
         self._last = now
@@ -152,6 +154,7 @@ class Pace:
     def summary(self) -> dict:
         n = max(1, self.ticks - 1)
         return {"period": self.period, "ticks": self.ticks, "interval_mean": round(self.interval_sum / n, 4),
+                "interval_min": round(self.interval_min, 4) if self.ticks > 1 else None,
                 "interval_max": round(self.interval_max, 4), "late": self.late, "rescheduled": self.rescheduled,
                 "worst": [[t, round(g, 4)] for t, g in self.worst]}
 
