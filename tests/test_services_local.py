@@ -186,7 +186,7 @@ async def test_paced_agvs_act_on_what_they_have_while_answers_are_on_their_way(t
 
 
 async def test_a_paced_sim_that_stalled_starts_its_schedule_again_instead_of_running_missed_ticks(tmp_path):
-    """A stall of ten periods (the machine froze) costs the fleet that time once: the next ticks keep the period,
+    """A stall of twenty periods (the machine froze) costs the fleet that time once: the next ticks keep the period,
     no burst of missed ticks back to back, and ``run.finished`` says so (``pace``)."""
     import time
 
@@ -194,15 +194,16 @@ async def test_a_paced_sim_that_stalled_starts_its_schedule_again_instead_of_run
 
     def stall(t: int, _deliveries: int) -> None:
         if t == 10:
-            time.sleep(10 * period)
+            time.sleep(20 * period)
 
     config = cfg(tmp_path, policy="full", steps=30, mode="paced", period=period)
     run = await run_local(config, record=False, progress=stall)
     pace = run.sim.pace.summary()
     assert run.sim.steps == 30 and pace["rescheduled"] == 1, pace
-    assert pace["worst"][0][0] == 11 and pace["worst"][0][1] >= 10 * period
-    # every other interval is about a period: none shorter than half of one (a catch-up burst would be)
-    assert pace["interval_min"] > period / 2 and pace["late"] <= 3, pace
+    assert pace["worst"][0][0] == 11 and pace["worst"][0][1] >= 20 * period
+    # every other interval is about a period (a tick after one that overran on a loaded machine starts early): the
+    # 20 missed ticks are not run back to back
+    assert pace["early"] <= 4 and pace["late"] <= 4, pace
     assert run.monitor.finished["pace"] == pace
 
 

@@ -136,6 +136,7 @@ class Pace:
     interval_min: float = float("inf")  # ... and at least
     interval_sum: float = 0.0
     late: int = 0  # intervals longer than 1.5 periods
+    early: int = 0  # intervals shorter than half a period (a tick after one that overran its period)
     rescheduled: int = 0  # times the sim was more than a period behind and started again from the present
     worst: list[tuple[int, float]] = field(default_factory=list)  # the 5 longest intervals: (tick, seconds)
     _last: float | None = None
@@ -147,6 +148,7 @@ class Pace:
             self.interval_max = max(self.interval_max, gap)
             self.interval_min = min(self.interval_min, gap)
             self.late += gap > 1.5 * self.period
+            self.early += gap < 0.5 * self.period
             self.worst = sorted([*self.worst, (t, gap)], key=lambda w: -w[1])[:5]
         self._last = now
         self.ticks += 1
@@ -155,7 +157,7 @@ class Pace:
         n = max(1, self.ticks - 1)
         return {"period": self.period, "ticks": self.ticks, "interval_mean": round(self.interval_sum / n, 4),
                 "interval_min": round(self.interval_min, 4) if self.ticks > 1 else None,
-                "interval_max": round(self.interval_max, 4), "late": self.late, "rescheduled": self.rescheduled,
+                "interval_max": round(self.interval_max, 4), "late": self.late, "early": self.early, "rescheduled": self.rescheduled,
                 "worst": [[t, round(g, 4)] for t, g in self.worst]}
 
 
