@@ -90,6 +90,8 @@ class EventNetwork:
         self.now = 0.0
         self.layer: FaultLayer | None = None
         if faults:
+            # one random stream per (fault, link, key), as every service process draws them: the same faults
+            # give the lab and the services the same fates, message for message
             self.layer = FaultLayer(run, base_seed=seed, clock=lambda: self.now, per_key=True)
             for spec in faults:
                 self.layer.set(spec, at=0.0)
