@@ -14,6 +14,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from morph_sim.lab.network import dispatch_faults
 from morph_sim.lab.runner import EpisodeSpec, run_episode
@@ -50,14 +51,16 @@ def _finished(record: Path) -> dict:
     return next(e for e in events if e["kind"] == "run.finished")["details"]
 
 
+@pytest.mark.parametrize("scale,steps", [("tiny", 150), pytest.param("small", 300, marks=pytest.mark.slow),
+                                         pytest.param("medium", 400, marks=pytest.mark.slow)])
 def test_outcome_columns_of_the_lab_and_of_a_run_are_equal_tick_for_tick_under_late_lossy_duplicated_dispatch(
-        tmp_path):
+        tmp_path, scale, steps):
     specs = (*dispatch_faults(LATE), *dispatch_faults(BURSTY), *dispatch_faults(TWICE))
-    steps, seed = 150, 7
-    lab = run_episode(EpisodeSpec(scale="tiny", condition="morph", seed=seed, steps=steps, faults=specs,
+    seed = 7
+    lab = run_episode(EpisodeSpec(scale=scale, condition="morph", seed=seed, steps=steps, faults=specs,
                                   fiedler_every=1000))
     (tmp_path / "faults.toml").write_text(schedule_toml(specs))
-    config = RunConfig(run_id="oc", scale="tiny", policy="morph", seed=seed, steps=steps, phase_timeout=10.0,
+    config = RunConfig(run_id="oc", scale=scale, policy="morph", seed=seed, steps=steps, phase_timeout=10.0,
                        fault_schedule=tmp_path / "faults.toml", output_dir=tmp_path)
     run = asyncio.run(run_local(config))
     rows = read_metrics(tmp_path / "oc")
