@@ -48,6 +48,7 @@ QUIET_EVENTS = ("ready.probe", "ready.ack", "record.progress")
 #: lockstep sim keeps at most its window of ticks ahead of it (services/sim/service.py, MONITOR_WINDOW)
 PROGRESS_EVERY = 50
 HEARTBEAT = 0.5  # seconds: no stream goes longer than about this plus its decimation without a sample
+PUBLISH_BURST, PUBLISH_PAUSE = 256, 0.005  # metric samples published back to back at most, then a pause (s)
 
 
 def summary_of_rows(rows: list[dict[str, str]]) -> dict:
@@ -130,6 +131,7 @@ class MonitorService:
         self._last_publish = 0.0
         self._stop = asyncio.Event()
         self._pending_publish: list[MetricSample] = []
+        self._publishing = False  # a publication of metric samples is under way
         self._last_values: dict = {}
         self._links_sum = 0
         self._graph: tuple[dict[int, list[int]] | None, int, float] = (None, 0, 0.0)  # (links, count, λ₂) of a row
@@ -557,9 +559,24 @@ class MonitorService:
             await self._publish_pending()
 
     async def _publish_pending(self, force: bool = False) -> None:
-        samples, self._pending_publish = self._pending_publish, []
-        for s in samples:
-            await self.bus.publish(self.keys.metric(s.name), s, droppable=True)
+        """Publish the pending samples. One publication at a time, which takes whatever is queued meanwhile too, so
+        each stream's samples go out in tick order; ``force`` (the end of the run) waits for the one under way."""
+        while self._publishing:
+            if not force:
+                return  # the publication under way takes these too
+            await asyncio.sleep(0.01)
+        self._publishing = True
+        try:
+            while self._pending_publish:
+                samples, self._pending_publish = self._pending_publish, []
+                for i, s in enumerate(samples, 1):
+                    await self.bus.publish(self.keys.metric(s.name), s, droppable=True)
+                    if i % PUBLISH_BURST == 0 and i < len(samples):
+                        # a backlog (every row of a monitor that fell behind, --max-rate 0) goes out in bursts the
+                        # transport can queue: droppable samples beyond its queue would be lost for every subscriber
+                        await asyncio.sleep(PUBLISH_PAUSE)
+        finally:
+            self._publishing = False
 
     def _finish(self) -> None:
         self._done = True
