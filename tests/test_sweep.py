@@ -326,3 +326,14 @@ def test_progress_counts_every_episode_and_the_bar_ends_full(tmp_path, capsys):
     code, out, err = _main("--grid", "policy=tsg,full", "--seeds", "1-3", "--set", "steps=10", "--out", str(tmp_path),
                            "--run-id", "bar", "--jobs", "1", capsys=capsys)
     assert code == 0 and "6/6" in err and "sweep: 2 conditions × 3 seeds = 6 episodes" in err
+
+
+def test_lab_engine_sweeps_network_profiles_as_the_lab_episode():
+    """network is a lab field: each episode is run_episode with the profile (the services' radio model)."""
+    from morph_sim.lab.runner import run_episode
+
+    plan = SweepPlan.build(grid={"network": ["lan", "wifi-legacy-roaming"]}, seeds="3", base={"steps": 60,
+                                                                                              "policy": "full"})
+    specs = [plan.episode_spec(c, s) for c, s in plan.episodes()]
+    assert [s.network for s in specs] == ["lan", "wifi-legacy-roaming"]
+    assert run_episode(specs[1]).summary["network_handovers"] > 0
