@@ -130,11 +130,12 @@ def test_cli_rejects_bad_network_values_with_one_line(capsys):
         assert len(lines) == 1 and "network" in lines[0] and expect in lines[0], lines
 
 
-def check_up_equals_run(tmp_path, scale: str, steps: int, profile: str = "wifi-legacy-roaming") -> None:
-    run_up_args = dict(scale=scale, policy="morph", preset="reference", steps=steps, seed=42)
+def check_up_equals_run(tmp_path, scale: str, steps: int, profile: str = "wifi-legacy-roaming",
+                        policy: str = "morph") -> None:
+    run_up_args = dict(scale=scale, policy=policy, preset="reference", steps=steps, seed=42)
     argv_extra = ["--network", profile]
     _run_up(tmp_path / "up", "eq", argv_extra, **run_up_args)
-    cfg = RunConfig(run_id="eq", scale=scale, policy="morph", preset="reference", steps=steps, seed=42,
+    cfg = RunConfig(run_id="eq", scale=scale, policy=policy, preset="reference", steps=steps, seed=42,
                     state_every=10, snapshot_every=50, output_dir=tmp_path / "local", network=profile)
     asyncio.run(run_local(cfg))
     up, local = tmp_path / "up" / "eq", tmp_path / "local" / "eq"
@@ -160,6 +161,12 @@ def _run_up(out, run_id, extra, *, scale, policy, preset, steps, seed, timeout=6
 
 def test_up_equals_run_under_legacy_roaming_tiny(tmp_path):
     check_up_equals_run(tmp_path, "tiny", 200)
+
+
+def test_up_equals_run_for_full_broadcast_under_legacy_roaming_tiny(tmp_path):
+    """The broadcast Full-Graph over Zenoh (one process per robot, several requests per AGV a tick) writes the
+    record the in-process run writes."""
+    check_up_equals_run(tmp_path, "tiny", 120, policy="full-broadcast")
 
 
 @pytest.mark.slow
