@@ -276,8 +276,9 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
                                  team_brain=brains)
     else:
         if faults or model is not None:
-            raise ValueError("loss_percent/faults/network: network faults act on the dispatch protocol (concurrent dispatch);"
-                             " the reference's sequential switch has no messages to fault")
+            field = "loss_percent/faults" if faults else "network"
+            raise ValueError(f"{field}: network faults act on the dispatch protocol (concurrent dispatch); the "
+                             "reference's sequential switch has no messages to fault")
         brains = policy.brains(fleet, range(n), spec.seed)
     if shared is not None:
         draw = lambda agv: float(shared.random_sample())  # noqa: E731 - the reference's one stream
