@@ -66,6 +66,7 @@ async def test_local_run_is_deterministic(tmp_path):
 
 
 @pytest.mark.parametrize("policy,preset", [("morph", "reference"), ("morph", "paper"), ("full", "reference"),
+                                           ("full-broadcast", "reference"),
                                            ("tsg", "reference"), ("proximity", "reference"), ("none", "reference"),
                                            ("constant", "reference")])
 async def test_services_equal_the_lab(tmp_path, policy, preset):
@@ -190,20 +191,22 @@ async def test_a_paced_sim_that_stalled_starts_its_schedule_again_instead_of_run
     no burst of missed ticks back to back, and ``run.finished`` says so (``pace``)."""
     import time
 
-    period = 0.05
+    period, starts = 0.1, {}
 
     def stall(t: int, _deliveries: int) -> None:
+        starts[t] = time.monotonic()  # at the start of tick t
         if t == 10:
             time.sleep(20 * period)
 
-    config = cfg(tmp_path, policy="full", steps=30, mode="paced", period=period)
+    config = cfg(tmp_path, policy="full", steps=25, mode="paced", period=period)
     run = await run_local(config, record=False, progress=stall)
     pace = run.sim.pace.summary()
-    assert run.sim.steps == 30 and pace["rescheduled"] == 1, pace
+    assert run.sim.steps == 25 and pace["rescheduled"] >= 1, pace
     assert pace["worst"][0][0] == 11 and pace["worst"][0][1] >= 20 * period
-    # every other interval is about a period (a tick after one that overran on a loaded machine starts early): the
-    # 20 missed ticks are not run back to back
-    assert pace["early"] <= 4 and pace["late"] <= 4, pace
+    # the ten ticks after it keep the period (a tick after one that overran on a loaded machine may start early);
+    # the missed ticks run back to back would be a few milliseconds apart
+    burst = [t for t in range(12, 22) if starts[t] - starts[t - 1] < period / 4]
+    assert len(burst) <= 2, (burst, pace)
     assert run.monitor.finished["pace"] == pace
 
 
