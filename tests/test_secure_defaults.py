@@ -20,6 +20,7 @@ from services.bus.zenoh_bus import endpoint, free_port, zenoh_config
 from services.credentials import RunCredentials
 from services.tickorder import TickOrder
 
+# isort: split
 import zenoh  # noqa: E402  (after zenoh_bus set the runtime environment)
 
 from _procs import kill_tree
