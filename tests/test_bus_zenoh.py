@@ -20,7 +20,12 @@ import pytest
 from schemas import Ack, RunKeys
 from services.bus import LivelinessEvent, wait_for_alive
 from services.bus.zenoh_bus import (
-    RUNTIME_SINGLE_THREAD, ZenohBus, configure_runtime_env, endpoint, free_port, open_endpoint_bus,
+    RUNTIME_SINGLE_THREAD,
+    ZenohBus,
+    configure_runtime_env,
+    endpoint,
+    free_port,
+    open_endpoint_bus,
 )
 
 K = RunKeys("zt")

@@ -13,8 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from _procs import kill_tree
 from morph_sim.lab.sweep import SweepPlan, run_sweep
+
+from _procs import kill_tree
 
 # The acceptance sweep: 3 policies × 3 loss levels × 2 scales × 5 seeds = 90 episodes. The default suite runs it with
 # short episodes and two seeds; the slow versions run it whole at the studies' length.

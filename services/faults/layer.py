@@ -36,8 +36,8 @@ from statistics import NormalDist
 from typing import TYPE_CHECKING
 
 from schemas.faults import FaultSpec, Latency, Loss
-from schemas.messages import FaultCommand, FaultReply
 from schemas.keys import RunKeys, matches, parse_agent_id
+from schemas.messages import FaultCommand, FaultReply
 from services.bus.base import Bus, Sample
 from services.faults.linkstats import LinkMeter
 from services.faults.vtime import EPS as _VT_EPS, VirtualTime
