@@ -60,8 +60,19 @@ from pydantic_core import PydanticCustomError
 from schemas.base import DecodeError, Message
 from schemas.codec import KIND_FIELD, VERSION_FIELD, decode, unpack_envelope
 from schemas.fields import (
-    DISPATCH_OUTCOMES, MAX_ROBOTS, Coord, Finite, MissionType, OptCoord, OptRobotId, OutcomeCounts, RobotId, SimTime,
-    TickNo, length_mismatch, robot_id_out_of_range,
+    DISPATCH_OUTCOMES,
+    MAX_ROBOTS,
+    Coord,
+    Finite,
+    MissionType,
+    OptCoord,
+    OptRobotId,
+    OutcomeCounts,
+    RobotId,
+    SimTime,
+    TickNo,
+    length_mismatch,
+    robot_id_out_of_range,
 )
 
 

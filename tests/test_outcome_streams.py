@@ -8,11 +8,11 @@ import os
 import subprocess
 import sys
 
+from test_dispatch_outcomes import BURSTY, LATE, OUTCOME_COLUMNS, _finished, schedule_toml
+
 from morph_sim.lab.network import dispatch_faults
 from services.monitor import catalogue
 from services.monitor.recorder import read_metrics
-
-from test_dispatch_outcomes import BURSTY, LATE, OUTCOME_COLUMNS, _finished, schedule_toml
 
 # A default-settings Zenoh client with the run's operator credentials (the README's subscriber): every sample of the
 # dispatch outcome streams, and the end of the run.
