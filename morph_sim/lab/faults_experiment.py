@@ -280,7 +280,7 @@ def markdown(rows: list[dict]) -> str:
 
     m, thr = bonferroni([r["p_vs_clean"] for r in rows])
     out = [f"{m} comparisons (each policy at each fault point against itself without faults, Welch, two-sided); "
-           f"Bonferroni threshold for a family-wise 5 %: p < {thr:.2g} (**bold**). Cells: mean ± sample sd over "
+           f"Bonferroni threshold for a family-wise 5 %: p < {thr:.3g} (**bold**). Cells: mean ± sample sd over "
            "seeds."]
     scales = list(dict.fromkeys(r["scale"] for r in rows))
     for scale in scales:
