@@ -223,3 +223,91 @@ def test_a_robot_silent_past_silence_stop_stays_where_it_is(legacy):
             assert pos[t + 1][robot] == pos[t][robot], (t, robot)
             held += 1
     assert held == run.sim.network_stops
+
+
+# -- the lab under the same profile ------------------------------------------------------------------------------------
+def _fate_log(monkeypatch):
+    """Every judgement of a protocol or fleet message the fault layers make: (send time, key, sender, receiver,
+    identity) -> delivered or lost."""
+    from services.faults import layer as fault_layer
+
+    log: dict[tuple, bool] = {}
+    judge = fault_layer.FaultLayer.fate
+
+    def fate(self, key, sender, receiver, at=None, *, msg=None, size=0):
+        out = judge(self, key, sender, receiver, at, msg=msg, size=size)
+        rel = key.split("/", 2)[2]
+        if at is not None and receiver != "monitor" and (rel == "sim/tick" or "/request/" in rel or "/reply/" in rel
+                                                          or rel.endswith("/commit") or "refusal" in rel):
+            log[(round(at, 6), rel, sender, receiver, msg)] = bool(out)
+        return out
+
+    monkeypatch.setattr(fault_layer.FaultLayer, "fate", fate)
+    return log
+
+
+def test_lab_judges_each_message_as_the_services_do(tmp_path, monkeypatch):
+    """The lab's event network asks the services' fault layer with the same message identities (publisher, sequence
+    number per key) and the same positions, so every radio draw is the services' one: until the first tick whose Tick
+    a robot loses (the services' agent skips that tick, the lab's keeps its last fleet view: the two part there until
+    the Tick is split into on-board state and fleet broadcast), both send the same messages and lose the same ones."""
+    from morph_sim.lab.network import EventNetwork
+    from morph_sim.lab.runner import EpisodeSpec, run_episode
+
+    log = _fate_log(monkeypatch)
+    cfg = config(tmp_path, "wifi-legacy-roaming", run_id="judge", steps=60)
+    asyncio.run(run_local(cfg, record=False))
+    services = dict(log)
+    log.clear()
+    init = EventNetwork.__init__
+
+    def without_latency(self, *a, **kw):  # the services count the profile's losses only while the Tick is the barrier
+        init(self, *a, **kw)
+        if self.layer is not None:
+            self.layer.network_latency = False
+
+    monkeypatch.setattr(EventNetwork, "__init__", without_latency)
+    run_episode(EpisodeSpec(scale="tiny", condition="full", seed=cfg.seed, steps=cfg.steps,
+                            network="wifi-legacy-roaming"))
+    lab = dict(log)
+    # the runs part at the first message one of them sends and the other does not
+    first = min(k[0] for k in set(services) ^ set(lab))
+    assert first >= 10  # a stretch long enough to mean something
+    before = {k: v for k, v in services.items() if k[0] < first}
+    assert before == {k: v for k, v in lab.items() if k[0] < first}
+    assert sum(1 for k in before if k[1] != "sim/tick") > 20
+    # messages were lost on the way (hand-overs, dead zones, per-leg loss), Ticks among them: the draws agree
+    assert not all(v for k, v in before.items() if k[1] == "sim/tick")
+    assert not all(v for k, v in before.items() if k[1] != "sim/tick")
+
+
+def check_lab_equals_run(tmp_path, scale: str, steps: int, policy: str = "morph") -> None:
+    import numpy as np
+
+    from morph_sim.lab.runner import EpisodeSpec, run_episode
+
+    cfg = RunConfig(run_id="labeq", scale=scale, policy=policy, preset="reference", steps=steps, seed=42,
+                    state_every=10, snapshot_every=50, output_dir=tmp_path, network="wifi-legacy-roaming")
+    asyncio.run(run_local(cfg))
+    lab = run_episode(EpisodeSpec(scale=scale, condition=policy, seed=42, steps=steps,
+                                  network="wifi-legacy-roaming"))
+    with open(cfg.record_dir / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    np.testing.assert_array_equal([float(r["deliveries_total"]) for r in rows], lab.ticks["deliveries"])
+    np.testing.assert_array_equal([float(r["links"]) for r in rows], lab.ticks["links"])
+
+
+_SPLIT = ("the services' agent skips a tick whose Tick it lost (and the services count only the profile's losses); "
+          "the lab keeps its last fleet view and counts the latency: equal once the Tick is split into on-board "
+          "state and fleet broadcast")
+
+
+@pytest.mark.xfail(strict=True, reason=_SPLIT)
+def test_lab_equals_run_under_legacy_roaming_tiny(tmp_path):
+    check_lab_equals_run(tmp_path, "tiny", 200)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=_SPLIT)
+def test_lab_equals_run_under_legacy_roaming_medium(tmp_path):
+    check_lab_equals_run(tmp_path, "medium", 400)

@@ -134,6 +134,7 @@ class FaultRuntime:
             layer.before_fate = self._catch_up
         if self.network is not None:
             layer.network = self.network
+            layer.network_latency = False  # see FaultLayer.network_latency: the Tick is still the barrier
             if self.events and not any(x.network is self.network for x in self.layers):
                 layer.on_handover = self._on_handover  # reported once per process: by the run record's owner
         install(bus, layer)
