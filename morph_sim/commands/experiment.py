@@ -1,8 +1,9 @@
-"""``morph-sim experiment scale|ablation|shift|emergent|faults|audit``: the in-process lab.
+"""``morph-sim experiment scale|ablation|shift|emergent|faults|network|audit``: the in-process lab.
 
 scale/ablation: conditions × scales × seeds (the reference's study); shift: the paper's six-phase demand-shift
 experiment with recovery times; emergent: W snapshots, Spearman, link lifetimes, η and λ₂ over long episodes;
-faults: the loss/latency sweep (morph_sim/lab/faults_experiment.py); audit: the paper preset's departures from the
+faults: the loss/latency sweep (morph_sim/lab/faults_experiment.py); network: the policies under the named network
+profiles (morph_sim/lab/network_study.py); audit: the paper preset's departures from the
 paper, each measured (morph_sim/lab/audit.py; --conditions picks variants, default scales small,medium and seeds
 11..15). A flag the chosen study cannot honour is refused with a one-line message naming it (``FLAGS``), never
 silently ignored.
@@ -18,7 +19,8 @@ from pydantic import ValidationError
 from schemas.errors import invalid
 
 NAME = "experiment"
-HELP = "run an in-process study: scale, ablation, shift, emergent, faults or audit (parallel, with run records)"
+HELP = ("run an in-process study: scale, ablation, shift, emergent, faults, network or audit (parallel, with run "
+        "records)")
 
 
 def _csv(value: str) -> tuple[str, ...]:
@@ -58,6 +60,8 @@ def add_arguments(parser) -> None:
                         "in percent (mean), bursty; default 0 = no faults")
     parser.add_argument("--quick", action="store_true", help="faults only: the reduced sweep (tiny, MORPH reference "
                         "and Full-Graph, loss 0/30 %%, latency 0/1 tick, 1 seed, 150 steps)")
+    parser.add_argument("--profiles", default=None, help="network: comma-separated network profiles (default lan, "
+                        "wifi-fast-roaming, wifi-legacy-roaming, congested, lossy-mesh)")
     parser.add_argument("--targets", default=None, help="faults: where the faults act, comma-separated: dispatch "
                         "(request, reply, commitment, refusal), fleet (the fleet broadcast), both; default all three")
     parser.add_argument("--loss-levels", default=None, help="faults: loss levels in percent, Bernoulli and "
@@ -86,7 +90,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-SUITES = ("scale", "ablation", "shift", "emergent", "faults", "audit")
+SUITES = ("scale", "ablation", "shift", "emergent", "faults", "network", "audit")
 _COMMON = {"out", "run_id", "no_progress"}
 _SUITE = {"preset", "scales", "seeds", "steps", "conditions", "dispatch", "reference_stream", "radius", "jobs",
           "fiedler_every", "executor", "scheduler"}
@@ -98,6 +102,7 @@ FLAGS = {
     "emergent": _COMMON | {"preset", "scales", "seeds", "steps", "loss", "jobs"},
     "faults": _COMMON | {"quick", "scales", "seeds", "steps", "jobs", "conditions", "targets", "loss_levels",
                          "latency_levels"},
+    "network": _COMMON | {"scales", "seeds", "steps", "jobs", "conditions", "profiles"},
     # audit: --conditions names the variants (morph_sim/lab/audit.py)
     "audit": _COMMON | {"scales", "seeds", "steps", "conditions", "jobs"},
 }
@@ -267,6 +272,31 @@ def _run_faults(args) -> int:
     return 0
 
 
+def _run_network(args) -> int:
+    from morph_sim.lab.network_study import PROFILES, SCALES, SEEDS, grid_plan, network_tasks, run_study
+
+    plan = grid_plan(scales=_scales(args.scales, ",".join(SCALES)),
+                     profiles=_csv(args.profiles) if args.profiles else PROFILES,
+                     conditions=_csv(args.conditions) if args.conditions else None,
+                     seeds=_seeds(args.seeds, SEEDS), steps=args.steps)
+    jobs = 2 if args.jobs is None else args.jobs
+    if jobs < 1:
+        raise ValueError(f"jobs: must be at least 1, got {jobs}")
+    run_dir = _run_dir(args, "network")
+    n = len(network_tasks(plan))
+    print(f"experiment network: {len(plan['scales'])} scales × {len(plan['profiles'])} profiles × "
+          f"{len(plan['conditions'])} policies × {len(plan['seeds'])} seeds = {n} episodes → {run_dir}",
+          file=sys.stderr)
+    try:
+        res = run_study(run_dir, plan, jobs=jobs, progress=not args.no_progress, argv=["morph-sim", *sys.argv[1:]])
+    except KeyboardInterrupt:
+        return _interrupted("network", run_dir, n)
+    print(res["markdown"])
+    print(f"network experiment: {res['ran']} episodes run, {res['skipped']} already in the record, "
+          f"{res['wall_s']:.1f} s; {res['md']}, {res['json']}, {', '.join(res['pngs'])}")
+    return 0
+
+
 def _run_audit(args) -> int:
     from datetime import datetime, timezone
 
@@ -300,6 +330,8 @@ def run(args) -> int:
         return _run_emergent(args)
     if args.suite == "faults":
         return _run_faults(args)
+    if args.suite == "network":
+        return _run_network(args)
     started = time.perf_counter()
     from morph_sim.lab.runner import SCALE_STUDY
     from morph_sim.lab.suite import ABLATION_STUDY, SuiteConfig, markdown_table, run_suite, summarise

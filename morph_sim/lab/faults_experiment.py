@@ -148,13 +148,16 @@ def fault_tasks(*, scales, targets, conditions, loss, latency, seeds, steps: int
 
 def run_fault_task(task: FaultTask) -> dict:
     """One grid episode -> its run-record line (module level: pickled to the worker processes)."""
+    c0 = time.process_time()
     target = "dispatch" if task.target == "none" else task.target
     kind = "bernoulli" if task.kind == "none" else task.kind
     ep = run_fault_episode(task.condition, kind, task.level, task.seed, scale=task.scale, steps=task.steps,
                            target=target)
     ep.target, ep.kind = task.target, task.kind
     return {"key": task.key, "episode": {k: None if isinstance(v, float) and math.isnan(v) else v
-                                         for k, v in ep.__dict__.items()}, "wall_s": ep.wall_s}
+                                         for k, v in ep.__dict__.items()}, "wall_s": ep.wall_s,
+            # CPU seconds say what the grid costs on idle cores; the wall time depends on what else the machine runs
+            "cpu_s": time.process_time() - c0}
 
 
 def sweep(*, seeds=REFERENCE_SEEDS, conditions=tuple(CONDITIONS), loss=LOSS_PCT, latency=LATENCY_TICKS,
