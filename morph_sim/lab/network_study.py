@@ -39,7 +39,7 @@ SCALES = ("tiny", "small", "medium", "large")
 SEEDS = tuple(range(301, 311))
 #: the default grid's episode length per scale, chosen so that the whole default grid runs within 15 minutes on two
 #: cores (per-agent brains make MORPH's cost grow with the fleet; measured in docs/results.md)
-STEPS = {"tiny": 400, "small": 300, "medium": 200, "large": 150}
+STEPS = {"tiny": 800, "small": 800, "medium": 600, "large": 400}
 METRICS = ("deliveries", "dispatch_delay", "messages_per_delivery", "bytes_per_delivery", "view_age_mean",
            "mean_links", "network_handovers", "network_outage_seconds", "network_stops", "messages_dropped")
 
