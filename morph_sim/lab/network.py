@@ -322,9 +322,9 @@ class LabDispatch:
             if g.picker < 0:
                 continue
             count.count(g.ask, g.p)
-            if g.ask:
-                req = endpoint.request(g.picker, obs.target[agv], s_agv, out)
-                net.send(k.request(agv, g.picker), agv, g.picker, req, s_agv)
+            for picker in g.targets:  # one, or every free picker of the view for a broadcasting policy
+                req = endpoint.request(picker, obs.target[agv], s_agv, out)
+                net.send(k.request(agv, picker), agv, picker, req, s_agv)
         self._deliver(s_pick)
         self.sent_commits = []
         for picker, endpoint in ep.pickers.items():

@@ -59,6 +59,7 @@ CONDITIONS: dict[str, tuple[str, str, str | None]] = {
     "no_neuromod": ("v2 − neuromod", "morph", "no_neuromod"),
     "morph": ("MORPH", "morph", None),
     "full": ("Full-Graph", "full", None),
+    "full-broadcast": ("Full-Graph (broadcast)", "full-broadcast", None),
     "constant": ("Constant 0.25", "constant", None),
     "reset_at_boundary": ("MORPH-reset", "morph", "reset_at_boundary"),
 }
@@ -275,8 +276,9 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
                                  team_brain=brains)
     else:
         if faults or model is not None:
-            raise ValueError("loss_percent/faults/network: network faults act on the dispatch protocol (concurrent dispatch);"
-                             " the reference's sequential switch has no messages to fault")
+            field = "loss_percent/faults" if faults else "network"
+            raise ValueError(f"{field}: network faults act on the dispatch protocol (concurrent dispatch); the "
+                             "reference's sequential switch has no messages to fault")
         brains = policy.brains(fleet, range(n), spec.seed)
     if shared is not None:
         draw = lambda agv: float(shared.random_sample())  # noqa: E731 - the reference's one stream
@@ -308,7 +310,7 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
             cols["mean_w_links"][step] = float(W[on].mean()) if on.any() else 0.0
             tracker.update(A, step)
         else:
-            cols["mean_w_links"][step] = 1.0 if policy.name == "full" else 0.0
+            cols["mean_w_links"][step] = 1.0 if policy.name in ("full", "full-broadcast") else 0.0
         if step % spec.fiedler_every == 0:
             cols["fiedler_ref"][step] = metrics.reference_normalized_fiedler(A)
             cols["alg_conn"][step] = metrics.algebraic_connectivity(A)

@@ -353,15 +353,16 @@ class AgentService:
                 g = protocol.gate(self.brains, self.id, obs)
                 if g.ask:
                     with self._lock:
-                        req = self.endpoint.request(g.picker, obs.target[self.id], now, self.outcomes)
+                        reqs = [self.endpoint.request(p, obs.target[self.id], now, self.outcomes) for p in g.targets]
                         self._reply_base = (tick.t, tick.replied[self.id] if self.id < len(tick.replied) else 0)
                         self._reply_arrivals = {s: n for s, n in self._reply_arrivals.items() if s >= tick.t}
-                    tx, ty = req.cell
-                    self.bus.put(self.keys.request(self.id, g.picker), encode_fields(
-                        HelpRequest, t=tick.t, agv=self.id, picker=g.picker, target_x=tx, target_y=ty,
-                        mission=int(obs.mission[self.id]), seq=req.seq))
-                    self.counters.requests += 1
-                    asked.append(g.picker)
+                    for req in reqs:  # one (a broadcasting policy: one per free picker it knows of)
+                        tx, ty = req.cell
+                        self.bus.put(self.keys.request(self.id, req.picker), encode_fields(
+                            HelpRequest, t=tick.t, agv=self.id, picker=req.picker, target_x=tx, target_y=ty,
+                            mission=int(obs.mission[self.id]), seq=req.seq))
+                        self.counters.requests += 1
+                        asked.append(req.picker)
         eta = float(self.brains.state.eta) if isinstance(self.brains, MorphBrains) else None
         publish_state = tick.t % self.config.state_every == 0 or final
         # encoded from plain values (no model round trip: the hot path, codec.encode_fields)
