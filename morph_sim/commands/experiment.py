@@ -43,7 +43,12 @@ def _radii(value: str) -> dict[str, int]:
 def add_arguments(parser) -> None:
     # Every optional flag defaults to None (or False), so a flag the user gave is known and a study that cannot
     # honour it refuses it (FLAGS below) instead of running something else than asked.
-    parser.add_argument("suite", choices=SUITES, help="which study: " + ", ".join(SUITES))
+    parser.add_argument("suite", choices=SUITES, help="which study: " + ", ".join(SUITES) + ". faults' default grid: "
+                        "four scales × latency 0–10 ticks and Bernoulli/Gilbert–Elliott loss 0–50 %% on dispatch, "
+                        "fleet broadcast and both × five policies × seeds 1–10, T = 800 (2,600 episodes a scale, "
+                        "≈ 1 h of two idle cores in all). network's default grid: four scales × five profiles × six "
+                        "policies × seeds 301–310, T = 800 (tiny, small), 600 (medium), 400 (large) (1,200 episodes, "
+                        "≈ 9 min of two idle cores)")
     parser.add_argument("--preset", default=None, help="scale/ablation: MORPH preset reference (scale default) or "
                         "paper (ablation default), or a preset TOML path; emergent: comma-separated presets "
                         "(default reference,paper)")

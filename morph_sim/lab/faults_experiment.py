@@ -8,7 +8,9 @@ plus delay, never dropped for being late (docs/faults.md, "Late, not lost"). A f
 or on both (``target``).
 
 Measured per episode: deliveries, mean undirected links, mean dispatch delay (ticks an AGV waits from first needing
-a picker until one is committed), the protocol's outcome counters, and dispatch messages per delivery.
+a picker until one is committed), the protocol's outcome counters, dispatch messages and bytes per delivery and the
+fleet view's mean age. The grid is one resumable run record (morph_sim/lab/grid.py); the tables compare each policy
+at each fault point with itself without faults (Welch, Bonferroni over the table).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import numpy as np
 
 from schemas.faults import FaultSpec, Latency, Loss
 from morph_sim.lab.network import dispatch_faults, fleet_faults
-from morph_sim.lab.runner import REFERENCE_SEEDS, EpisodeSpec, run_episode
+from morph_sim.lab.runner import EpisodeSpec, run_episode
 
 DT = 1.0
 
@@ -158,21 +160,6 @@ def run_fault_task(task: FaultTask) -> dict:
                                          for k, v in ep.__dict__.items()}, "wall_s": ep.wall_s,
             # CPU seconds say what the grid costs on idle cores; the wall time depends on what else the machine runs
             "cpu_s": time.process_time() - c0}
-
-
-def sweep(*, seeds=REFERENCE_SEEDS, conditions=tuple(CONDITIONS), loss=LOSS_PCT, latency=LATENCY_TICKS,
-          scales=("tiny",), targets=("dispatch",), steps: int = 800, jobs: int = 1) -> list[FaultEpisode]:
-    """The grid's episodes without a run record (in-process callers)."""
-    from morph_sim.lab.executors import make_executor
-
-    tasks = fault_tasks(scales=scales, targets=targets, conditions=conditions, loss=loss, latency=latency,
-                        seeds=seeds, steps=steps)
-    ex = make_executor("local", jobs=jobs)
-    try:
-        done = {r["key"]: r for r in ex.map_unordered(run_fault_task, tasks)}
-    finally:
-        ex.close()
-    return [FaultEpisode(**done[t.key]["episode"]) for t in tasks]
 
 
 #: fault-kind labels of the tables
