@@ -21,7 +21,6 @@ from services.sim.world.layout import LayoutConfig, layout_for
 from services.supervisor.local import run_local
 
 
-
 def config(tmp_path, network: str | None, run_id: str = "net", **kw) -> RunConfig:
     values = dict(run_id=run_id, scale="tiny", policy="full", seed=3, steps=120, state_every=10,
                   snapshot_every=50, output_dir=tmp_path / run_id, network=network)
@@ -236,6 +235,7 @@ def test_a_robot_silent_past_silence_stop_stays_where_it_is(legacy):
 def _fate_log(monkeypatch):
     """Every judgement of a protocol or fleet message the fault layers make: (send time, key, sender, receiver,
     identity) -> delivered or lost."""
+    from morph_sim.lab.network import FLEET_KEY
     from services.faults import layer as fault_layer
 
     log: dict[tuple, bool] = {}
@@ -244,7 +244,7 @@ def _fate_log(monkeypatch):
     def fate(self, key, sender, receiver, at=None, *, msg=None, size=0):
         out = judge(self, key, sender, receiver, at, msg=msg, size=size)
         rel = key.split("/", 2)[2]
-        if at is not None and receiver != "monitor" and (rel == "sim/tick" or "/request/" in rel or "/reply/" in rel
+        if at is not None and receiver != "monitor" and (rel == FLEET_KEY or "/request/" in rel or "/reply/" in rel
                                                           or rel.endswith("/commit") or "refusal" in rel):
             log[(round(at, 6), rel, sender, receiver, msg)] = bool(out)
         return out
@@ -255,11 +255,14 @@ def _fate_log(monkeypatch):
 
 def test_lab_judges_each_message_as_the_services_do(tmp_path, monkeypatch):
     """The lab's event network asks the services' fault layer with the same message identities (publisher, sequence
-    number per key) and the same positions, so every radio draw is the services' one: until the first tick whose Tick
-    a robot loses (the services' agent skips that tick, the lab's keeps its last fleet view: the two part there until
-    the Tick is split into on-board state and fleet broadcast), both send the same messages and lose the same ones."""
-    from morph_sim.lab.network import EventNetwork
+    number per key) and the same positions, so every radio draw is the services' one: both send the same messages
+    and lose the same ones, up to the first tick where their semantics part, if any (while the services' Tick is
+    also the barrier, an agent that loses it skips the tick where the lab's keeps its last fleet view)."""
+    import math
+
+    from morph_sim.lab.network import FLEET_KEY, EventNetwork
     from morph_sim.lab.runner import EpisodeSpec, run_episode
+    from services.faults.runtime import NETWORK_LATENCY
 
     log = _fate_log(monkeypatch)
     cfg = config(tmp_path, "wifi-legacy-roaming", run_id="judge", steps=60)
@@ -268,24 +271,25 @@ def test_lab_judges_each_message_as_the_services_do(tmp_path, monkeypatch):
     log.clear()
     init = EventNetwork.__init__
 
-    def without_latency(self, *a, **kw):  # the services count the profile's losses only while the Tick is the barrier
+    def as_the_services(self, *a, **kw):  # the profile's delays count in the lab iff they count in the services
         init(self, *a, **kw)
         if self.layer is not None:
-            self.layer.network_latency = False
+            self.layer.network_latency = NETWORK_LATENCY
 
-    monkeypatch.setattr(EventNetwork, "__init__", without_latency)
+    monkeypatch.setattr(EventNetwork, "__init__", as_the_services)
     run_episode(EpisodeSpec(scale="tiny", condition="full", seed=cfg.seed, steps=cfg.steps,
                             network="wifi-legacy-roaming"))
     lab = dict(log)
     # the runs part at the first message one of them sends and the other does not
-    first = min(k[0] for k in set(services) ^ set(lab))
+    first = min((k[0] for k in set(services) ^ set(lab)), default=math.inf)
     assert first >= 10  # a stretch long enough to mean something
     before = {k: v for k, v in services.items() if k[0] < first}
     assert before == {k: v for k, v in lab.items() if k[0] < first}
-    assert sum(1 for k in before if k[1] != "sim/tick") > 20
-    # messages were lost on the way (hand-overs, dead zones, per-leg loss), Ticks among them: the draws agree
-    assert not all(v for k, v in before.items() if k[1] == "sim/tick")
-    assert not all(v for k, v in before.items() if k[1] != "sim/tick")
+    assert sum(1 for k in before if k[1] != FLEET_KEY) > 20
+    # messages were lost on the way (hand-overs, dead zones, per-leg loss), fleet broadcasts among them: the draws
+    # agree
+    assert not all(v for k, v in before.items() if k[1] == FLEET_KEY)
+    assert not all(v for k, v in before.items() if k[1] != FLEET_KEY)
 
 
 def check_lab_equals_run(tmp_path, scale: str, steps: int, policy: str = "morph") -> None:

@@ -95,9 +95,8 @@ def run_network_task(task: NetworkTask) -> dict:
 def grid_plan(*, scales=SCALES, profiles=PROFILES, conditions=None, seeds=SEEDS, steps: int | None = None) -> dict:
     """The grid as plain data (the run record's identity). ``steps``: one length for every scale (default
     :data:`STEPS`)."""
-    from services.sim.world.layout import named_sizes
-
     from schemas.network import load_profile
+    from services.sim.world.layout import named_sizes
 
     conditions = [CONDITION_KEYS.get(c, c) for c in (conditions or available_conditions())]
     for c in conditions:

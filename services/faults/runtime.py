@@ -31,16 +31,20 @@ import time
 from schemas import Ack, RunKeys
 from schemas.messages import MetricSample
 from services.bus.base import Bus, Sample
+from services.faults.controller import CrashHook, FaultController
 from services.faults.layer import FaultLayer, install
 from services.faults.linkstats import LinkMeter
-from services.faults.vtime import VirtualTime
-from services.faults.controller import CrashHook, FaultController
 from services.faults.schedule import FaultSchedule
-
+from services.faults.vtime import VirtualTime
 
 log = logging.getLogger("morph_sim.faults")
 
 FAULT_TIMES = ("virtual", "wall")
+#: whether the services count a network profile's delays or only its losses (FaultLayer.network_latency): only its
+#: losses while the Tick is both the fleet broadcast and the barrier of the tick, because any latency on it makes
+#: the agent skip the tick, and a profile's milliseconds of Wi-Fi latency would silence every robot. Once the fleet
+#: state is its own broadcast this turns True, and the lab and the services judge the radio alike.
+NETWORK_LATENCY = False
 
 
 class FaultRuntime:
@@ -134,7 +138,7 @@ class FaultRuntime:
             layer.before_fate = self._catch_up
         if self.network is not None:
             layer.network = self.network
-            layer.network_latency = False  # see FaultLayer.network_latency: the Tick is still the barrier
+            layer.network_latency = NETWORK_LATENCY
             if self.events and not any(x.network is self.network for x in self.layers):
                 layer.on_handover = self._on_handover  # reported once per process: by the run record's owner
         install(bus, layer)
