@@ -8,13 +8,13 @@ from schemas.faults import (
 from schemas.keys import RunKeys, intersects, matches, validate_key_expr, validate_run_id
 from schemas.messages import (
     MESSAGE_TYPES, MESSAGES, Ack, AgentState, Commit, Event, FaultCommand, FaultReply, Heading, HelpReply, HelpRequest,
-    MetricSample, MissionType, Phase, Refusal, RegistrationReply, RegistrationRequest, Resolve, Role, Stop, Tick,
+    MetricSample, MissionType, OnBoard, Phase, Refusal, RegistrationReply, RegistrationRequest, Resolve, Role, Stop, Tick,
 )
 
 __all__ = [
     "Ack", "AgentState", "Commit", "Crash", "DecodeError", "Distribution", "Duplicate", "Event", "FaultCommand",
     "FaultReply", "FaultSpec", "Heading", "HelpReply", "HelpRequest", "Latency", "Loss", "LossModel", "MESSAGES",
-    "MESSAGE_TYPES", "Message", "MetricSample", "MissionType", "Partition", "PartitionDirection", "Phase", "Refusal",
+    "MESSAGE_TYPES", "Message", "MetricSample", "MissionType", "OnBoard", "Partition", "PartitionDirection", "Phase", "Refusal",
     "RegistrationReply", "RegistrationRequest", "Reorder", "Resolve", "Role", "RunKeys", "Scope", "Stop", "Tick",
     "decode", "encode", "intersects", "matches", "register_upgrade", "to_payload", "validate_key_expr",
     "validate_run_id",

@@ -102,6 +102,9 @@ class _Link:
         return u
 
 
+_ONBOARD_PREFIX = "sim/onboard"
+
+
 @dataclass
 class ActiveFault:
     spec: FaultSpec
@@ -117,6 +120,9 @@ class ActiveFault:
     def applies(self, rel_key: str, sender: object, receiver: object) -> bool:
         scope = self.spec.scope
         if not matches(scope.key_expr, rel_key):
+            return False
+        if rel_key.startswith(_ONBOARD_PREFIX) and not scope.key_expr.startswith(_ONBOARD_PREFIX):
+            # a robot's on-board state is sensing, not networking: only a fault that names it acts on it
             return False
         if scope.agents is not None and sender not in scope.agents and receiver not in scope.agents:
             return False
@@ -182,7 +188,8 @@ class FaultLayer:
         # learns where the robots are from every Tick of the sim this layer sees (sent or received)
         self.network: NetworkModel | None = None
         self.on_handover: Callable[[HandoverEvent], None] | None = None
-        self._tick_key = self.keys.tick
+        # the fleet broadcast reaches every robot physically whatever its fate: it says where the robots are
+        self._tick_key = self.keys.fleet
 
     # -- control -----------------------------------------------------------------------------------------------
     def set(self, spec: FaultSpec, at: float | None = None) -> str:
@@ -295,7 +302,7 @@ class FaultLayer:
             return [0.0]  # the picker's decision point is synchronisation too
         rel = "/".join(chunks)
         delay = 0.0
-        if self.network is not None and at is not None:
+        if self.network is not None and at is not None and not rel.startswith(_ONBOARD_PREFIX):
             # the radio legs first (the robots' Wi-Fi), then the fault specs on top, as netem on a real interface
             net = self.network.fate(at, sender, receiver, (msg, rel), size=size)
             if net.delivered_at is None:

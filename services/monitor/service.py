@@ -35,6 +35,7 @@ from services.monitor import catalogue
 from services.monitor import metrics as M
 from services.monitor.recorder import Recorder, read_metrics
 from services.monitor.streams import MessageStats
+from services.protocol.dispatch import view_age_stats
 from services.rejects import Rejects
 from services.runconfig import RunConfig
 from services.tickorder import TickOrder
@@ -73,6 +74,7 @@ class Row:
     ackers: set[int] = field(default_factory=set)
     links: dict[int, list[int]] = field(default_factory=dict)
     etas: list[float] = field(default_factory=list)
+    view_ages: list[float] = field(default_factory=list)
 
 
 @dataclass
@@ -333,6 +335,8 @@ class MonitorService:
             if row is not None and ack.agent not in row.ackers:
                 row.ackers.add(ack.agent)
                 row.requests += len(ack.requests_sent)
+                if ack.view_age is not None:
+                    row.view_ages.append(ack.view_age)
                 if ack.requests_sent:
                     self.stats.requested(ack.t, ack.agent)
         self._links_from(ack.t, ack.agent, ack.links or [], ack.eta)
@@ -450,6 +454,7 @@ class MonitorService:
             "lambda2": lambda2, "eta": float(np.mean(row.etas)) if row.etas else None,
             "acks": len(row.ackers), **catalogue.w_block_values(block),
         }
+        values["view_age_mean"], values["view_age_max"] = view_age_stats(row.view_ages)
         self.result.deliveries_total = self._total
         self._last_values = values
         self._links_sum += values["links"]
