@@ -10,6 +10,7 @@ import pytest
 
 from schemas.faults import FaultSpec, Latency, Loss, Scope
 from morph_sim.lab.network import (
+    FLEET_KEY,
     EventNetwork,
     LabDispatch,
     dispatch_faults,
@@ -196,7 +197,7 @@ def test_agent_whose_fleet_broadcast_is_lost_for_k_ticks_learns_from_a_view_k_ti
     for t in range(start + k + 2):
         if t == start:  # the broadcast to one agent is lost from now on, for k steps
             net.layer.set(FaultSpec(id="blackout", loss=Loss(percent=100.0), duration=k * DT,
-                                    scope=Scope(key_expr="sim/tick", agents=[victim])), at=t * DT)
+                                    scope=Scope(key_expr=FLEET_KEY, agents=[victim])), at=t * DT)
         obs = cta.begin_tick()
         driver.learn(obs)
         ages.append(driver.views[victim].age(t * DT))
