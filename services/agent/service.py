@@ -294,7 +294,8 @@ class AgentService:
             t = unpack_envelope(sample.payload)[1].get("t")
         except ValueError:
             return None
-        if type(t) is not int or t < 0 or (self.last_t >= 0 and t > self.last_t + self._ticks.max_gap):
+        if type(t) is not int or not 0 <= t <= self.config.steps or (
+                self.last_t >= 0 and t > self.last_t + self._ticks.max_gap):
             return None
         return t
 
@@ -324,6 +325,8 @@ class AgentService:
             tick = decode_tick(sample.payload)  # validated, straight into arrays (schemas/tick.py)
             if tick.n != self.config.n_agents:
                 raise ValueError(f"fleet state has {tick.n} robots, this fleet {self.config.n_agents}")
+            if not 0 <= tick.t <= self.config.steps:
+                raise ValueError(f"fleet state of tick t={tick.t} outside 0..{self.config.steps} (steps)")
             if self.last_t >= 0 and tick.t > self.last_t + self._ticks.max_gap:
                 # kept, a forged far-future view would hide every real one after it
                 raise ValueError(f"fleet state of tick {tick.t}, this robot is at tick {self.last_t}")

@@ -111,6 +111,7 @@ class MonitorService:
         self.bus = bus
         bus.reject_hook = self._reject  # oversized messages refused on arrival count here
         self.keys = RunKeys(config.run_id)
+        self._robot_copies = (self.keys.fleet, self.keys.onboard(0).rsplit("/", 1)[0] + "/")
         self.n = config.n_agents
         self.is_agv = np.arange(self.n) < config.n_agvs
         self.recorder = Recorder(config) if record else None
@@ -216,6 +217,10 @@ class MonitorService:
             self._record_failed(exc)
 
     def _handle(self, sample: Sample) -> None:
+        if sample.key.startswith(self._robot_copies):
+            # the fleet broadcast and the on-board states repeat the world record (sim/tick) for the robots: the
+            # one subscription to the whole run (which keeps its arrival order) brings them, nothing records them
+            return
         try:
             rel = self.keys.relative(sample.key)
         except ValueError as exc:
