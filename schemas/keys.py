@@ -4,7 +4,7 @@ Everything of a run lives under ``morph/<run>/``::
 
     sim/tick                      Tick            sim -> monitor, tools (the world record; robots do not read it)
     sim/fleet                     Tick            sim -> robots: the fleet broadcast (a network message, faultable)
-    sim/onboard/<id>              OnBoard         sim -> that robot: its on-board state (not faulted by default)
+    sim/@onboard/<id>             OnBoard         sim -> that robot: its on-board state (not faulted by default)
     sim/resolve                   Resolve         sim -> all
     agent/<id>/ack                Ack             agent -> sim
     agent/<id>/skip               Ack             agent -> sim (virtual time: its Tick/Resolve was lost; never faulted)
@@ -39,7 +39,10 @@ from functools import lru_cache
 ROOT = "morph"
 #: the fleet broadcast and the on-board state, relative to ``morph/<run>/`` (fault scopes, the lab's network)
 FLEET = "sim/fleet"
-ONBOARD = "sim/onboard/*"
+#: ``@onboard`` is a verbatim chunk: no wildcard matches it, so a robot's on-board state is outside ``morph/<run>/**``
+#: (the monitor's, a recorder's and the access control's whole-run expressions) and outside every fault scope that
+#: does not name it: sensing is not networking. Only robot N may subscribe to its own (services/credentials.py).
+ONBOARD = "sim/@onboard/*"
 
 # Characters allowed in a run id and in a single literal chunk we build: no '/', no wildcards, no '$#?' (Zenoh
 # reserves them), no spaces; printable so ids survive logs, file names and environment variables.
@@ -206,7 +209,7 @@ class RunKeys:
 
     def onboard(self, robot: int) -> str:
         """One robot's own state as its on-board sensing gives it (never through the network)."""
-        return self._k("sim", "onboard", _agent_chunk(robot))
+        return self._k("sim", "@onboard", _agent_chunk(robot))
 
     @property
     def resolve(self) -> str:
@@ -346,7 +349,7 @@ class RunKeys:
             return parse_agent_id(rel[3])
         if len(rel) == 3 and rel[0] == "agent" and rel[2] in ("ack", "commit"):
             return "sim"
-        if len(rel) == 3 and rel[0] == "sim" and rel[1] == "onboard":
+        if len(rel) == 3 and rel[0] == "sim" and rel[1] == "@onboard":
             return parse_agent_id(rel[2])
         return None
 

@@ -65,7 +65,7 @@ class OnBoard(Message):
     on-board state: odometry, its mission controller, its load), and the synchronisation of its decision point.
 
     On-board sensing is not a network message: no fault acts on it unless a scope names its key class
-    (``sim/onboard/*``). What a robot knows of the *others* reaches it only through the fleet broadcast
+    (``sim/@onboard/*``). What a robot knows of the *others* reaches it only through the fleet broadcast
     (``sim/fleet``, a :class:`Tick`), which faults act on like any protocol message (docs/faults.md).
     """
 

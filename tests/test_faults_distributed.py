@@ -125,7 +125,7 @@ def test_an_on_board_state_lost_at_an_agent_costs_it_that_tick_without_a_wall_wa
     once (null messages), the sim never waits its 30 s phase timeout, nobody is marked absent; the same run twice.
     (A Resolve is synchronisation: a fault scoped to it changes nothing.)"""
     path = tmp_path / "lost.toml"
-    path.write_text('[[at]]\ntick = 10\nspec = { id = "t3", scope = { key_expr = "sim/onboard/*", agents = [3] }, '
+    path.write_text('[[at]]\ntick = 10\nspec = { id = "t3", scope = { key_expr = "sim/@onboard/*", agents = [3] }, '
                     'loss = { percent = 100 }, duration = 40.0 }\n'
                     '[[at]]\ntick = 10\nspec = { id = "r6", scope = { key_expr = "sim/resolve", agents = [6] }, '
                     'loss = { percent = 100 }, duration = 40.0 }\n')

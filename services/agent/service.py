@@ -5,7 +5,7 @@ RNG) and nothing else. Per tick ``t`` (docs/services.md):
 
 * what it knows of the other robots is its latest fleet broadcast (``sim/fleet``, a network message that may be
   late or lost: a :class:`~services.protocol.dispatch.FleetView` with its age); what it knows of itself (cell,
-  mission, target, load) comes on board (``sim/onboard/<id>``), which is also its decision point;
+  mission, target, load) comes on board (``sim/@onboard/<id>``), which is also its decision point;
 * at its decision point it learns once from a fleet view it has not learnt from (the plasticity update of the step
   before that view), and, as an AGV that needs a picker, picks a candidate from that view with its own on-board
   cell and target, draws its gate and on success sends a ``HelpRequest`` to that picker; then it acks (with its

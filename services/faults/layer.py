@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING
 
 from schemas.faults import FaultSpec, Latency, Loss
 from schemas.messages import FaultCommand, FaultReply
-from schemas.keys import RunKeys, matches, parse_agent_id
+from schemas.keys import ONBOARD, RunKeys, matches, parse_agent_id
 from services.bus.base import Bus, Sample
 from services.faults.linkstats import LinkMeter
 from services.faults.vtime import EPS as _VT_EPS, VirtualTime
@@ -102,9 +102,6 @@ class _Link:
         return u
 
 
-_ONBOARD_PREFIX = "sim/onboard"
-
-
 @dataclass
 class ActiveFault:
     spec: FaultSpec
@@ -120,9 +117,6 @@ class ActiveFault:
     def applies(self, rel_key: str, sender: object, receiver: object) -> bool:
         scope = self.spec.scope
         if not matches(scope.key_expr, rel_key):
-            return False
-        if rel_key.startswith(_ONBOARD_PREFIX) and not scope.key_expr.startswith(_ONBOARD_PREFIX):
-            # a robot's on-board state is sensing, not networking: only a fault that names it acts on it
             return False
         if scope.agents is not None and sender not in scope.agents and receiver not in scope.agents:
             return False
@@ -302,7 +296,7 @@ class FaultLayer:
             return [0.0]  # the picker's decision point is synchronisation too
         rel = "/".join(chunks)
         delay = 0.0
-        if self.network is not None and at is not None and not rel.startswith(_ONBOARD_PREFIX):
+        if self.network is not None and at is not None and not matches(ONBOARD, rel):  # sensing is not radio
             # the radio legs first (the robots' Wi-Fi), then the fault specs on top, as netem on a real interface
             net = self.network.fate(at, sender, receiver, (msg, rel), size=size)
             if net.delivered_at is None:

@@ -4,7 +4,7 @@ Per tick ``t``:
 
 1. the CTA controller runs steps 1–2 (:meth:`CTAController.begin_tick`); the observation becomes a ``Tick``, the
    fleet broadcast on ``sim/fleet`` (faults act on it) and the world record on ``sim/tick`` (monitor, tools); each
-   robot's own state goes to it on ``sim/onboard/<id>`` (on-board sensing; it is also the decision point's
+   robot's own state goes to it on ``sim/@onboard/<id>`` (on-board sensing; it is also the decision point's
    synchronisation);
 2. every present agent answers with an ``Ack`` listing the pickers it asked (AGVs send their ``HelpRequest``\\ s
    directly to those pickers);
