@@ -239,7 +239,9 @@ class AgentService:
             if sample.sender != "sim":
                 return  # only the sim's own samples carry its boundary (not a stray publisher's, nor a fuzzer's)
             if self._virtual:
-                self.faults.advance(self._layer.sent_at(sample))
+                at = self._layer.sent_at(sample)
+                if at > self.faults.now():  # a tick's on-board state and fleet broadcast share their boundary
+                    self.faults.advance(at)
             elif onboard:
                 self._advance_wall(sample)
             if key == k.fleet:
