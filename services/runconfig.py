@@ -108,9 +108,10 @@ class RunConfig(BaseModel):
         if profile.link_rate is not None or profile.ap_rate is not None:
             # A shared queue is only deterministic where one process sees the queue's traffic in send order; in the
             # services each receiver judges its own arrivals, in wall order.
-            raise ValueError(f"profile {value!r} limits rates (link_rate/ap_rate), which the services cannot apply "
-                             "deterministically (each process sees only its own arrivals, in wall order): a shared queue "
-                             "needs one discrete-event driver that sees every message in send order")
+            raise ValueError(f"profile {value!r} limits rates (link_rate/ap_rate): a queue's verdict on a message "
+                             "depends on every message ahead of it, sent by and to robots in other processes, which no "
+                             "service process sees (each judges only its own arrivals, in wall order), so run and up "
+                             "could not agree; the lab models it (EpisodeSpec network=...)")
         return value
 
     @model_validator(mode="after")

@@ -25,7 +25,7 @@ def test_help_lists_the_choices_of_policy_preset_mode_and_scale(command, capsys)
     with pytest.raises(SystemExit):
         cli_main([command, "--help"])
     out = capsys.readouterr().out
-    assert "--policy {full,constant,tsg,proximity,none,morph}" in out
+    assert "--policy {full,full-broadcast,constant,tsg,proximity,none,morph}" in out
     assert "--preset {reference,paper}" in out
     assert "--mode {lockstep,paced}" in out
     assert "--scale {tiny,small,medium,large,extralarge}" in out
@@ -36,7 +36,7 @@ def test_bench_distributed_help_lists_the_choices(capsys):
     with pytest.raises(SystemExit):
         cli_main(["bench", "distributed", "--help"])
     out = capsys.readouterr().out
-    assert "--policy {full,constant,tsg,proximity,none,morph}" in out and "--preset {reference,paper}" in out
+    assert "--policy {full,full-broadcast,constant,tsg,proximity,none,morph}" in out and "--preset {reference,paper}" in out
 
 
 def test_a_bad_choice_is_refused_naming_the_flag_and_the_choices(capsys):

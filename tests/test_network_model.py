@@ -219,3 +219,43 @@ def test_silence_stop_needs_an_outage_longer_than_it():
             assert silenced and min(silenced) >= event.time + stop - 1e-9 and max(silenced) < event.end
         else:
             assert silenced == []
+
+
+def test_link_rate_holds_through_the_labs_event_network():
+    """The lab's discrete-event network carries the profile's queues: at rate R a robot's link delivers at most R per
+    sim second, the rest waits (delivery later than sent) or is dropped when the queue is full."""
+    from morph_sim.lab.network import EventNetwork
+    from services.protocol.dispatch import Commitment
+
+    rate, offered, limit = 10.0, 50, 5
+    model = NetworkModel(quiet("lan", link_rate=Rate(rate=rate, limit=limit)), TINY, seed=0)
+    model.move(0, 0.0, (0, 0))
+    net = EventNetwork(model=model)
+    sends = [i / offered for i in range(offered * 10)]
+    for i, s in enumerate(sends):
+        net.send(net.keys.commit(0), 0, "sim", Commitment(0, 1, (0, 0), s, i), s, size=1)
+    per_second: dict[int, int] = {}
+    for t in range(1, 13):
+        for due, _, msg in net.until(float(t)):
+            assert due >= msg.sent_at
+            per_second[t - 1] = per_second.get(t - 1, 0) + 1
+    delivered = sum(per_second.values())
+    assert max(per_second.values()) <= rate
+    assert delivered >= rate * 10 - 1 and net.stats.dropped == len(sends) - delivered > 0
+    assert model.stats.lost["link_queue"] == net.stats.dropped
+
+
+def test_lab_episode_takes_a_profile_and_names_the_field_when_bad():
+    from morph_sim.lab.runner import EpisodeSpec, run_episode
+
+    with pytest.raises(ValueError, match=r"network\n.*unknown profile 'wifi'"):
+        EpisodeSpec(scale="tiny", condition="full", seed=1, network="wifi")
+    with pytest.raises(ValueError, match="network: network faults act on the dispatch protocol"):
+        run_episode(EpisodeSpec(scale="tiny", condition="full", seed=1, steps=5, dispatch="sequential",
+                                network="lan"))
+    s = run_episode(EpisodeSpec(scale="tiny", condition="full", seed=3, steps=120,
+                                network="wifi-legacy-roaming")).summary
+    assert s["network_handovers"] > 0 and s["network_lost_handover"] > 0 and s["network_stops"] > 0
+    again = run_episode(EpisodeSpec(scale="tiny", condition="full", seed=3, steps=120,
+                                    network="wifi-legacy-roaming")).summary
+    assert {k: v for k, v in s.items() if k != "wall_s"} == {k: v for k, v in again.items() if k != "wall_s"}

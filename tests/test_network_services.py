@@ -130,11 +130,12 @@ def test_cli_rejects_bad_network_values_with_one_line(capsys):
         assert len(lines) == 1 and "network" in lines[0] and expect in lines[0], lines
 
 
-def check_up_equals_run(tmp_path, scale: str, steps: int, profile: str = "wifi-legacy-roaming") -> None:
-    run_up_args = dict(scale=scale, policy="morph", preset="reference", steps=steps, seed=42)
+def check_up_equals_run(tmp_path, scale: str, steps: int, profile: str = "wifi-legacy-roaming",
+                        policy: str = "morph") -> None:
+    run_up_args = dict(scale=scale, policy=policy, preset="reference", steps=steps, seed=42)
     argv_extra = ["--network", profile]
     _run_up(tmp_path / "up", "eq", argv_extra, **run_up_args)
-    cfg = RunConfig(run_id="eq", scale=scale, policy="morph", preset="reference", steps=steps, seed=42,
+    cfg = RunConfig(run_id="eq", scale=scale, policy=policy, preset="reference", steps=steps, seed=42,
                     state_every=10, snapshot_every=50, output_dir=tmp_path / "local", network=profile)
     asyncio.run(run_local(cfg))
     up, local = tmp_path / "up" / "eq", tmp_path / "local" / "eq"
@@ -160,6 +161,12 @@ def _run_up(out, run_id, extra, *, scale, policy, preset, steps, seed, timeout=6
 
 def test_up_equals_run_under_legacy_roaming_tiny(tmp_path):
     check_up_equals_run(tmp_path, "tiny", 200)
+
+
+def test_up_equals_run_for_full_broadcast_under_legacy_roaming_tiny(tmp_path):
+    """The broadcast Full-Graph over Zenoh (one process per robot, several requests per AGV a tick) writes the
+    record the in-process run writes."""
+    check_up_equals_run(tmp_path, "tiny", 120, policy="full-broadcast")
 
 
 @pytest.mark.slow
@@ -223,3 +230,105 @@ def test_a_robot_silent_past_silence_stop_stays_where_it_is(legacy):
             assert pos[t + 1][robot] == pos[t][robot], (t, robot)
             held += 1
     assert held == run.sim.network_stops
+
+
+# -- the lab under the same profile ------------------------------------------------------------------------------------
+def _fate_log(monkeypatch):
+    """Every judgement of a protocol or fleet message the fault layers make: (send time, key, sender, receiver,
+    identity) -> delivered or lost."""
+    from morph_sim.lab.network import FLEET_KEY
+    from services.faults import layer as fault_layer
+
+    log: dict[tuple, bool] = {}
+    judge = fault_layer.FaultLayer.fate
+
+    def fate(self, key, sender, receiver, at=None, *, msg=None, size=0):
+        out = judge(self, key, sender, receiver, at, msg=msg, size=size)
+        rel = key.split("/", 2)[2]
+        if at is not None and receiver != "monitor" and (rel == FLEET_KEY or "/request/" in rel or "/reply/" in rel
+                                                          or rel.endswith("/commit") or "refusal" in rel):
+            log[(round(at, 6), rel, sender, receiver, msg)] = bool(out)
+        return out
+
+    monkeypatch.setattr(fault_layer.FaultLayer, "fate", fate)
+    return log
+
+
+def test_lab_judges_each_message_as_the_services_do(tmp_path, monkeypatch):
+    """The lab's event network asks the services' fault layer with the same message identities (publisher, sequence
+    number per key) and the same positions, so every radio draw is the services' one: both send the same messages
+    and lose the same ones, up to the first tick where their semantics part, if any (since the fleet broadcast is
+    its own message in both, none: tests below check the whole runs equal)."""
+    import math
+
+    from morph_sim.lab.network import FLEET_KEY, EventNetwork
+    from morph_sim.lab.runner import EpisodeSpec, run_episode
+    from services.faults.runtime import NETWORK_LATENCY
+
+    log = _fate_log(monkeypatch)
+    cfg = config(tmp_path, "wifi-legacy-roaming", run_id="judge", steps=60)
+    asyncio.run(run_local(cfg, record=False))
+    services = dict(log)
+    log.clear()
+    init = EventNetwork.__init__
+
+    def as_the_services(self, *a, **kw):  # the profile's delays count in the lab iff they count in the services
+        init(self, *a, **kw)
+        if self.layer is not None:
+            self.layer.network_latency = NETWORK_LATENCY
+
+    monkeypatch.setattr(EventNetwork, "__init__", as_the_services)
+    run_episode(EpisodeSpec(scale="tiny", condition="full", seed=cfg.seed, steps=cfg.steps,
+                            network="wifi-legacy-roaming"))
+    lab = dict(log)
+    # the runs part at the first message one of them sends and the other does not
+    first = min((k[0] for k in set(services) ^ set(lab)), default=math.inf)
+    assert first >= 10  # a stretch long enough to mean something
+    before = {k: v for k, v in services.items() if k[0] < first}
+    assert before == {k: v for k, v in lab.items() if k[0] < first}
+    assert sum(1 for k in before if k[1] != FLEET_KEY) > 20
+    # messages were lost on the way (hand-overs, dead zones, per-leg loss), fleet broadcasts among them: the draws
+    # agree
+    assert not all(v for k, v in before.items() if k[1] == FLEET_KEY)
+    assert not all(v for k, v in before.items() if k[1] != FLEET_KEY)
+
+
+def check_lab_equals_run(tmp_path, scale: str, steps: int, policy: str = "morph") -> None:
+    import numpy as np
+
+    from morph_sim.lab.runner import EpisodeSpec, run_episode
+
+    cfg = RunConfig(run_id="labeq", scale=scale, policy=policy, preset="reference", steps=steps, seed=42,
+                    state_every=10, snapshot_every=50, output_dir=tmp_path, network="wifi-legacy-roaming")
+    asyncio.run(run_local(cfg))
+    lab = run_episode(EpisodeSpec(scale=scale, condition=policy, seed=42, steps=steps,
+                                  network="wifi-legacy-roaming"))
+    with open(cfg.record_dir / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    np.testing.assert_array_equal([float(r["deliveries_total"]) for r in rows], lab.ticks["deliveries"])
+    np.testing.assert_array_equal([float(r["links"]) for r in rows], lab.ticks["links"])
+
+
+def test_lab_equals_run_under_legacy_roaming_tiny(tmp_path):
+    check_lab_equals_run(tmp_path, "tiny", 200)
+
+
+@pytest.mark.slow
+def test_lab_equals_run_under_legacy_roaming_medium(tmp_path):
+    check_lab_equals_run(tmp_path, "medium", 400)
+
+
+async def test_full_broadcast_under_legacy_roaming_is_reproducible_and_resolves_its_conflicts(tmp_path):
+    """The broadcast Full-Graph in the services under the Wi-Fi profile: every request to every free picker is a
+    real, faultable message; the sim applies one commitment per AGV and refuses the others; same record twice."""
+    runs = []
+    for run_id in ("fb1", "fb2"):
+        cfg = config(tmp_path / run_id, "wifi-legacy-roaming", run_id="fb", policy="full-broadcast", steps=150)
+        runs.append((cfg, await run_local(cfg)))
+    (a, first), (b, _) = runs
+    assert (a.record_dir / "metrics.csv").read_bytes() == (b.record_dir / "metrics.csv").read_bytes()
+    protocol = first.sim.protocol
+    assert protocol["refused_stale"] > 0 and first.sim.commits_applied > 0
+    summary = json.loads((a.record_dir / "summary.json").read_text())
+    # more requests than AGV decisions that asked: each asked several pickers at once
+    assert summary["messages"]["request"] > summary["messages"]["commit"]

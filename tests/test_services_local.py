@@ -66,6 +66,7 @@ async def test_local_run_is_deterministic(tmp_path):
 
 
 @pytest.mark.parametrize("policy,preset", [("morph", "reference"), ("morph", "paper"), ("full", "reference"),
+                                           ("full-broadcast", "reference"),
                                            ("tsg", "reference"), ("proximity", "reference"), ("none", "reference"),
                                            ("constant", "reference")])
 async def test_services_equal_the_lab(tmp_path, policy, preset):

@@ -220,8 +220,8 @@ def test_a_sweep_file_equals_the_same_grid_on_the_command_line(tmp_path, capsys)
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--grid", "policy=morph,bogus"], "policy: Input should be 'full', 'constant', 'tsg', 'proximity', 'none' or "
-                                       "'morph'"),
+    (["--grid", "policy=morph,bogus"], "policy: Input should be 'full', 'full-broadcast', 'constant', 'tsg', "
+                                       "'proximity', 'none' or 'morph'"),
     (["--grid", "scale=tiny,huge"], "scale: unknown size 'huge'"),
     (["--grid", "faults.loss=0,abc"], "faults.loss.percent: Input should be a valid number"),
     (["--grid", "faults.loss=0,150"], "faults.loss.percent: Input should be less than or equal to 100"),
@@ -257,7 +257,8 @@ def test_a_bad_value_from_a_real_process_is_one_line_and_exit_2(tmp_path):
     res = _cli("--grid", "policy=morph,bogus", "--out", str(tmp_path))
     assert res.returncode == 2 and res.stdout == ""
     assert res.stderr.strip().splitlines() == [
-        "morph-sim sweep: error: policy: Input should be 'full', 'constant', 'tsg', 'proximity', 'none' or 'morph'"]
+        "morph-sim sweep: error: policy: Input should be 'full', 'full-broadcast', 'constant', 'tsg', 'proximity', "
+        "'none' or 'morph'"]
 
 
 def test_a_record_of_another_sweep_is_not_resumed(tmp_path, capsys):
@@ -325,3 +326,14 @@ def test_progress_counts_every_episode_and_the_bar_ends_full(tmp_path, capsys):
     code, out, err = _main("--grid", "policy=tsg,full", "--seeds", "1-3", "--set", "steps=10", "--out", str(tmp_path),
                            "--run-id", "bar", "--jobs", "1", capsys=capsys)
     assert code == 0 and "6/6" in err and "sweep: 2 conditions × 3 seeds = 6 episodes" in err
+
+
+def test_lab_engine_sweeps_network_profiles_as_the_lab_episode():
+    """network is a lab field: each episode is run_episode with the profile (the services' radio model)."""
+    from morph_sim.lab.runner import run_episode
+
+    plan = SweepPlan.build(grid={"network": ["lan", "wifi-legacy-roaming"]}, seeds="3", base={"steps": 60,
+                                                                                              "policy": "full"})
+    specs = [plan.episode_spec(c, s) for c, s in plan.episodes()]
+    assert [s.network for s in specs] == ["lan", "wifi-legacy-roaming"]
+    assert run_episode(specs[1]).summary["network_handovers"] > 0

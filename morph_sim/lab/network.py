@@ -2,7 +2,11 @@
 
 :class:`EventNetwork` carries protocol messages between the robots and the sim: each message's fate (delays, loss,
 duplicate) comes from the fault layer's per-link decision (:meth:`FaultLayer.fate`, the one fault interface), and a
-message sent at sim time ``s`` with delay ``L`` is delivered at ``s + L`` exactly, never dropped for being late.
+message sent at sim time ``s`` with delay ``L`` is delivered at ``s + L`` exactly, never dropped for being late. A
+network profile (services/faults/network.py) sits under the fault specs exactly as in the services: the same
+:class:`FaultLayer` judges the radio legs first, with the same message identities (publisher, per-(publisher, key)
+sequence number), so every draw is the one the services' processes make, and the robots' positions reach the model
+from every Tick as they do there.
 
 :class:`LabDispatch` runs one step of the protocol on the pure core: the AGVs' gates at ``t·Δ``, the pickers'
 decisions at ``t·Δ + Δ/2``, the sim's commitments at ``(t+1)·Δ`` (services.protocol.dispatch.decision_points).
@@ -23,6 +27,7 @@ from schemas.faults import FaultSpec
 from schemas.keys import FLEET, RunKeys, matches
 from schemas.tick import TickObservation
 from services.faults.layer import FaultLayer
+from services.faults.network import NetworkModel
 from services.protocol.dispatch import (
     EPS,
     Commitment,
@@ -86,33 +91,59 @@ def wire_size(msg) -> int:
 
 class EventNetwork:
     """Messages in flight, delivered in (delivery time, send order). ``faults``: fault specs (schemas.faults) with
-    their scopes; none = a perfect network."""
+    their scopes; ``model``: the run's radio network (a network profile's :class:`NetworkModel`); neither = a perfect
+    network."""
 
-    def __init__(self, faults: Sequence[FaultSpec] = (), *, seed: int = 0, run: str = RUN):
+    def __init__(self, faults: Sequence[FaultSpec] = (), *, seed: int = 0, run: str = RUN,
+                 model: NetworkModel | None = None):
         self.keys = RunKeys(run)
         self.now = 0.0
         self.layer: FaultLayer | None = None
-        if faults:
+        self.model = model
+        if faults or model is not None:
             # one random stream per (fault, link, key), as every service process draws them
             self.layer = FaultLayer(run, base_seed=seed, clock=lambda: self.now, per_key=True)
+            self.layer.network = model
             for spec in faults:
                 self.layer.set(spec, at=0.0)
         self.faults = tuple(faults)
         self._heap: list[tuple[float, int, object, object]] = []
         self._order = itertools.count()
+        # a message's identity is (publisher, sequence number per (publisher, key)), numbered from 0 as a bus does
+        # (services/bus/base.py): the network model's draws are a function of it
+        self._seqs: dict[str, itertools.count] = {}
         self.stats = NetworkStats()
 
     def touches(self, rel_key: str) -> bool:
-        """Whether some fault's scope can apply to messages on ``rel_key``."""
-        return any(matches(f.scope.key_expr, rel_key) for f in self.faults)
+        """Whether some fault's scope, or the radio network, can apply to messages on ``rel_key``."""
+        return self.model is not None or any(matches(f.scope.key_expr, rel_key) for f in self.faults)
 
-    def send(self, key: str, sender, receiver, msg, at: float) -> None:
-        fate = self.layer.fate(key, sender, receiver) if self.layer is not None else [0.0]
+    def observe(self, obs: TickObservation, dt: float) -> list:
+        """The sim's Tick of ``obs`` goes out: the radio model learns where the robots are (from ``(t+1)·Δ`` on, as
+        every process of the services does with every Tick); returns the hand-overs it caused."""
+        if self.model is None:
+            return []
+        return self.model.observe_tick(obs.t, dt, obs.cells.tolist())
+
+    def send(self, key: str, sender, receiver, msg, at: float, *, seq: int | None = None, size: int | None = None
+             ) -> None:
+        """Send ``msg`` from ``sender`` to ``receiver`` on ``key`` at sim time ``at``. ``seq``: the message's sequence
+        number when one publication reaches several receivers (a Tick: its t); default the next on (sender, key).
+        ``size``: bytes on the wire (default: the protocol message's encoded size)."""
+        if seq is None:
+            counter = self._seqs.get(key)
+            if counter is None:
+                counter = self._seqs[key] = itertools.count()
+            seq = next(counter)
         if isinstance(msg, FleetBroadcast):
             self.stats.broadcasts += 1
+            size = size or 0
         else:
             self.stats.sent += 1
-            self.stats.bytes += wire_size(msg)
+            size = wire_size(msg) if size is None else size
+            self.stats.bytes += size
+        fate = (self.layer.fate(key, sender, receiver, at, msg=(sender, seq), size=size)
+                if self.layer is not None else [0.0])
         if not fate:
             self.stats.dropped += 1
         for delay in fate:
@@ -224,12 +255,14 @@ class LabDispatch:
     def learn(self, obs: TickObservation) -> None:
         """Tick start: the fleet broadcast goes out, what is due arrives, every agent learns from its view."""
         s = obs.t * self.dt
+        self.net.observe(obs, self.dt)
         if self.agent_brains is None:
             self._deliver(s)
             self.team_brain.learn(obs)
             return
-        for agent in range(self.n):
-            self.net.send(self.keys.fleet, "sim", agent, FleetBroadcast(obs, s), s)
+        size = self._tick_size(obs)
+        for agent in range(self.n):  # one publication: one sequence number (its t), a copy per receiver
+            self.net.send(self.keys.fleet, "sim", agent, FleetBroadcast(obs, s), s, seq=obs.t, size=size)
         self._deliver(s)
         ages = []
         for brain, view in zip(self.agent_brains, self.views):
@@ -240,6 +273,16 @@ class LabDispatch:
         mean, top = view_age_stats(ages)
         self.view_ages.append(float("nan") if mean is None else mean)
         self.view_age_max.append(float("nan") if top is None else top)
+
+    def _tick_size(self, obs: TickObservation) -> int:
+        """The Tick's bytes on the wire, for a profile's rate limits (its observation fields; the services' Tick also
+        carries the world's fields, so this is a lower bound there); 0 when no queue counts bytes."""
+        model = self.net.model
+        if model is None or (model.profile.link_rate is None and model.profile.ap_rate is None):
+            return 0
+        from schemas.tick import encode_tick_body, tick_fields
+
+        return len(encode_tick_body(tick_fields(obs, obs.t * self.dt)))
 
     def _gating(self, agv: int, obs: TickObservation):
         """(brain, view) an AGV gates with: its fleet view, with its own cell and target from on board."""
@@ -279,9 +322,9 @@ class LabDispatch:
             if g.picker < 0:
                 continue
             count.count(g.ask, g.p)
-            if g.ask:
-                req = endpoint.request(g.picker, obs.target[agv], s_agv, out)
-                net.send(k.request(agv, g.picker), agv, g.picker, req, s_agv)
+            for picker in g.targets:  # one, or every free picker of the view for a broadcasting policy
+                req = endpoint.request(picker, obs.target[agv], s_agv, out)
+                net.send(k.request(agv, picker), agv, picker, req, s_agv)
         self._deliver(s_pick)
         self.sent_commits = []
         for picker, endpoint in ep.pickers.items():

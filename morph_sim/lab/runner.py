@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from schemas.faults import FaultSpec
 from schemas.tick import TickObservation
@@ -59,6 +59,7 @@ CONDITIONS: dict[str, tuple[str, str, str | None]] = {
     "no_neuromod": ("v2 − neuromod", "morph", "no_neuromod"),
     "morph": ("MORPH", "morph", None),
     "full": ("Full-Graph", "full", None),
+    "full-broadcast": ("Full-Graph (broadcast)", "full-broadcast", None),
     "constant": ("Constant 0.25", "constant", None),
     "reset_at_boundary": ("MORPH-reset", "morph", "reset_at_boundary"),
 }
@@ -123,6 +124,21 @@ class EpisodeSpec(BaseModel):
     faults: tuple[FaultSpec, ...] = ()
     #: an AGV's request timeout, sim seconds (RunConfig.request_timeout)
     request_timeout: float = Field(default=DEFAULT_REQUEST_TIMEOUT, gt=0.0)
+    #: network profile (a name in morph_sim/presets/network/ or a .toml path; docs/faults.md): the services' radio
+    #: model (hand-overs, dead zones, queues) under the fault specs, with the robots' positions of every tick
+    network: str | None = None
+
+    @field_validator("network")
+    @classmethod
+    def _network(cls, value: str | None) -> str | None:
+        if value is not None:
+            from schemas.network import load_profile
+
+            try:
+                load_profile(value)
+            except ValueError as exc:
+                raise ValueError(str(exc).removeprefix("network: ")) from None
+        return value
 
     @model_validator(mode="after")
     def _phases_fill_episode(self) -> EpisodeSpec:
@@ -245,8 +261,9 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
     shared = cta.shared_rng if spec.shared_stream else None
     faults = episode_faults(spec)
     driver: LabDispatch | None = None
+    model = _network_model(spec, wh)
     if spec.dispatch == "concurrent":
-        net = EventNetwork(faults, seed=spec.seed)
+        net = EventNetwork(faults, seed=spec.seed, model=model)
         if net.touches(FLEET_KEY):
             # the fleet broadcast can be late or lost: every agent learns and gates from its own view
             agent_brains = [policy.brains(fleet, [i], spec.seed) for i in range(n)]
@@ -258,9 +275,10 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
             driver = LabDispatch(fleet.n_agvs, fleet.n_pickers, dt=DT, timeout=spec.request_timeout, network=net,
                                  team_brain=brains)
     else:
-        if faults:
-            raise ValueError("loss_percent/faults: network faults act on the dispatch protocol (concurrent dispatch);"
-                             " the reference's sequential switch has no messages to fault")
+        if faults or model is not None:
+            field = "loss_percent/faults" if faults else "network"
+            raise ValueError(f"{field}: network faults act on the dispatch protocol (concurrent dispatch); the "
+                             "reference's sequential switch has no messages to fault")
         brains = policy.brains(fleet, range(n), spec.seed)
     if shared is not None:
         draw = lambda agv: float(shared.random_sample())  # noqa: E731 - the reference's one stream
@@ -280,6 +298,7 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
     }
     dist_sum = np.zeros((n, n))
     committed = 0
+    network_stops = 0
 
     def record(step: int) -> None:
         A = brains.team_links()
@@ -291,7 +310,7 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
             cols["mean_w_links"][step] = float(W[on].mean()) if on.any() else 0.0
             tracker.update(A, step)
         else:
-            cols["mean_w_links"][step] = 1.0 if policy.name == "full" else 0.0
+            cols["mean_w_links"][step] = 1.0 if policy.name in ("full", "full-broadcast") else 0.0
         if step % spec.fiedler_every == 0:
             cols["fiedler_ref"][step] = metrics.reference_normalized_fiedler(A)
             cols["alg_conn"][step] = metrics.algebraic_connectivity(A)
@@ -343,6 +362,11 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
             stats.divergent_ticks += _dedupe_cells(obs, commits) != _dedupe_cells(obs, other)
             applied = cta.commit(commits)
         committed += len(applied)
+        if model is not None and model.profile.silence_stop is not None:
+            # as the sim service: a robot whose radio has been silent for silence_stop at the step's start (a
+            # hand-over outage) stands still for the step
+            cta.held = model.silenced(t * DT, model.profile.silence_stop)
+            network_stops += len(cta.held)
         cta.finish_tick()
         cols["deliveries"][t] = cta.deliveries
         cols["dispatched"][t] = stats.dispatched  # gate successes (requests sent)
@@ -389,6 +413,7 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
         "divergent_dispatch_ticks": stats.divergent_ticks,
         **({f"protocol_{k}": v for k, v in driver.outcomes.as_dict().items()} if driver is not None else {}),
         **(_network_summary(driver) if driver is not None else {}),
+        **(_radio_summary(model, network_stops) if model is not None else {}),
         **catalogue.w_block_values(blocks),
         "w_asymmetry": float(np.abs(W - W.T).max()),
     }
@@ -420,6 +445,24 @@ def _network_summary(driver: LabDispatch) -> dict:
         finite = [a for a in driver.view_age_max if np.isfinite(a)]
         out["view_age_max"] = float(max(finite)) if finite else float("nan")
     return out
+
+
+def _network_model(spec: EpisodeSpec, wh: Warehouse):
+    """The episode's radio network (the services' model, seeded with the run's seed as theirs), or None."""
+    if spec.network is None:
+        return None
+    from schemas.network import load_profile
+    from services.faults.network import NetworkModel
+    from services.sim.world.layout import LayoutConfig, layout_for
+
+    return NetworkModel(load_profile(spec.network), layout_for(LayoutConfig.named(spec.scale)), seed=spec.seed)
+
+
+def _radio_summary(model, network_stops: int) -> dict:
+    st = model.stats
+    return {"network_handovers": st.handovers, "network_outage_seconds": st.outage_seconds,
+            "network_stops": network_stops,
+            **{f"network_lost_{cause}": n for cause, n in st.lost.items()}}
 
 
 def _rules(policy: MorphPolicy) -> str:

@@ -52,7 +52,7 @@ ENGINES = ("lab", "services")
 METRICS = ("deliveries", "mean_links", "committed", "dispatch_decisions", "mean_p_respond", "median_lifetime",
            "eta_mean")
 #: RunConfig fields the lab engine models; others change nothing on the pure core and are refused there
-LAB_FIELDS = ("scale", "policy", "preset", "ablation", "radius", "seed", "steps")
+LAB_FIELDS = ("scale", "policy", "preset", "ablation", "radius", "seed", "steps", "network")
 #: fields the sweep sets itself (per episode or per sweep)
 MANAGED_FIELDS = ("run_id", "seed", "output_dir", "fault_schedule", "endpoint", "listen")
 PARQUET_HINT = "pip install pyarrow (or 'morph-sim[data]') for results.parquet"
@@ -293,7 +293,8 @@ class SweepPlan(BaseModel):
                                  "use --engine services")
         return EpisodeSpec(scale=cfg.scale, condition=lab_condition, seed=seed, steps=cfg.steps, preset=cfg.preset,
                            radius=cfg.radius if lab_condition == "proximity" else None,
-                           fiedler_every=min(self.fiedler_every, cfg.steps), loss_percent=loss)
+                           fiedler_every=min(self.fiedler_every, cfg.steps), loss_percent=loss,
+                           network=cfg.network)
 
 
 # -- running one episode (module level: it is pickled to worker processes and Dask workers) ------------------------

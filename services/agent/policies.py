@@ -57,6 +57,8 @@ class Coordinator(ABC):
     #: whether links are recomputed from the current tick (no memory): then the links of step t are
     #: known after ``learn(obs_t)``; for plastic policies they are known after ``learn(obs_{t+1})``
     memoryless: ClassVar[bool] = True
+    #: whether an AGV asks every free picker at once (services.protocol.dispatch.gate) instead of one
+    broadcast: ClassVar[bool] = False
 
     def __init__(self, fleet: Fleet, owners, seed: int) -> None:
         self.fleet = fleet
@@ -123,6 +125,8 @@ class CoordinationPolicy(ABC):
     """A named coordination policy; ``brains`` builds the per-agent state."""
 
     name: str = ""
+    #: its AGVs send a request to every free picker at once (the sim then takes several requests per AGV a tick)
+    broadcast: ClassVar[bool] = False
 
     @abstractmethod
     def brains(self, fleet: Fleet, owners, seed: int) -> Coordinator: ...
@@ -145,6 +149,13 @@ class _FullBrains(Coordinator):
         rows = np.ones((len(self.owners), self.fleet.n))
         rows[np.arange(len(self.owners)), self.owners] = 0.0
         return rows
+
+
+class _BroadcastBrains(_FullBrains):
+    """All-to-all as the paper means it: every AGV that needs a picker asks every free picker it knows of at once;
+    several may accept, the sim applies one commitment and refuses the rest (services/protocol/dispatch.py)."""
+
+    broadcast = True
 
 
 class _NoneBrains(Coordinator):
@@ -238,6 +249,13 @@ class _SimplePolicy(CoordinationPolicy):
 class FullPolicy(_SimplePolicy):
     name: str = "full"
     BRAINS: ClassVar[type[Coordinator]] = _FullBrains
+
+
+@dataclass(frozen=True)
+class BroadcastPolicy(_SimplePolicy):
+    name: str = "full-broadcast"
+    broadcast: ClassVar[bool] = True
+    BRAINS: ClassVar[type[Coordinator]] = _BroadcastBrains
 
 
 @dataclass(frozen=True)
@@ -492,6 +510,7 @@ class MorphPolicy(CoordinationPolicy):
 #: MORPH_POLICY), the lab's conditions and this factory read.
 POLICIES: dict[str, type[CoordinationPolicy]] = {
     "full": FullPolicy,
+    "full-broadcast": BroadcastPolicy,
     "constant": ConstantPolicy,
     "tsg": TSGPolicy,
     "proximity": ProximityPolicy,

@@ -417,15 +417,16 @@ class AgentService:
                 cell, target = (ob.x, ob.y), (ob.target_x, ob.target_y)
                 g = protocol.gate(self.brains, self.id, protocol.with_own_state(self.fleet.view, self.id, cell, target))
                 if g.ask:
-                    req = self.endpoint.request(g.picker, target, now, self.outcomes)
+                    reqs = [self.endpoint.request(p, target, now, self.outcomes) for p in g.targets]
                     self._reply_base = (t, ob.replied)
                     self._reply_arrivals = {s: n for s, n in self._reply_arrivals.items() if s >= t}
-                    tx, ty = req.cell
-                    self.bus.put(self.keys.request(self.id, g.picker), encode_fields(
-                        HelpRequest, t=t, agv=self.id, picker=g.picker, target_x=tx, target_y=ty,
-                        mission=ob.mission, seq=req.seq))
-                    self.counters.requests += 1
-                    asked.append(g.picker)
+                    for req in reqs:  # one (a broadcasting policy: one per free picker it knows of)
+                        tx, ty = req.cell
+                        self.bus.put(self.keys.request(self.id, req.picker), encode_fields(
+                            HelpRequest, t=t, agv=self.id, picker=req.picker, target_x=tx, target_y=ty,
+                            mission=ob.mission, seq=req.seq))
+                        self.counters.requests += 1
+                        asked.append(req.picker)
         eta = float(self.brains.state.eta) if isinstance(self.brains, MorphBrains) else None
         publish_state = t % self.config.state_every == 0 or final
         # encoded from plain values (no model round trip: the hot path, codec.encode_fields)

@@ -181,6 +181,11 @@ class FaultLayer:
         # the run's network profile (services/faults/network.py), judged before the fault specs in virtual time; it
         # learns where the robots are from every Tick of the sim this layer sees (sent or received)
         self.network: NetworkModel | None = None
+        # whether the network's delays (legs' latency, queueing, a delayed hand-over) count, or only its losses: the
+        # services' fault runtimes turn it off while their Tick is both the fleet broadcast and the tick's
+        # synchronisation (any latency on it makes the agent skip the tick, so a profile's milliseconds of Wi-Fi
+        # latency would silence every robot); the lab, whose fleet broadcast is its own message, counts them
+        self.network_latency = True
         self.on_handover: Callable[[HandoverEvent], None] | None = None
         # the fleet broadcast reaches every robot physically whatever its fate: it says where the robots are
         self._tick_key = self.keys.fleet
@@ -302,13 +307,12 @@ class FaultLayer:
             if net.delivered_at is None:
                 self.stats.dropped += 1
                 return []
-            delay = net.delivered_at - at
+            delay = net.delivered_at - at if self.network_latency else 0.0
         if at is None:
             faults: list[ActiveFault] = list(self._faults.values())
         else:
             faults = sorted((f for f in (*self._history, *self._faults.values()) if f.window_has(at)),
                             key=lambda f: f.serial)
-        delay = 0.0
         copies = 1
         for fault in faults:
             if not fault.applies(rel, sender, receiver):

@@ -41,6 +41,12 @@ from services.faults.schedule import FaultSchedule
 log = logging.getLogger("morph_sim.faults")
 
 FAULT_TIMES = ("virtual", "wall")
+#: whether the services count a network profile's delays or only its losses (FaultLayer.network_latency). They count
+#: both: the fleet state is its own broadcast (``sim/fleet``) and a late one only leaves a robot with an older view,
+#: while its decision point comes on board (docs/decisions.md, "What a robot knows on board and what it hears"), so
+#: the lab and the services judge the radio alike. (While the Tick was also the barrier, any latency on it made the
+#: agent skip the tick, and a profile's milliseconds of Wi-Fi latency would have silenced every robot.)
+NETWORK_LATENCY = True
 
 
 class FaultRuntime:
@@ -134,6 +140,7 @@ class FaultRuntime:
             layer.before_fate = self._catch_up
         if self.network is not None:
             layer.network = self.network
+            layer.network_latency = NETWORK_LATENCY
             if self.events and not any(x.network is self.network for x in self.layers):
                 layer.on_handover = self._on_handover  # reported once per process: by the run record's owner
         install(bus, layer)

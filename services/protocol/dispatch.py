@@ -119,16 +119,26 @@ class Gate:
     picker: int  # the candidate, -1 if none is free
     p: float  # P(respond) of the policy for that pair
     ask: bool
+    also: tuple[int, ...] = ()  # a broadcasting policy asks these pickers too, in the same decision point
+
+    @property
+    def targets(self) -> tuple[int, ...]:
+        """Every picker this AGV sends a request to now (none if it does not ask)."""
+        return (self.picker, *self.also) if self.ask else ()
 
 
 def gate(coordinator, agv: int, view, draw: Callable[[], float] | None = None, free=None) -> Gate:
     """AGV ``agv``'s gate over its fleet ``view`` (a TickObservation): the policy's candidate picker, its
     probability, and whether to ask. Policies that draw consume one uniform from ``draw`` (default: the agent's own
     stream) per candidate; the others ask iff P = 1, as in the reference. ``free`` overrides the view's free pickers
-    (the reference's sequential dispatch removes those taken earlier in the step)."""
+    (the reference's sequential dispatch removes those taken earlier in the step). A broadcasting policy
+    (``coordinator.broadcast``: all-to-all, the paper's Full-Graph) asks every free picker of the view at once,
+    nearest first; the desk resolves the conflict (:class:`CommitmentDesk`)."""
     picker = coordinator.candidate(agv, view, free)
     if picker < 0:
         return Gate(-1, 0.0, False)
+    if getattr(coordinator, "broadcast", False):
+        return Gate(picker, 1.0, True, tuple(p for p in free_pickers(view, agv, free) if p != picker))
     p = coordinator.probability(agv, picker, view)
     if not coordinator.draws:
         return Gate(picker, p, p >= 1.0)
@@ -136,54 +146,73 @@ def gate(coordinator, agv: int, view, draw: Callable[[], float] | None = None, f
     return Gate(picker, p, u < p)
 
 
+def free_pickers(view, agv: int, free=None) -> list[int]:
+    """The free pickers of ``view`` (``free`` overrides), nearest (Manhattan) to ``agv``'s target first; ties to the
+    lowest id, as the nearest-picker rule."""
+    free = view.free_picker if free is None else free
+    pickers = [int(p) for p in free.nonzero()[0]]
+    tx, ty = int(view.target[agv][0]), int(view.target[agv][1])
+    cells = view.cells
+    return sorted(pickers, key=lambda p: (abs(int(cells[p][0]) - tx) + abs(int(cells[p][1]) - ty), p))
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # endpoints
 # ---------------------------------------------------------------------------------------------------------------
 class AgvEndpoint:
-    """One AGV's side: at most one request outstanding, answered, refused or expired."""
+    """One AGV's side: its requests outstanding (one per picker asked: one, or every free picker when it broadcasts),
+    each answered, refused or expired."""
 
     def __init__(self, agv: int, timeout: float = DEFAULT_REQUEST_TIMEOUT, next_seq: Callable[[], int] | None = None):
         self.agv = agv
         self.timeout = float(timeout)
-        self.outstanding: Request | None = None
-        self.accepted = False  # the outstanding request was accepted: its commitment is on its way
+        self.asked: dict[int, Request] = {}  # picker -> the request outstanding to it
+        self.accepted: set[int] = set()  # pickers that accepted: their commitments are on their way
         self._seq = 0
         self._next_seq = next_seq  # a service numbers all its messages in one sequence
 
+    @property
+    def outstanding(self) -> Request | None:
+        """A request still outstanding (the first sent), or None."""
+        return next(iter(self.asked.values()), None)
+
     def receive(self, msg: Reply | Refusal, outcomes: Outcomes) -> None:
         """A reply or refusal delivered to this AGV (takes effect at once: it only frees the AGV to ask again)."""
-        out = self.outstanding
-        if out is None or msg.picker != out.picker:
+        out = self.asked.get(msg.picker)
+        if out is None:
             return  # the answer to an earlier request, already given up
         if isinstance(msg, Reply):
             if msg.request_seq and msg.request_seq != out.seq:
                 return
             if msg.accepted:
-                self.accepted = True
+                self.accepted.add(msg.picker)
             else:
-                self.outstanding = None
+                del self.asked[msg.picker]
         elif isinstance(msg, Refusal):
-            self.outstanding = None
+            del self.asked[msg.picker]
+            self.accepted.discard(msg.picker)
 
     def may_ask(self, now: float, needs_picker: bool, outcomes: Outcomes) -> bool:
         """At this AGV's decision point: whether it may send a request, given its on-board state.
 
         A mission that no longer needs a picker (one was assigned, or the mission moved on) ends the outstanding
-        request; one unanswered for ``timeout`` expires and is counted."""
-        out = self.outstanding
-        if out is not None:
+        requests; one unanswered for ``timeout`` expires and is counted."""
+        if self.asked:
             if not needs_picker:
-                self.outstanding = None
-            elif now - out.sent_at >= self.timeout - EPS:
-                outcomes.expired += 1
-                self.outstanding = None
-        return needs_picker and self.outstanding is None
+                self.asked.clear()
+                self.accepted.clear()
+            else:
+                for picker, req in list(self.asked.items()):
+                    if now - req.sent_at >= self.timeout - EPS:
+                        outcomes.expired += 1
+                        del self.asked[picker]
+                        self.accepted.discard(picker)
+        return needs_picker and not self.asked
 
     def request(self, picker: int, cell: tuple[int, int], now: float, outcomes: Outcomes) -> Request:
         self._seq = self._next_seq() if self._next_seq is not None else self._seq + 1
         req = Request(self.agv, picker, (int(cell[0]), int(cell[1])), now, self._seq)
-        self.outstanding = req
-        self.accepted = False
+        self.asked[picker] = req
         outcomes.requests += 1
         return req
 

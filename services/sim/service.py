@@ -220,6 +220,7 @@ class SimService:
         # the dispatch protocol's sim side (services/protocol): commitments delivered and not yet applied
         self.outcomes = protocol.Outcomes()
         self.desk = protocol.CommitmentDesk(config.dt)
+        self._broadcast = config.make_policy().broadcast  # its AGVs ask several pickers in one tick
         self._desk_lock = threading.Lock()
         self._more: set[int] = set()  # pickers that asked for the next decision point (requests still to come)
         self._replied = [0] * config.n_agvs  # replies sent to each AGV so far (each Tick tells the AGVs)
@@ -371,7 +372,8 @@ class SimService:
             if ph.phase == Phase.TICK:
                 asked = [p for p in msg.requests_sent if self.config.n_agvs <= p < self.n]
                 if msg.agent < self.config.n_agvs and asked:
-                    self._requests[msg.agent] = asked[:1]  # one request per AGV per tick
+                    # one request per AGV per tick; a broadcasting policy's AGV asks each picker once
+                    self._requests[msg.agent] = list(dict.fromkeys(asked)) if self._broadcast else asked[:1]
             else:
                 if msg.more:
                     self._more.add(msg.agent)
