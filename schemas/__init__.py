@@ -3,12 +3,42 @@
 from schemas.base import DecodeError, Message
 from schemas.codec import decode, encode, register_upgrade, to_payload
 from schemas.faults import (
-    Crash, Distribution, Duplicate, FaultSpec, Latency, Loss, LossModel, Partition, PartitionDirection, Reorder, Scope,
+    Crash,
+    Distribution,
+    Duplicate,
+    FaultSpec,
+    Latency,
+    Loss,
+    LossModel,
+    Partition,
+    PartitionDirection,
+    Reorder,
+    Scope,
 )
 from schemas.keys import RunKeys, intersects, matches, validate_key_expr, validate_run_id
 from schemas.messages import (
-    MESSAGE_TYPES, MESSAGES, Ack, AgentState, Commit, Event, FaultCommand, FaultReply, Heading, HelpReply, HelpRequest,
-    MetricSample, MissionType, OnBoard, Phase, Refusal, RegistrationReply, RegistrationRequest, Resolve, Role, Stop, Tick,
+    MESSAGE_TYPES,
+    MESSAGES,
+    Ack,
+    AgentState,
+    Commit,
+    Event,
+    FaultCommand,
+    FaultReply,
+    Heading,
+    HelpReply,
+    HelpRequest,
+    MetricSample,
+    MissionType,
+    OnBoard,
+    Phase,
+    Refusal,
+    RegistrationReply,
+    RegistrationRequest,
+    Resolve,
+    Role,
+    Stop,
+    Tick,
 )
 
 __all__ = [

@@ -15,7 +15,16 @@ from pydantic_core import PydanticCustomError
 from schemas.base import Message
 from schemas.faults import FaultOp, FaultSpec
 from schemas.fields import (
-    Coord, Finite, Heading, MissionType, OptCoord, RobotId, Seq, SimTime, TickNo, length_mismatch,
+    Coord,
+    Finite,
+    Heading,
+    MissionType,
+    OptCoord,
+    RobotId,
+    Seq,
+    SimTime,
+    TickNo,
+    length_mismatch,
 )
 from schemas.keys import check_chunk
 from schemas.tick import Tick

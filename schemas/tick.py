@@ -60,7 +60,16 @@ from pydantic_core import PydanticCustomError
 from schemas.base import DecodeError, Message
 from schemas.codec import KIND_FIELD, VERSION_FIELD, decode, unpack_envelope
 from schemas.fields import (
-    MAX_ROBOTS, Coord, Finite, MissionType, OptCoord, OptRobotId, RobotId, SimTime, TickNo, length_mismatch,
+    MAX_ROBOTS,
+    Coord,
+    Finite,
+    MissionType,
+    OptCoord,
+    OptRobotId,
+    RobotId,
+    SimTime,
+    TickNo,
+    length_mismatch,
     robot_id_out_of_range,
 )
 

@@ -10,7 +10,8 @@ import pytest
 from schemas import Duplicate, FaultSpec, Latency, Loss, Partition, RunKeys, Scope
 from schemas.faults import Crash, Reorder
 from services.bus import LocalNetwork
-from services.faults.layer import FaultLayer, latency_quantile, pareto_params
+from services.faults.distributions import latency_quantile, pareto_params
+from services.faults.layer import FaultLayer
 
 from _procs import until
 

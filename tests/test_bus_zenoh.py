@@ -20,7 +20,12 @@ import pytest
 from schemas import Ack, RunKeys
 from services.bus import LivelinessEvent, wait_for_alive
 from services.bus.zenoh_bus import (
-    RUNTIME_SINGLE_THREAD, ZenohBus, configure_runtime_env, endpoint, free_port, open_endpoint_bus,
+    RUNTIME_SINGLE_THREAD,
+    ZenohBus,
+    configure_runtime_env,
+    endpoint,
+    free_port,
+    open_endpoint_bus,
 )
 
 K = RunKeys("zt")
@@ -219,7 +224,7 @@ def test_barrier_bench_smoke() -> None:
 
 @pytest.mark.parametrize("droppable", [False, True])
 async def test_a_default_settings_client_receives_every_sample_through_the_endpoint(droppable: bool) -> None:
-    """Issue 6: a user's Zenoh client with default settings (no lowlatency) joins a run through its endpoint and
+    """A user's Zenoh client with default settings (no lowlatency) joins a run through its endpoint and
     subscribes to streams one of our sessions publishes, one of which the endpoint's own session consumes too (as the
     sim consumes acks). With express publishers on our lowlatency sessions that client got 0-3 of 120 samples
     (zenoh 1.10.2); every sample must arrive."""

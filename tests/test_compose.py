@@ -15,8 +15,8 @@ import time
 from pathlib import Path
 
 import pytest
-
 from _compose import defaults_of, interpolate, load
+
 from morph_sim.cli import build_parser
 from services import envconfig
 from services.runconfig import RunConfig, config_from_args

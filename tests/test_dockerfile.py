@@ -14,8 +14,8 @@ import sysconfig
 import zipfile
 from pathlib import Path
 
-
 from _compose import interpolate, load
+
 from morph_sim.cli import build_parser
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -16,7 +16,6 @@ from services.monitor.recorder import read_metrics, read_snapshots
 from services.runconfig import RunConfig
 from services.supervisor.local import run_local
 
-
 POLICIES = [("full", "reference"), ("tsg", "reference"), ("proximity", "reference"), ("morph", "reference"),
             ("morph", "paper")]
 

@@ -14,10 +14,10 @@ from morph_sim.commands import faults as faults_cmd
 from schemas import Event, FaultCommand, FaultReply, FaultSpec, Latency, Loss, Partition, RunKeys
 from schemas.faults import Crash, Scope
 from services.bus import LocalNetwork
-from services.faults.layer import FaultLayer, install
-from services.faults.vtime import VirtualTime
 from services.faults.controller import FaultController
+from services.faults.layer import FaultLayer, install
 from services.faults.schedule import load_schedule, parse_schedule
+from services.faults.vtime import VirtualTime
 
 RUN = "fc"
 K = RunKeys(RUN)

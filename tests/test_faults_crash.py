@@ -8,7 +8,6 @@ import signal
 import subprocess
 import sys
 
-
 from schemas import FaultCommand, FaultSpec
 from schemas.faults import Crash
 from services.bus import LocalNetwork

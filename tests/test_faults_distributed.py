@@ -18,13 +18,12 @@ from pathlib import Path
 
 from schemas import FaultSpec, Loss, RunKeys, Scope
 from services.faults.layer import FaultLayer
-from services.faults.vtime import VirtualTime
 from services.faults.runtime import FaultRuntime
+from services.faults.vtime import VirtualTime
 from services.monitor.recorder import read_metrics
 from services.runconfig import RunConfig
 from services.supervisor.graph import process_graph
 from services.supervisor.local import run_local
-
 
 STEPS = 150
 # loss + latency on every agent key (help requests, commits, replies; acks are synchronisation and exempt), and on

@@ -10,8 +10,8 @@ import time
 
 from schemas import FaultCommand, FaultSpec, Latency, Loss, RunKeys, Scope
 from services.bus import LocalNetwork
-from services.faults.vtime import boundaries
 from services.faults.runtime import FaultRuntime
+from services.faults.vtime import boundaries
 
 RUN = "ls"
 K = RunKeys(RUN)

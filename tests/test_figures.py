@@ -18,10 +18,15 @@ matplotlib.use("Agg")
 
 from services.monitor.report import Record, load, write_report  # noqa: E402
 from services.runconfig import RunConfig  # noqa: E402
-from services.supervisor.local import run_local  # noqa: E402
 from services.sim.world.render import (  # noqa: E402
-    COLORS, RECORD_LEGEND, WAREHOUSE_LEGEND, Frame, image_size, render_frame,
+    COLORS,
+    RECORD_LEGEND,
+    WAREHOUSE_LEGEND,
+    Frame,
+    image_size,
+    render_frame,
 )
+from services.supervisor.local import run_local  # noqa: E402
 
 
 @pytest.fixture

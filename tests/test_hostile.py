@@ -31,6 +31,7 @@ from services.runconfig import RunConfig
 from services.sim.service import make_controller, world_fields
 from services.supervisor.local import run_local
 
+# isort: split
 import zenoh  # noqa: E402  (after zenoh_bus set the runtime environment)
 
 from _procs import kill_tree

@@ -16,11 +16,19 @@ import pytest
 from schemas import Ack, Commit, DecodeError, HelpReply, HelpRequest, Phase, Tick, decode
 from schemas.codec import encode_fields
 from schemas.tick import (
-    FLAG_ROWS, INT_ROWS, TickArrays, arrays_from_tick, decode_tick, encode_tick_body, observation_from_arrays,
-    observation_from_tick, tick_fields, tick_from_observation,
+    FLAG_ROWS,
+    INT_ROWS,
+    TickArrays,
+    arrays_from_tick,
+    decode_tick,
+    encode_tick_body,
+    observation_from_arrays,
+    observation_from_tick,
+    tick_fields,
+    tick_from_observation,
 )
-from services.sim.service import make_controller, world_fields
 from services.runconfig import RunConfig
+from services.sim.service import make_controller, world_fields
 
 
 def _ticks(steps: int = 40) -> list[tuple[object, dict]]:

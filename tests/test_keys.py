@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from schemas.keys import (
-    RunKeys, intersects, matches, validate_key, validate_key_expr, validate_run_id,
+    RunKeys,
+    intersects,
+    matches,
+    validate_key,
+    validate_key_expr,
+    validate_run_id,
 )
 
 MATCH_TABLE = [

@@ -17,13 +17,13 @@ import sys
 import time
 
 import pytest
+from test_long_run import END_LAG, MONITOR_RSS_BOUND
 
 from services.bus.zenoh_bus import free_port
-from services.monitor.recorder import read_metrics
 from services.monitor.catalogue import CATALOGUE
+from services.monitor.recorder import read_metrics
 
 from _procs import kill_tree, sample_rss, wait_for_port
-from test_long_run import END_LAG, MONITOR_RSS_BOUND
 
 # A default-settings client (a user's script): per one-second window, the streams seen; the last deliveries_total.
 SUBSCRIBER = r'''

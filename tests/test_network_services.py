@@ -21,7 +21,6 @@ from services.sim.world.layout import LayoutConfig, layout_for
 from services.supervisor.local import run_local
 
 
-
 def config(tmp_path, network: str | None, run_id: str = "net", **kw) -> RunConfig:
     values = dict(run_id=run_id, scale="tiny", policy="full", seed=3, steps=120, state_every=10,
                   snapshot_every=50, output_dir=tmp_path / run_id, network=network)

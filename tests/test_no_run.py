@@ -34,13 +34,21 @@ def _one_error_line(argv: list[str], text: str) -> str:
 
 async def test_commands_against_an_endpoint_where_nothing_listens(tmp_path):
     where = endpoint(free_port())
-    results = await asyncio.gather(*(_run([*(a.format(tmp=tmp_path) for a in argv), "--endpoint", where])
+    # --connect-timeout bounds the wait for the endpoint (default 10 s); the line says how long it waited
+    results = await asyncio.gather(*(_run([*(a.format(tmp=tmp_path) for a in argv), "--endpoint", where,
+                                           "--connect-timeout", "2"])
                                      for argv in COMMANDS))
     for argv, (code, text, took) in zip(COMMANDS, results):
         assert code == 1, (argv, text)
         line = _one_error_line(argv, text)
-        assert f"cannot reach the Zenoh endpoint {where}" in line, line
+        assert f"cannot reach the Zenoh endpoint {where}: nothing answered within 2 s" in line, line
         assert took < 30, (argv, took)
+
+
+async def test_a_connect_timeout_that_is_not_a_duration_is_refused_naming_the_option():
+    code, text, _ = await _run(["watch", "--connect-timeout", "0"])
+    assert code == 2 and text.strip().splitlines()[-1] == (
+        "morph-sim watch: error: argument --connect-timeout: '0' is not a number of seconds > 0"), text
 
 
 async def test_commands_against_an_endpoint_without_the_run(tmp_path):

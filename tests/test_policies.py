@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from morph_sim.lab.runner import EpisodeSpec, run_episode
 from services.agent.policies import (
     ConstantPolicy,
     Fleet,
@@ -16,7 +17,6 @@ from services.agent.policies import (
     make_policy,
 )
 from services.agent.presets import load_preset
-from morph_sim.lab.runner import EpisodeSpec, run_episode
 from services.sim.world.cta import CTAController
 from services.sim.world.warehouse import Warehouse, WarehouseConfig
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from schemas.faults import FaultSpec, Latency, Loss, Scope
 from morph_sim.lab.network import (
     FLEET_KEY,
     EventNetwork,
@@ -17,6 +16,7 @@ from morph_sim.lab.network import (
     fleet_faults,
 )
 from morph_sim.lab.runner import DispatchStats, EpisodeSpec, run_episode
+from schemas.faults import FaultSpec, Latency, Loss, Scope
 from services.agent.policies import Fleet, MorphPolicy
 from services.protocol.dispatch import (
     AgvEndpoint,

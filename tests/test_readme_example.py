@@ -7,11 +7,9 @@ import os
 import re
 import subprocess
 import sys
-
 from pathlib import Path
 
 from services.monitor import catalogue
-
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 

@@ -11,14 +11,21 @@ import textwrap
 import time
 
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from schemas.keys import RunKeys
 from schemas.messages import Role
 from services.bus import LocalNetwork
 from services.sim.registry import (
-    BUSY, FULL, INVALID, IdAllocator, Refusal, RegistrationError, claim_id, default_instance, mount_registry,
+    BUSY,
+    FULL,
+    INVALID,
+    IdAllocator,
+    Refusal,
+    RegistrationError,
+    claim_id,
+    default_instance,
+    mount_registry,
     reason_code,
 )
 

@@ -24,7 +24,6 @@ from services.supervisor.local import run_local
 from _procs import wait_for_port
 
 
-
 def test_the_report_renders_every_figure_and_the_gif(tmp_path):
     config = RunConfig(run_id="rep", scale="tiny", steps=120, policy="morph", output_dir=tmp_path, snapshot_every=40)
     asyncio.run(run_local(config))

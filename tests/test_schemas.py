@@ -6,15 +6,35 @@ import math
 
 import msgpack
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from schemas import (
-    MESSAGE_TYPES, Ack, AgentState, Commit, DecodeError, Event, FaultCommand, FaultReply, FaultSpec, HelpReply,
-    HelpRequest, Latency, Loss, MetricSample, OnBoard, Partition, Refusal, RegistrationReply, RegistrationRequest, Resolve, Stop, Tick,
-    decode, encode,
+    MESSAGE_TYPES,
+    Ack,
+    AgentState,
+    Commit,
+    DecodeError,
+    Event,
+    FaultCommand,
+    FaultReply,
+    FaultSpec,
+    HelpReply,
+    HelpRequest,
+    Latency,
+    Loss,
+    MetricSample,
+    OnBoard,
+    Partition,
+    Refusal,
+    RegistrationReply,
+    RegistrationRequest,
+    Resolve,
+    Stop,
+    Tick,
+    codec,
+    decode,
+    encode,
 )
-from schemas import codec
 from schemas.faults import Crash, Duplicate, Reorder, Scope
 from schemas.jsonschema import JSON_DIR, message_schemas, render
 

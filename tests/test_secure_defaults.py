@@ -20,6 +20,7 @@ from services.bus.zenoh_bus import endpoint, free_port, zenoh_config
 from services.credentials import RunCredentials
 from services.tickorder import TickOrder
 
+# isort: split
 import zenoh  # noqa: E402  (after zenoh_bus set the runtime environment)
 
 from _procs import kill_tree
@@ -132,16 +133,21 @@ def test_the_operator_stops_a_secure_run_and_nobody_else_can(tmp_path):
         while not metrics.exists() or metrics.read_text().count("\n") < 3:
             assert up.poll() is None and time.monotonic() < deadline, "up did not start its run"
             time.sleep(0.2)
-        # with a robot's credentials the stop is refused by the endpoint (the command sends it, nobody hears it)
-        robot = subprocess.run([*CLI, "stop", "--run", run_id, "--endpoint", ep, "--timeout", "2", "--credentials",
-                                str(tmp_path / run_id / "credentials" / "agent-0.json5")],
-                               capture_output=True, text=True, timeout=60)
+        # with a robot's credentials the stop is refused by the endpoint (the command sends it, nobody hears it);
+        # without credentials there is no session at all (both at once: neither may end the run)
+        env = {k: v for k, v in os.environ.items() if k != "ZENOH_CONFIG"}
+        robot_cmd = subprocess.Popen([*CLI, "stop", "--run", run_id, "--endpoint", ep, "--timeout", "2",
+                                      "--credentials", str(tmp_path / run_id / "credentials" / "agent-0.json5")],
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            anon = subprocess.run([*CLI, "stop", "--run", "other-run", "--endpoint", ep], capture_output=True,
+                                  text=True, timeout=60, env=env)
+            out, err = robot_cmd.communicate(timeout=60)
+            robot = subprocess.CompletedProcess(robot_cmd.args, robot_cmd.returncode, out, err)
+        finally:
+            kill_tree(robot_cmd)
         time.sleep(1.0)
         assert up.poll() is None, "a robot's credentials stopped the run"
-        # without credentials there is no session at all
-        env = {k: v for k, v in os.environ.items() if k != "ZENOH_CONFIG"}
-        anon = subprocess.run([*CLI, "stop", "--run", "other-run", "--endpoint", ep], capture_output=True, text=True,
-                              timeout=60, env=env)
         assert anon.returncode == 1 and "no credentials" in anon.stderr and "Traceback" not in anon.stderr
         op = subprocess.run([*CLI, "stop", "--run", run_id, "--endpoint", ep, "--output-dir", str(tmp_path)],
                             capture_output=True, text=True, timeout=60)

@@ -1,4 +1,4 @@
-"""Issue 8: demand shift in the request generator and the assignment filter, the shift experiment's table, the
+"""Demand shift in the request generator and the assignment filter, the shift experiment's table, the
 emergent analysis, and message loss in the lab."""
 
 import csv

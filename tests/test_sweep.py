@@ -13,11 +13,11 @@ from pathlib import Path
 
 import pytest
 
-from _procs import kill_tree
 from morph_sim.lab.sweep import SweepPlan, run_sweep
 
+from _procs import kill_tree
+
 # The acceptance sweep: 3 policies × 3 loss levels × 2 scales × 5 seeds = 90 episodes. The default suite runs it with
-# short episodes; the slow version at the studies' length.
 # short episodes and two seeds; the slow versions run it whole at the studies' length.
 GRID = ["--grid", "policy=morph,full,tsg", "--grid", "faults.loss=0,10,30", "--grid", "scale=tiny,small"]
 ACCEPTANCE = [*GRID, "--seeds", "1-5"]
@@ -91,13 +91,13 @@ def _check_interrupted_then_resumed(tmp_path: Path, grid: list[str], total: int,
 
 
 def test_interrupted_at_half_and_resumed_equals_an_uninterrupted_sweep(tmp_path):
-    whole = _check_interrupted_then_resumed(tmp_path, [*REDUCED, "--set", "steps=80"], 36, signal.SIGINT, "2")
+    whole = _check_interrupted_then_resumed(tmp_path, [*REDUCED, "--set", "steps=40"], 36, signal.SIGINT, "2")
     _check_tidy(tmp_path / "whole", whole.stdout)
 
 
 def test_a_killed_sweep_resumes_too(tmp_path):
     """SIGKILL may cut a line of the record in half: the resumed sweep drops it and runs that episode again."""
-    grid = ["--grid", "policy=morph,tsg", "--seeds", "1-5", "--set", "steps=80"]
+    grid = ["--grid", "policy=morph,tsg", "--seeds", "1-5", "--set", "steps=40"]
     _check_interrupted_then_resumed(tmp_path, grid, 10, signal.SIGKILL, "1")
 
 

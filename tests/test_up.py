@@ -63,7 +63,7 @@ def test_sigterm_ends_every_process_within_5s(live_run, tmp_path):
 
 
 def test_up_restarts_an_agent_that_dies(live_run, tmp_path):
-    up = live_run("crash", "--policy", "full", "--steps", "1000000", "--phase-timeout", "5", listen=False)
+    up = live_run("crash", "--policy", "full", "--steps", "1000000", "--phase-timeout", "2", listen=False)
     metrics = tmp_path / "crash" / "metrics.csv"
     try:
         up.wait_until(lambda: metrics.exists() and metrics.stat().st_size > 200, UP_TIMEOUT, "the first rows")

@@ -89,7 +89,7 @@ def test_the_watch_command_follows_a_live_up_run(tmp_path):
             assert up.poll() is None and time.monotonic() < deadline
             time.sleep(0.2)
         out = subprocess.run([sys.executable, "-m", "morph_sim.cli", "watch", "--endpoint", f"tcp/127.0.0.1:{port}",
-                              "--duration", "6", "--output-dir", str(tmp_path)], capture_output=True, text=True, timeout=60,
+                              "--duration", "3", "--output-dir", str(tmp_path)], capture_output=True, text=True, timeout=60,
                              env={**os.environ, "COLUMNS": "120"})
     finally:
         os.killpg(up.pid, signal.SIGTERM)

@@ -21,6 +21,7 @@ from schemas.keys import RunKeys
 from services.bus.zenoh_bus import ZenohBus, endpoint, free_port, zenoh_config
 from services.sim.registry import claim_id, mount_registry
 
+# isort: split
 import zenoh  # noqa: E402  (after zenoh_bus set the runtime environment)
 
 DEPLOY = Path(__file__).resolve().parent.parent / "deploy" / "zenoh"

@@ -43,7 +43,14 @@ def _pairs(items: list[str], what: str) -> dict[str, str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from morph_sim.lab.sweep import SweepPlan, comparison_markdown, default_sweep_id, parse_grid_arg, plan_from_toml, run_sweep
+    from morph_sim.lab.sweep import (
+        SweepPlan,
+        comparison_markdown,
+        default_sweep_id,
+        parse_grid_arg,
+        plan_from_toml,
+        run_sweep,
+    )
 
     file_run: dict = {}
     if args.file:

@@ -36,8 +36,8 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from services.sim.world.heuristic import run_episode
     from schemas.errors import invalid
+    from services.sim.world.heuristic import run_episode
     from services.sim.world.warehouse import WarehouseConfig
 
     if args.steps is not None and args.steps < 1:

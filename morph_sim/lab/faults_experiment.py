@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas.faults import FaultSpec, Latency, Loss
 from morph_sim.lab.network import dispatch_faults, fleet_faults
 from morph_sim.lab.runner import REFERENCE_SEEDS, EpisodeSpec, run_episode
+from schemas.faults import FaultSpec, Latency, Loss
 
 DT = 1.0
 

@@ -26,11 +26,12 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from morph_sim.lab.network import FLEET_KEY, EventNetwork, LabDispatch, Team, dispatch_faults
 from schemas.faults import FaultSpec
 from schemas.tick import TickObservation
 from services.agent.policies import (
-    Coordinator,
     CoordinationPolicy,
+    Coordinator,
     Fleet,
     MorphPolicy,
     ProximityPolicy,
@@ -38,7 +39,6 @@ from services.agent.policies import (
 )
 from services.monitor import catalogue, metrics
 from services.protocol.dispatch import DEFAULT_REQUEST_TIMEOUT, gate
-from morph_sim.lab.network import FLEET_KEY, EventNetwork, LabDispatch, Team, dispatch_faults
 from services.sim.world.cta import CTAController, resolve_requests
 from services.sim.world.warehouse import Warehouse, WarehouseConfig
 

@@ -23,7 +23,12 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from morph_sim.lab.runner import (
-    REFERENCE_SEEDS, EpisodeResult, EpisodeSpec, check_choices, check_nonempty, run_episode,
+    REFERENCE_SEEDS,
+    EpisodeResult,
+    EpisodeSpec,
+    check_choices,
+    check_nonempty,
+    run_episode,
 )
 from morph_sim.lab.suite import _git_revision, _jsonable, _num, _versions, episode_pool
 from services.monitor import metrics

@@ -28,7 +28,6 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from services.agent.policies import PROXIMITY_RADII
 from morph_sim.lab.runner import (
     CONDITIONS,
     REFERENCE_SEEDS,
@@ -40,6 +39,7 @@ from morph_sim.lab.runner import (
     check_nonempty,
     run_episode,
 )
+from services.agent.policies import PROXIMITY_RADII
 from services.monitor import metrics
 
 ABLATION_STUDY = ("v1", "no_threshold", "no_reward", "no_neuromod", "reset_at_boundary", "morph")

@@ -488,8 +488,14 @@ class _Progress:
         if self.enabled:
             try:
                 from rich.console import Console
-                from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, \
-                    TimeRemainingColumn
+                from rich.progress import (
+                    BarColumn,
+                    MofNCompleteColumn,
+                    Progress,
+                    TextColumn,
+                    TimeElapsedColumn,
+                    TimeRemainingColumn,
+                )
 
                 self._rich = Progress(TextColumn("sweep"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                                       TimeRemainingColumn(), console=Console(stderr=True), transient=False)
@@ -545,9 +551,8 @@ def compare(plan: SweepPlan, rows: list[dict[str, Any]], metrics: Sequence[str] 
     """Per condition: n, mean and std (population, as the studies) of each metric, and Welch's p of deliveries
     against the baseline condition (the same condition with the baseline's value on its axis; seeds paired by
     design, but tested unpaired as the studies do)."""
-    from services.monitor.metrics import mean_std
-
     from morph_sim.lab.suite import _welch
+    from services.monitor.metrics import mean_std
 
     by: dict[str, list[dict]] = {}
     for r in rows:

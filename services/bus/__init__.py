@@ -6,7 +6,15 @@ library, which in-process runs do not need.
 """
 
 from services.bus.base import (
-    Bus, BusCounters, Declared, Interposer, LivelinessEvent, Query, Reply, Sample, Subscription,
+    Bus,
+    BusCounters,
+    Declared,
+    Interposer,
+    LivelinessEvent,
+    Query,
+    Reply,
+    Sample,
+    Subscription,
 )
 from services.bus.local import LocalBus, LocalNetwork
 from services.bus.readiness import wait_for_alive

@@ -31,10 +31,10 @@ import itertools
 import logging
 import time
 from abc import ABC, abstractmethod
-from functools import lru_cache
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any, Generic, NamedTuple, Protocol, TypeVar
 
 import msgpack

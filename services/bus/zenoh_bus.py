@@ -54,7 +54,14 @@ configure_runtime_env()
 import zenoh  # noqa: E402  (after the runtime environment is set)
 
 from services.bus.base import (  # noqa: E402
-    Bus, LivelinessEvent, Query, Reply, Sample, Subscription, pack_header, unpack_header,
+    Bus,
+    LivelinessEvent,
+    Query,
+    Reply,
+    Sample,
+    Subscription,
+    pack_header,
+    unpack_header,
 )
 
 log = logging.getLogger("morph_sim.bus.zenoh")

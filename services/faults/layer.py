@@ -26,27 +26,24 @@ from __future__ import annotations
 
 import asyncio
 import itertools
-import math
 import random
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from statistics import NormalDist
 from typing import TYPE_CHECKING
 
-from schemas.faults import FaultSpec, Latency, Loss
-from schemas.messages import FaultCommand, FaultReply
+from schemas.faults import FaultSpec, Loss
 from schemas.keys import ONBOARD, RunKeys, matches, parse_agent_id
+from schemas.messages import FaultCommand, FaultReply
 from services.bus.base import Bus, Sample
+from services.faults.distributions import latency_quantile
 from services.faults.linkstats import LinkMeter
 from services.faults.vtime import EPS as _VT_EPS, VirtualTime
 
 if TYPE_CHECKING:
     from services.faults.network import HandoverEvent, NetworkModel
 
-_STD_NORMAL = NormalDist()
-_EPS = 1e-12
 # A sample stamped later than this (seconds) carries a wall clock (time.time()), not a sim time: a process in wall time
 # or a tool (the faults CLI, the supervisor). Sim times stay far below it (1e8 s is three years of robot time).
 WALL_STAMP = 1e8
@@ -56,30 +53,6 @@ HISTORY_STEPS = 64
 
 def is_wall_stamp(sent_at: float) -> bool:
     return sent_at > WALL_STAMP
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# distributions (pure)
-# ---------------------------------------------------------------------------------------------------------------
-def pareto_params(mean: float, std: float) -> tuple[float, float]:
-    """(shape a, scale xm) of the Pareto distribution with this mean and standard deviation."""
-    a = 1.0 + math.sqrt(1.0 + (mean / std) ** 2)
-    return a, mean * (a - 1.0) / a
-
-
-def latency_quantile(lat: Latency, q: float) -> float:
-    """Quantile ``q`` of the configured latency distribution (no correlation), in seconds."""
-    q = min(max(q, _EPS), 1.0 - _EPS)
-    if lat.jitter == 0.0:
-        return lat.delay
-    if lat.distribution == "uniform":
-        return lat.delay - lat.jitter + 2.0 * lat.jitter * q
-    if lat.distribution == "normal":
-        return max(0.0, lat.delay + lat.jitter * _STD_NORMAL.inv_cdf(q))
-    if lat.delay == 0.0:
-        return 0.0
-    a, xm = pareto_params(lat.delay, lat.jitter)
-    return xm * (1.0 - q) ** (-1.0 / a)
 
 
 # ---------------------------------------------------------------------------------------------------------------

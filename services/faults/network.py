@@ -35,7 +35,7 @@ import numpy as np
 
 from schemas.faults import Latency
 from schemas.network import NetworkProfile, Rate
-from services.faults.layer import latency_quantile
+from services.faults.distributions import latency_quantile
 from services.sim.world.layout import Layout
 
 CAUSES = ("handover", "link_queue", "ap_queue", "loss", "dead_zone")

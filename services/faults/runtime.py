@@ -31,12 +31,11 @@ import time
 from schemas import Ack, RunKeys
 from schemas.messages import MetricSample
 from services.bus.base import Bus, Sample
+from services.faults.controller import CrashHook, FaultController
 from services.faults.layer import FaultLayer, install
 from services.faults.linkstats import LinkMeter
-from services.faults.vtime import VirtualTime
-from services.faults.controller import CrashHook, FaultController
 from services.faults.schedule import FaultSchedule
-
+from services.faults.vtime import VirtualTime
 
 log = logging.getLogger("morph_sim.faults")
 

@@ -31,8 +31,7 @@ from schemas import Ack, AgentState, Commit, Event, MetricSample, Phase, Stop
 from schemas.keys import RunKeys, intersects
 from schemas.tick import TickArrays, decode_tick
 from services.bus.base import Bus, Query, Sample
-from services.monitor import catalogue
-from services.monitor import metrics as M
+from services.monitor import catalogue, metrics as M
 from services.monitor.recorder import Recorder, read_metrics
 from services.monitor.streams import MessageStats
 from services.protocol.dispatch import view_age_stats

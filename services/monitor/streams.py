@@ -17,6 +17,7 @@ import math
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable
+
 import numpy as np
 
 from schemas import MetricSample

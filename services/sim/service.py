@@ -42,8 +42,8 @@ from services.bus.base import Bus, LivelinessEvent, Sample
 from services.protocol import dispatch as protocol
 from services.rejects import Rejects
 from services.runconfig import RunConfig
-from services.sim.world.cta import CTAController
 from services.sim.registry import mount_registry
+from services.sim.world.cta import CTAController
 from services.sim.world.warehouse import Warehouse, WarehouseConfig
 
 log = logging.getLogger("morph_sim.sim")

@@ -364,8 +364,8 @@ class Supervisor:
 
     async def _watch(self, bus) -> int:
         from schemas import MetricSample, Stop
-        from schemas.tick import decode_tick
         from schemas.keys import RunKeys
+        from schemas.tick import decode_tick
 
         keys = RunKeys(self.config.run_id)
 

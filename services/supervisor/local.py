@@ -15,7 +15,7 @@ from services.bus.base import Bus
 from services.bus.local import LocalNetwork
 from services.monitor.service import MonitorResult, MonitorService
 from services.runconfig import RunConfig
-from services.sim.service import SimService, SimResult
+from services.sim.service import SimResult, SimService
 
 
 @dataclass

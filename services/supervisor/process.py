@@ -73,9 +73,10 @@ def base_zenoh_config(environ: dict[str, str] | None = None, path: str | None = 
 
 
 async def open_bus(identity: str, *, listen: str | None = None, connect: str | None = None,
-                   config_file: str | None = None, what: str = ZENOH_CONFIG_ENV):
-    """A session on the run: ``listen`` hosts the endpoint, ``connect`` joins it. The Zenoh config file (credentials,
-    access control) is ``config_file``, else the one ``ZENOH_CONFIG`` names, else none (an open endpoint)."""
+                   config_file: str | None = None, what: str = ZENOH_CONFIG_ENV, connect_timeout: float = 10.0):
+    """A session on the run: ``listen`` hosts the endpoint, ``connect`` joins it (giving up after
+    ``connect_timeout`` seconds). The Zenoh config file (credentials, access control) is ``config_file``, else the one
+    ``ZENOH_CONFIG`` names, else none (an open endpoint)."""
     from services.bus.zenoh_bus import ZenohBus, zenoh_config
 
     if not listen and not connect:
@@ -83,16 +84,31 @@ async def open_bus(identity: str, *, listen: str | None = None, connect: str | N
     # our endpoints, mode and transport settings go on top of the deployment's file (if any)
     mode = "router" if listen else "client"
     config = zenoh_config(listen=listen, connect=None if listen else connect, mode=mode,
-                          base=base_zenoh_config(path=config_file, what=what))
+                          connect_timeout=connect_timeout, base=base_zenoh_config(path=config_file, what=what))
     return await ZenohBus.open(identity, listen=listen, connect=None if listen else connect, mode=mode,
-                               config=config)
+                               config=config, connect_timeout=connect_timeout)
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0 or value == float("inf"):
+        import argparse
+
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds > 0")
+    return value
 
 
 def add_operator_arguments(parser) -> None:
-    """``--credentials`` and ``--output-dir`` of the operator commands (watch, faults, record, stop)."""
+    """``--credentials``, ``--connect-timeout`` and ``--output-dir`` of the operator commands (watch, faults,
+    record, stop)."""
     parser.add_argument("--credentials", default=None, metavar="FILE",
                         help="Zenoh config with the operator's user/password (default: $ZENOH_CONFIG, else "
                              "<output-dir>/<run>/credentials/operator.json5 written by `morph-sim up`)")
+    parser.add_argument("--connect-timeout", type=_seconds, default=10.0, metavar="SECONDS",
+                        help="give up when the endpoint does not answer within this time (default 10)")
     if not any(a.dest in ("output_dir", "cfg_output_dir") for a in parser._actions):
         parser.add_argument("--output-dir", default="runs", help="parent directory of run records (default runs)")
 
@@ -121,7 +137,8 @@ async def open_operator_bus(identity: str, endpoint: str, args, run_id: str | No
     path = operator_credentials(args, run_id, output_dir)
     try:
         return await open_bus(identity, connect=endpoint, config_file=path,
-                              what="credentials" if path and getattr(args, "credentials", None) else ZENOH_CONFIG_ENV)
+                              what="credentials" if path and getattr(args, "credentials", None) else ZENOH_CONFIG_ENV,
+                              connect_timeout=getattr(args, "connect_timeout", 10.0))
     except ConnectionError as exc:
         hint = (f" (used credentials {path})" if path else
                 " (no credentials: a secured run needs its operator credentials, --credentials FILE or --run ID "
