@@ -64,8 +64,8 @@ def test_up_equals_local_medium(live_run, tmp_path, policy, preset):
 # process per robot over Zenoh) must give the same run.
 # ---------------------------------------------------------------------------------------------------------------
 def faulted_specs():
-    from schemas.faults import FaultSpec, Latency, Loss
     from morph_sim.lab.network import dispatch_faults, fleet_faults
+    from schemas.faults import FaultSpec, Latency, Loss
 
     return (*dispatch_faults(FaultSpec(id="late", seed=11, latency=Latency(delay=2.5, jitter=0.6))),
             *dispatch_faults(FaultSpec(id="bursty", seed=12, loss=Loss(model="gilbert_elliott", percent=15,
