@@ -34,6 +34,7 @@ from services.bus.base import Bus, Query, Sample
 from services.monitor import catalogue, metrics as M
 from services.monitor.recorder import Recorder, read_metrics
 from services.monitor.streams import MessageStats
+from services.protocol.dispatch import view_age_stats
 from services.rejects import Rejects
 from services.runconfig import RunConfig
 from services.tickorder import TickOrder
@@ -72,6 +73,7 @@ class Row:
     ackers: set[int] = field(default_factory=set)
     links: dict[int, list[int]] = field(default_factory=dict)
     etas: list[float] = field(default_factory=list)
+    view_ages: list[float] = field(default_factory=list)
 
 
 @dataclass
@@ -108,6 +110,7 @@ class MonitorService:
         self.bus = bus
         bus.reject_hook = self._reject  # oversized messages refused on arrival count here
         self.keys = RunKeys(config.run_id)
+        self._robot_copies = (self.keys.fleet, self.keys.onboard(0).rsplit("/", 1)[0] + "/")
         self.n = config.n_agents
         self.is_agv = np.arange(self.n) < config.n_agvs
         self.recorder = Recorder(config) if record else None
@@ -213,6 +216,10 @@ class MonitorService:
             self._record_failed(exc)
 
     def _handle(self, sample: Sample) -> None:
+        if sample.key.startswith(self._robot_copies):
+            # the fleet broadcast and the on-board states repeat the world record (sim/tick) for the robots: the
+            # one subscription to the whole run (which keeps its arrival order) brings them, nothing records them
+            return
         try:
             rel = self.keys.relative(sample.key)
         except ValueError as exc:
@@ -332,6 +339,8 @@ class MonitorService:
             if row is not None and ack.agent not in row.ackers:
                 row.ackers.add(ack.agent)
                 row.requests += len(ack.requests_sent)
+                if ack.view_age is not None:
+                    row.view_ages.append(ack.view_age)
                 if ack.requests_sent:
                     self.stats.requested(ack.t, ack.agent)
         self._links_from(ack.t, ack.agent, ack.links or [], ack.eta)
@@ -449,6 +458,7 @@ class MonitorService:
             "lambda2": lambda2, "eta": float(np.mean(row.etas)) if row.etas else None,
             "acks": len(row.ackers), **catalogue.w_block_values(block),
         }
+        values["view_age_mean"], values["view_age_max"] = view_age_stats(row.view_ages)
         self.result.deliveries_total = self._total
         self._last_values = values
         self._links_sum += values["links"]
