@@ -2,7 +2,9 @@
 
 Everything of a run lives under ``morph/<run>/``::
 
-    sim/tick                      Tick            sim -> all
+    sim/tick                      Tick            sim -> monitor, tools (the world record; robots do not read it)
+    sim/fleet                     Tick            sim -> robots: the fleet broadcast (a network message, faultable)
+    sim/@onboard/<id>             OnBoard         sim -> that robot: its on-board state (not faulted by default)
     sim/resolve                   Resolve         sim -> all
     agent/<id>/ack                Ack             agent -> sim
     agent/<id>/skip               Ack             agent -> sim (virtual time: its Tick/Resolve was lost; never faulted)
@@ -35,6 +37,12 @@ import re
 from functools import lru_cache
 
 ROOT = "morph"
+#: the fleet broadcast and the on-board state, relative to ``morph/<run>/`` (fault scopes, the lab's network)
+FLEET = "sim/fleet"
+#: ``@onboard`` is a verbatim chunk: no wildcard matches it, so a robot's on-board state is outside ``morph/<run>/**``
+#: (the monitor's, a recorder's and the access control's whole-run expressions) and outside every fault scope that
+#: does not name it: sensing is not networking. Only robot N may subscribe to its own (services/credentials.py).
+ONBOARD = "sim/@onboard/*"
 
 # Characters allowed in a run id and in a single literal chunk we build: no '/', no wildcards, no '$#?' (Zenoh
 # reserves them), no spaces; printable so ids survive logs, file names and environment variables.
@@ -195,6 +203,15 @@ class RunKeys:
         return self._k("sim", "tick")
 
     @property
+    def fleet(self) -> str:
+        """The fleet broadcast: the whole fleet's state as the robots receive it over the network."""
+        return self._k("sim", "fleet")
+
+    def onboard(self, robot: int) -> str:
+        """One robot's own state as its on-board sensing gives it (never through the network)."""
+        return self._k("sim", "@onboard", _agent_chunk(robot))
+
+    @property
     def resolve(self) -> str:
         return self._k("sim", "resolve")
 
@@ -332,6 +349,8 @@ class RunKeys:
             return parse_agent_id(rel[3])
         if len(rel) == 3 and rel[0] == "agent" and rel[2] in ("ack", "commit"):
             return "sim"
+        if len(rel) == 3 and rel[0] == "sim" and rel[1] == "@onboard":
+            return parse_agent_id(rel[2])
         return None
 
     def alive_id(self, key: str) -> int | str:

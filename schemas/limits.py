@@ -25,6 +25,8 @@ def max_payload(rel: list[str]) -> int:
     head = rel[0]
     if head == "agent" and len(rel) >= 3:
         return _AGENT_KIND.get(rel[2], MAX_MESSAGE_BYTES)
+    if head == "sim" and len(rel) >= 2 and rel[1] == "@onboard":
+        return 4 * 1024  # one robot's own state: a few numbers
     return _HEAD.get(head, MAX_MESSAGE_BYTES)
 
 

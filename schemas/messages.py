@@ -58,6 +58,9 @@ class Ack(Message):
     links: list[RobotId] | None = Field(
         default=None, description="out-links after the plasticity update of step t−1 (robot ids j with A[i,j]=1)")
     eta: Finite | None = Field(default=None, description="the agent's η after that update")
+    view_age: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] | None = Field(
+        default=None, description="sim seconds since the fleet state this agent acted on was sent (None: no view "
+                                  "yet)")
     # Phase TICK, telemetry for the record (acks are never faulted, so the counts are exact): what became of this
     # robot's dispatch messages up to the previous step boundary (requests, expiries, declines, duplicates)
     outcomes: OutcomeCounts | None = Field(
@@ -70,6 +73,37 @@ class Ack(Message):
                                                   "picker; the sim gives it the next decision point too")
     replied_to: list[RobotId] = Field(default_factory=list, description="RESOLVE: AGVs this picker sent a "
                                       "HelpReply (the next Tick tells them to wait for it)")
+
+
+class OnBoard(Message):
+    """Sim → one robot, on that robot's own key: what the robot senses of itself at the start of tick ``t`` (its
+    on-board state: odometry, its mission controller, its load), and the synchronisation of its decision point.
+
+    On-board sensing is not a network message: no fault acts on it unless a scope names its key class
+    (``sim/@onboard/*``). What a robot knows of the *others* reaches it only through the fleet broadcast
+    (``sim/fleet``, a :class:`Tick`), which faults act on like any protocol message (docs/faults.md).
+    """
+
+    KIND = "onboard"
+
+    t: TickNo
+    robot: RobotId
+    x: Coord
+    y: Coord
+    heading: Annotated[int, Field(ge=0, le=3)] = 0
+    mission: Annotated[int, Field(ge=0, le=3)] = MissionType.NONE
+    target_x: OptCoord = -1
+    target_y: OptCoord = -1
+    task: Annotated[int, Field(ge=0, lt=2**63)] = 0
+    needs_picker: bool = Field(default=False, description="AGV: its mission needs a picker at its target, none yet")
+    free: bool = Field(default=False, description="picker: it has no assignment")
+    carrying: bool = False
+    reward: Finite = Field(default=0.0, description="this robot's own reward in step t−1")
+    handled: bool = Field(default=False, description="it took part in a load or unload in step t−1")
+    final: bool = Field(default=False, description="the report after the last step: learn, do not ask")
+    # synchronisation, never protocol content: an AGV takes its decision of step t once this many replies to it
+    # have arrived (delivered, held or lost by the network); cumulative, so a missed one hides nothing
+    replied: Annotated[int, Field(ge=0, lt=2**63)] = Field(default=0, description="AGV: HelpReplies sent to it so far")
 
 
 class Resolve(Message):
@@ -302,14 +336,14 @@ class RegistrationReply(Message):
 
 
 MESSAGE_TYPES: tuple[type[Message], ...] = (
-    Tick, Ack, Resolve, HelpRequest, HelpReply, Commit, Refusal, AgentState, MetricSample, Event, Stop,
+    Tick, OnBoard, Ack, Resolve, HelpRequest, HelpReply, Commit, Refusal, AgentState, MetricSample, Event, Stop,
     FaultCommand, FaultReply, RegistrationRequest, RegistrationReply,
 )
 MESSAGES: dict[str, type[Message]] = {cls.KIND: cls for cls in MESSAGE_TYPES}
 
 __all__ = [
     "Ack", "AgentState", "Commit", "Event", "FaultCommand", "FaultReply", "Heading", "HelpReply", "HelpRequest",
-    "MESSAGES", "MESSAGE_TYPES", "MetricSample", "MissionType", "Phase", "Refusal", "RegistrationReply",
+    "MESSAGES", "MESSAGE_TYPES", "MetricSample", "MissionType", "OnBoard", "Phase", "Refusal", "RegistrationReply",
     "RegistrationRequest",
     "Resolve", "Role", "Stop", "Tick",
 ]

@@ -15,7 +15,8 @@ line, where ``ps`` shows it). The sim hosts the endpoint with ``endpoint.json5``
 own file. What the access control allows (default deny; docs/deploy.md shows the table):
 
 * every user may subscribe and watch liveliness under the run, and receive what is routed to it;
-* robot N may publish only under ``agent/N/**``, ``alive/N`` and ``events/N``, and answer fault-list queries;
+* robot N may publish only under ``agent/N/**``, ``alive/N`` and ``events/N``, and answer fault-list queries; it
+  alone receives its on-board state ``sim/@onboard/N``;
 * the monitor publishes ``metrics/**``, its token and events, and answers ``state/**``;
 * ``up``'s supervisor connects as the operator and answers fault queries for the crash faults it carries out;
 * only the operator may put on ``ctl/**`` (stop, faults), query ``ctl/faults`` (``faults set`` is a query) and publish
@@ -35,7 +36,7 @@ import secrets
 from dataclasses import dataclass
 from pathlib import Path
 
-from schemas.keys import ROOT, validate_run_id
+from schemas.keys import ONBOARD, ROOT, validate_run_id
 
 DIRNAME = "credentials"
 ENDPOINT_FILE = "endpoint.json5"
@@ -105,7 +106,14 @@ def access_control(run_id: str, n_agents: int) -> dict:
     for agent, user in enumerate(agents):
         rules.append({"id": f"{user}-publish", "flows": ["ingress"], "permission": "allow", "messages": pub,
                       "key_exprs": [f"{run}/agent/{agent}/**", f"{run}/alive/{agent}", f"{run}/events/{agent}"]})
-        policies.append({"id": user, "rules": [f"{user}-publish"], "subjects": [user]})
+        # its own on-board state, and nobody else's (a verbatim chunk: no run-wide expression above reaches it)
+        onboard = f"{run}/{ONBOARD.removesuffix('*')}{agent}"
+        rules.append({"id": f"{user}-sense", "flows": ["ingress", "egress"], "permission": "allow",
+                      "messages": ["declare_subscriber"], "key_exprs": [onboard]})
+        rules.append({"id": f"{user}-sensed", "flows": ["egress"], "permission": "allow", "messages": ["put"],
+                      "key_exprs": [onboard]})
+        policies.append({"id": user, "rules": [f"{user}-publish", f"{user}-sense", f"{user}-sensed"],
+                         "subjects": [user]})
     return {
         "enabled": True,
         "default_permission": "deny",

@@ -1,6 +1,7 @@
 """Which ticks a receiver takes: the sim's clock only moves forward, one tick at a time, and ends at ``steps``.
 
-Every receiver of ``sim/tick`` (agents, the monitor) checks each tick with a :class:`TickOrder` before acting on it,
+Every receiver of the sim's ticks (an agent its on-board state ``sim/@onboard/<id>``, the monitor ``sim/tick``) checks
+each tick with a :class:`TickOrder` before acting on it,
 so that a tick that the sim cannot have sent (forged, or replayed out of place) is refused instead of moving the
 receiver's clock: a receiver that took a tick ``t = 100000`` would drop every real tick after it as stale.
 

@@ -30,6 +30,7 @@ KINDS: dict[str, tuple[str, ...]] = {
     ),
     "fidelity": (
         "test_astar", "test_audit", "test_cta", "test_faults_experiment", "test_heuristic", "test_lab", "test_morph_reference",
+        "test_network_study",
         "test_movement", "test_shift_emergent", "test_warehouse_fidelity",
     ),
     "services": (

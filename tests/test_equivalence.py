@@ -56,3 +56,81 @@ def test_up_equals_local(live_run, tmp_path, scale, policy, preset):
 @pytest.mark.parametrize("policy,preset", [("morph", "reference"), ("morph", "paper")])
 def test_up_equals_local_medium(live_run, tmp_path, policy, preset):
     check_equal(live_run, tmp_path, "medium", policy, preset, steps=400)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Under faults: latency of 2.5 ticks with jitter and bursty (Gilbert–Elliott) loss on the dispatch messages, and loss
+# on the fleet broadcast. The lab (in-process event network), `morph-sim run` (LocalBus) and `morph-sim up` (one OS
+# process per robot over Zenoh) must give the same run.
+# ---------------------------------------------------------------------------------------------------------------
+def faulted_specs():
+    from morph_sim.lab.network import dispatch_faults, fleet_faults
+    from schemas.faults import FaultSpec, Latency, Loss
+
+    return (*dispatch_faults(FaultSpec(id="late", seed=11, latency=Latency(delay=2.5, jitter=0.6))),
+            *dispatch_faults(FaultSpec(id="bursty", seed=12, loss=Loss(model="gilbert_elliott", percent=15,
+                                                                        burst_length=3))),
+            *fleet_faults(FaultSpec(id="fleet", seed=13, loss=Loss(percent=20))))
+
+
+def schedule_toml(specs) -> str:
+    """A fault schedule file that sets every spec at tick 0."""
+    import json
+
+    def value(v) -> str:
+        if isinstance(v, dict):
+            return "{ " + ", ".join(f"{k} = {value(x)}" for k, x in v.items()) + " }"
+        return json.dumps(v)
+
+    return "\n".join("[[at]]\ntick = 0\n[at.spec]\n" + "\n".join(
+        f"{k} = {value(v)}" for k, v in spec.model_dump(mode="json", exclude_none=True).items()) + "\n"
+        for spec in specs)
+
+
+def check_faulted(live_run, tmp_path: Path, scale: str, steps: int, policy: str = "morph", preset: str = "reference",
+                  seed: int = 7) -> None:
+    from morph_sim.lab.runner import EpisodeSpec, run_episode
+
+    specs = faulted_specs()
+    sched = tmp_path / "faults.toml"
+    sched.write_text(schedule_toml(specs))
+    up = live_run("eqf", "--policy", policy, "--preset", preset, "--steps", str(steps), "--seed", str(seed),
+                  "--phase-timeout", "20", "--fault-schedule", str(sched), scale=scale, listen=False,
+                  output_dir=tmp_path / "up")
+    lab = run_episode(EpisodeSpec(scale=scale, condition=policy, preset=preset, seed=seed, steps=steps,
+                                  fiedler_every=1, faults=specs))
+    config = RunConfig(run_id="eqf", scale=scale, policy=policy, preset=preset, steps=steps, seed=seed,
+                       phase_timeout=20.0, fault_schedule=sched, output_dir=tmp_path / "local")
+    run = asyncio.run(run_local(config))
+    assert up.wait(timeout=600) == 0, up.stderr()[-3000:]
+    up, local = tmp_path / "up" / "eqf", tmp_path / "local" / "eqf"
+    assert (up / "metrics.csv").read_bytes() == (local / "metrics.csv").read_bytes()
+    rows = run.monitor.rows  # the values metrics.csv was written from, unrounded
+    assert len(rows) == len(read_metrics(local)) == steps
+
+    def col(name):
+        return np.array([np.nan if r[name] is None else float(r[name]) for r in rows])
+
+    np.testing.assert_array_equal(col("deliveries_total"), lab.ticks["deliveries"])
+    np.testing.assert_array_equal(np.cumsum(col("requests")), lab.ticks["dispatched"])
+    np.testing.assert_array_equal(col("links"), lab.ticks["links"])
+    np.testing.assert_array_equal(col("view_age_mean"), lab.ticks["view_age_mean"])
+    np.testing.assert_array_equal(col("view_age_max"), lab.ticks["view_age_max"])
+    np.testing.assert_array_equal(run.monitor.snapshots[steps][0], lab.final_weights)
+    assert run.sim.protocol["late_applied"] == lab.summary["protocol_late_applied"] > 0
+    assert run.sim.protocol["refused_stale"] == lab.summary["protocol_refused_stale"]
+    # the faults acted: fleet views went stale, commitments came late, and deliveries still happened
+    assert col("view_age_max").max() >= 2.0 and lab.summary["deliveries"] > 0
+
+
+def test_lab_run_and_up_agree_under_late_bursty_dispatch_and_a_lossy_fleet_broadcast_tiny(live_run, tmp_path):
+    check_faulted(live_run, tmp_path, "tiny", steps=150)
+
+
+def test_lab_run_and_up_agree_under_late_bursty_dispatch_and_a_lossy_fleet_broadcast_small(live_run, tmp_path):
+    check_faulted(live_run, tmp_path, "small", steps=150)
+
+
+@pytest.mark.slow
+def test_lab_run_and_up_agree_under_late_bursty_dispatch_and_a_lossy_fleet_broadcast_medium(live_run, tmp_path):
+    check_faulted(live_run, tmp_path, "medium", steps=300)

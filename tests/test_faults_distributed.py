@@ -1,10 +1,12 @@
 """Faults in deterministic virtual time across OS processes ("same seed and fault config give the
 same run twice (virtual time), on LocalBus and on Zenoh").
 
-Every process has its own FaultRuntime: the sim, and every agent (ingress faults on ticks, resolves, help requests and
-replies). Agents advance their clocks on each Tick/Resolve that *arrives*; a picker decides once every expected
-request has arrived (delivered, dropped or held past the resolve boundary); a Tick or Resolve lost or held at an
-agent's ingress is skipped at once with a null message, so the sim never waits on a wall timeout. Faults are judged
+Every process has its own FaultRuntime: the sim, and every agent (ingress faults on the fleet broadcast, help requests
+and replies, and on its on-board state when a scope names it). Agents advance their clocks on each on-board state,
+fleet broadcast and Resolve that *arrives*; a picker decides once every expected request has arrived (delivered,
+dropped or held past the resolve boundary); an agent decides once its tick's fleet broadcast has arrived (a late or
+lost one leaves it with an older view); an on-board state lost or held at an agent's ingress is skipped at once with
+a null message, so the sim never waits on a wall timeout. Faults are judged
 at each message's send time. Hence the same record on LocalBus (``morph-sim run``) and under ``morph-sim up``.
 """
 
@@ -25,7 +27,7 @@ from services.supervisor.local import run_local
 
 STEPS = 150
 # loss + latency on every agent key (help requests, commits, replies; acks are synchronisation and exempt), and on
-# the sim's ticks (resolves are exempt);
+# the sim's fleet broadcast (resolves are exempt; `sim/*` does not reach the robots' on-board state);
 # durations and a reset so windows open and close during the run
 SCHEDULE = """
 [[at]]
@@ -102,9 +104,11 @@ def test_localbus_faulted_run_is_the_same_twice_and_differs_from_the_clean_run(t
     # late, not lost: commitments past their step boundary are applied late (acks are never faulted)
     assert first.sim.protocol["late_applied"] > 0 and clean.sim.protocol["late_applied"] == 0
     assert first.sim.steps == STEPS and first.sim.absences == 0  # a skipped tick is not an absence
-    # agents skipped ticks (lost or held Ticks) with null messages, and the sim never waited for a timeout
-    assert first.monitor.messages.get("skip", 0) > 10
-    assert sum(x.ticks for x in first.agents) < clean_ticks(clean)
+    # lost and late fleet broadcasts left agents with older views; no agent lost a tick for it
+    ages = [float(r["view_age_max"]) for r in read_metrics(a.parent)]
+    assert max(ages[5:65]) >= 1.0 and all(float(r["view_age_max"]) == 0.0 for r in read_metrics(c.parent))
+    assert first.monitor.messages.get("skip", 0) == 0
+    assert sum(x.ticks for x in first.agents) == clean_ticks(clean)
     kinds = [(e["kind"], e["details"].get("fault_id"), e["t"]) for e in _events(a.parent) if "fault" in e["kind"]]
     assert kinds == [("fault.set", "agents", 0), ("fault.set", "requests", 0), ("fault.set", "ticks", 5),
                      ("fault.set", "slow-ticks", 20), ("fault.healed", "slow-ticks", 50),
@@ -115,12 +119,12 @@ def clean_ticks(run) -> int:
     return sum(x.ticks for x in run.agents)
 
 
-def test_a_tick_lost_at_an_agent_costs_it_that_tick_without_a_wall_wait(tmp_path):
-    """100 % loss of agent 3's Ticks for 40 sim seconds: it skips at once (null messages), the sim never waits its
-    30 s phase timeout, nobody is marked absent; the same run twice. (A Resolve is synchronisation: a fault scoped
-    to it changes nothing.)"""
+def test_an_on_board_state_lost_at_an_agent_costs_it_that_tick_without_a_wall_wait(tmp_path):
+    """100 % loss of agent 3's on-board state for 40 sim seconds (a fault that names that key class): it skips at
+    once (null messages), the sim never waits its 30 s phase timeout, nobody is marked absent; the same run twice.
+    (A Resolve is synchronisation: a fault scoped to it changes nothing.)"""
     path = tmp_path / "lost.toml"
-    path.write_text('[[at]]\ntick = 10\nspec = { id = "t3", scope = { key_expr = "sim/tick", agents = [3] }, '
+    path.write_text('[[at]]\ntick = 10\nspec = { id = "t3", scope = { key_expr = "sim/@onboard/*", agents = [3] }, '
                     'loss = { percent = 100 }, duration = 40.0 }\n'
                     '[[at]]\ntick = 10\nspec = { id = "r6", scope = { key_expr = "sim/resolve", agents = [6] }, '
                     'loss = { percent = 100 }, duration = 40.0 }\n')

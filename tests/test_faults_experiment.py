@@ -47,14 +47,92 @@ def test_fault_spec_rejects_unknown_kinds() -> None:
 
 
 def test_reduced_experiment_writes_json_and_plot(tmp_path) -> None:
-    out = run_experiment(tmp_path, quick=True)
-    rows = json.loads((tmp_path / "faults.json").read_text())["rows"]
-    assert (tmp_path / "faults_tiny.png").stat().st_size > 10_000 and rows == out["rows"]
-    assert "| tiny | dispatch | Full-Graph |" in (tmp_path / "faults.md").read_text()
+    out = run_experiment(tmp_path / "q", quick=True, seeds=(1, 2))
+    rows = json.loads((tmp_path / "q" / "faults.json").read_text())["rows"]
+    assert (tmp_path / "q" / "faults_tiny.png").stat().st_size > 10_000 and rows == out["rows"]
+    md = (tmp_path / "q" / "faults.md").read_text()
+    assert "### tiny: faults on the dispatch messages" in md and "| Full-Graph | " in md
+    import re
+
+    m, thr = re.match(r"(\d+) comparisons .* Bonferroni threshold for a family-wise 5 %: p < ([0-9.e-]+)", md).groups()
+    # 2 policies × 3 fault points; a p is undefined only where both samples have no variance
+    assert 1 <= int(m) <= 6 and float(thr) == pytest.approx(0.05 / int(m), rel=0.01)
     by = {(r["condition"], r["kind"], r["level"]): r for r in rows}
     clean, lossy = by[("Full-Graph", "bernoulli", 0.0)], by[("Full-Graph", "bernoulli", 30.0)]
-    assert clean["lost_share"] == 0 and lossy["lost_share"] > 0.1
+    assert clean["lost_share"] == 0 and lossy["lost_share"] > 0.1 and clean["seeds"] == lossy["seeds"] == 2
     assert lossy["dispatch_delay"] > clean["dispatch_delay"]
+    assert lossy["bytes_per_delivery"] > lossy["messages_per_delivery"] > 0
+    assert lossy["p_vs_clean"] is None or 0 <= lossy["p_vs_clean"] <= 1
+
+
+def _cli(argv, **kw):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "morph_sim.cli", "experiment", "faults", *argv], capture_output=True,
+                          text=True, timeout=300, **kw)
+
+
+def test_cli_honours_scales_seeds_steps_targets_and_levels(tmp_path) -> None:
+    """Every flag reaches the grid: the record holds exactly the episodes asked for, at the scale and length asked
+    for; the table, the figure and the last line say what ran."""
+    res = _cli(["--scales", "small", "--seeds", "3,4", "--steps", "40", "--jobs", "2", "--conditions", "tsg,morph",
+                "--targets", "fleet", "--loss-levels", "0,20", "--latency-levels", "2", "--out", str(tmp_path),
+                "--run-id", "f"])
+    assert res.returncode == 0, res.stderr
+    record = tmp_path / "f"
+    eps = json.loads((record / "faults.json").read_text())["episodes"]
+    # fault-free + Bernoulli 20 + GE 20 + latency 2 (fleet broadcast), two policies, two seeds
+    assert len(eps) == 16 and {e["scale"] for e in eps} == {"small"} and {e["seed"] for e in eps} == {3, 4}
+    assert {e["target"] for e in eps} == {"none", "fleet"} and {e["condition"] for e in eps} == {"TSG",
+                                                                                               "MORPH (reference)"}
+    assert {(e["kind"], e["level"]) for e in eps} == {("none", 0), ("bernoulli", 20), ("bursty", 20), ("latency", 2)}
+    assert all(e["view_age_mean"] > 0 for e in eps if e["target"] == "fleet")
+    assert (record / "faults_small.png").stat().st_size > 10_000 and not (record / "faults_tiny.png").exists()
+    assert "### small: faults on the fleet broadcast (each agent learns and gates from its own view) (2 seeds)" \
+        in res.stdout
+    assert res.stdout.strip().splitlines()[-1].startswith("faults experiment: 16 episodes run, 0 already in the record")
+    assert "16 episodes" in res.stderr and "T = 40" in res.stderr
+
+
+def test_cli_progress_and_resume_after_interrupt_give_the_same_tables(tmp_path) -> None:
+    """Interrupted by Ctrl-C mid-grid: exit 130 and a line saying how to resume; resumed with the same --run-id it
+    runs only the missing episodes, and its tables equal those of a grid that ran straight through."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from tests._procs import kill_tree
+
+    argv = ["--quick", "--seeds", "1,2,3", "--steps", "200", "--jobs", "1", "--out", str(tmp_path)]
+    straight = _cli([*argv, "--run-id", "a"])
+    assert straight.returncode == 0 and "faults" in straight.stderr and "24/24" in straight.stderr  # progress
+    proc = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "experiment", "faults", *argv, "--run-id", "b"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        log = tmp_path / "b" / "episodes.jsonl"
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and (not log.exists() or log.read_text().count("\n") < 3):
+            time.sleep(0.02)
+        os.kill(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        kill_tree(proc)
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines()[-1].startswith("experiment faults: interrupted with ")
+    assert "--run-id b resumes it" in err
+    done = log.read_text().count("\n")
+    assert 3 <= done < 24
+    resumed = _cli([*argv, "--run-id", "b"])
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"{24 - done} episodes run, {done} already in the record" in resumed.stdout
+    assert (tmp_path / "b" / "faults.md").read_text() == (tmp_path / "a" / "faults.md").read_text()
+    assert resumed.stdout.split("faults experiment:")[0] == straight.stdout.split("faults experiment:")[0]
+    other = _cli(["--quick", "--seeds", "1", "--out", str(tmp_path), "--run-id", "b"])  # another grid, same record
+    assert other.returncode == 2 and other.stderr.strip().endswith("holds a different faults; give another --run-id "
+                                                                   "or --out")
 
 
 @pytest.mark.parametrize(("condition", "lab_condition", "preset"), [
@@ -71,7 +149,7 @@ def test_zero_fault_point_is_the_lab_episode(condition: str, lab_condition: str,
 
 
 @pytest.mark.slow
-def test_full_experiment_within_ten_minutes(tmp_path) -> None:
-    out = run_experiment(tmp_path, jobs=2, steps=400)
-    assert out["wall_s"] < 1800
+def test_full_tiny_grid_within_an_hour(tmp_path) -> None:
+    out = run_experiment(tmp_path / "full", jobs=2, steps=400, scales=("tiny",))
+    assert out["wall_s"] < 3600
     assert {r["seeds"] for r in out["rows"] if r["level"] > 0} == {10}

@@ -25,10 +25,10 @@ from _procs import kill_tree
 
 def fuzz_keys(keys: RunKeys, n_agvs: int, n: int) -> list[str]:
     """A concrete key for every subscription of the sim, the agents and the monitor."""
-    out = [keys.tick, keys.resolve, keys.stop, keys.faults, keys.event("sim"), keys.event("monitor"),
+    out = [keys.tick, keys.fleet, keys.resolve, keys.stop, keys.faults, keys.event("sim"), keys.event("monitor"),
            keys.metric("deliveries"), keys.latest("metrics", "x")]
     for i in range(n):
-        out += [keys.ack(i), keys.agent_state(i), keys.event(i)]
+        out += [keys.ack(i), keys.agent_state(i), keys.event(i), keys.onboard(i)]
     for p in range(n_agvs, n):
         out += [keys.commit(p)] + [keys.request(a, p) for a in range(n_agvs)]
     for a in range(n_agvs):

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from schemas import Ack, Commit, Event, FaultCommand, HelpReply, Stop, encode
+from schemas import Ack, Commit, Event, FaultCommand, HelpReply, OnBoard, Stop, encode
 from schemas.keys import RunKeys
 from schemas.tick import encode_tick_body, tick_fields
 from services.bus.base import pack_header
@@ -72,6 +72,9 @@ def _attack(session, keys: RunKeys, config: RunConfig, ticks: dict[int, bytes], 
     put("tick t=100000 (sim header)", keys.tick, ticks[100_000])
     put("tick t=100000 (no header)", keys.tick, ticks[100_000], sender=None)
     put("tick t=steps (no header)", keys.tick, ticks[config.steps], sender=None)
+    put("fleet state t=100000 (sim header)", keys.fleet, ticks[100_000])
+    put("fleet state t=steps (no header)", keys.fleet, ticks[config.steps], sender=None)
+    put("on-board state of robot 3 on robot 2's key", keys.onboard(2), encode(OnBoard(t=1, robot=3, x=1, y=1)))
     finished = Event(kind="run.finished", source=3, t=5, details={"forged": True})
     put("run.finished on events/3", keys.event(3), encode(finished), sender="agent-3")
     put("run.finished as another source", keys.event(3), encode(finished.model_copy(update={"source": "sim"})),
@@ -96,7 +99,7 @@ def _attack(session, keys: RunKeys, config: RunConfig, ticks: dict[int, bytes], 
         sent["ctl/faults query"] = 1
     # the forged messages must have met a live run, or they prove nothing (the floods below may outlast it)
     assert running(), "the run ended before the forged messages were sent"
-    every = [keys.tick, keys.resolve, keys.stop, keys.faults, keys.event("sim"), keys.event(3),
+    every = [keys.tick, keys.fleet, keys.onboard(3), keys.resolve, keys.stop, keys.faults, keys.event("sim"), keys.event(3),
              keys.metric("deliveries")]
     every += [k for i in range(config.n_agents) for k in (keys.ack(i), keys.agent_state(i))]
     every += [keys.commit(p) for p in range(config.n_agvs, config.n_agents)]

@@ -206,3 +206,21 @@ def test_sim_and_agent_services_do_not_import_each_other():
                     assert not node.module.startswith(other), f"{path}: imports {node.module}"
                 elif isinstance(node, ast.Import):
                     assert not any(a.name.startswith(other) for a in node.names), f"{path}: imports {other}"
+
+
+def test_each_robots_on_board_state_decodes_to_the_model_and_is_its_own_row_of_the_tick():
+    """The sim encodes every robot's OnBoard from the Tick's field map without the model (hot path): it decodes to
+    the model, and holds that robot's own entries of the tick, nobody else's."""
+    from schemas import OnBoard
+    from schemas.tick import onboard_fields
+
+    for obs, fields in _ticks(12):
+        free = set(fields["free_pickers"])
+        for robot in range(obs.n):
+            f = onboard_fields(fields, robot, robot in free, replied=robot)
+            msg = decode(encode_fields(OnBoard, **f), OnBoard)
+            assert msg == OnBoard(**f)
+            assert (msg.t, msg.robot, msg.x, msg.y) == (obs.t, robot, *obs.cells[robot].tolist())
+            assert (msg.target_x, msg.target_y) == tuple(obs.target[robot].tolist())
+            assert msg.needs_picker == bool(obs.needs_picker[robot]) and msg.free == bool(obs.free_picker[robot])
+            assert msg.mission == int(obs.mission[robot]) and msg.final == bool(obs.final)

@@ -256,8 +256,8 @@ def _fate_log(monkeypatch):
 def test_lab_judges_each_message_as_the_services_do(tmp_path, monkeypatch):
     """The lab's event network asks the services' fault layer with the same message identities (publisher, sequence
     number per key) and the same positions, so every radio draw is the services' one: both send the same messages
-    and lose the same ones, up to the first tick where their semantics part, if any (while the services' Tick is
-    also the barrier, an agent that loses it skips the tick where the lab's keeps its last fleet view)."""
+    and lose the same ones, up to the first tick where their semantics part, if any (since the fleet broadcast is
+    its own message in both, none: tests below check the whole runs equal)."""
     import math
 
     from morph_sim.lab.network import FLEET_KEY, EventNetwork
@@ -308,18 +308,11 @@ def check_lab_equals_run(tmp_path, scale: str, steps: int, policy: str = "morph"
     np.testing.assert_array_equal([float(r["links"]) for r in rows], lab.ticks["links"])
 
 
-_SPLIT = ("the services' agent skips a tick whose Tick it lost (and the services count only the profile's losses); "
-          "the lab keeps its last fleet view and counts the latency: equal once the Tick is split into on-board "
-          "state and fleet broadcast")
-
-
-@pytest.mark.xfail(strict=True, reason=_SPLIT)
 def test_lab_equals_run_under_legacy_roaming_tiny(tmp_path):
     check_lab_equals_run(tmp_path, "tiny", 200)
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=_SPLIT)
 def test_lab_equals_run_under_legacy_roaming_medium(tmp_path):
     check_lab_equals_run(tmp_path, "medium", 400)
 

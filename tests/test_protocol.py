@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from morph_sim.lab.network import (
+    FLEET_KEY,
     EventNetwork,
     LabDispatch,
     dispatch_faults,
@@ -198,7 +199,7 @@ def test_agent_whose_fleet_broadcast_is_lost_for_k_ticks_learns_from_a_view_k_ti
     for t in range(start + k + 2):
         if t == start:  # the broadcast to one agent is lost from now on, for k steps
             net.layer.set(FaultSpec(id="blackout", loss=Loss(percent=100.0), duration=k * DT,
-                                    scope=Scope(key_expr="sim/tick", agents=[victim])), at=t * DT)
+                                    scope=Scope(key_expr=FLEET_KEY, agents=[victim])), at=t * DT)
         obs = cta.begin_tick()
         driver.learn(obs)
         ages.append(driver.views[victim].age(t * DT))
@@ -224,6 +225,57 @@ def test_outcome_tally_sums_each_endpoint_once_and_keeps_what_a_restarted_one_co
     tally.report(0, 9, {"requests": 2})  # AGV 0 restarted from zero: its earlier counts stay
     assert tally.total({"on_time": 3})["requests"] == 7 and tally.total({"on_time": 3})["on_time"] == 3
     assert Outcomes(expired=2).counts() == {"expired": 2}
+
+
+def test_an_agent_service_whose_fleet_broadcast_is_lost_for_k_ticks_learns_from_a_view_k_ticks_old(tmp_path):
+    """The same in the services: agent services over LocalBus, the fleet broadcast to one of them lost for k ticks
+    (``sim/fleet``, scoped to that agent). Its ack reports a view k ticks old at the last lost tick, and every W row
+    at the end equals the lab's agents fed the same stale views; the stale views changed what it learnt."""
+    import asyncio
+
+    from services.monitor.recorder import read_metrics
+    from services.runconfig import RunConfig
+    from services.sim.service import make_controller
+    from services.supervisor.local import run_local
+
+    k, start, victim, steps = 4, 10, 1, 24
+    sched = tmp_path / "blackout.toml"
+    sched.write_text(f'[[at]]\ntick = {start}\nspec = {{ id = "blackout", scope = {{ key_expr = "{FLEET_KEY}", '
+                     f'agents = [{victim}] }}, loss = {{ percent = 100 }}, duration = {k * DT} }}\n')
+    config = RunConfig(run_id="stale", scale="tiny", policy="morph", seed=5, steps=steps, fault_schedule=sched,
+                       output_dir=tmp_path / "faulted")
+    run = asyncio.run(run_local(config))
+    clean = asyncio.run(run_local(config.model_copy(update={"fault_schedule": None,
+                                                            "output_dir": tmp_path / "clean"})))
+    rows = read_metrics(tmp_path / "faulted" / "stale")
+    n = config.n_agents
+    age_max = [float(r["view_age_max"]) for r in rows]
+    assert age_max[:start] == [0.0] * start
+    assert age_max[start:start + k] == [float(i * DT) for i in range(1, k + 1)]  # k ticks old at the last lost tick
+    assert age_max[start + k:] == [0.0] * (steps - start - k)  # the broadcast is back
+    assert float(rows[start + k - 1]["view_age_mean"]) == pytest.approx(k * DT / n)
+
+    # the lab's agents, each with its own view, the same broadcast lost to the same agent for the same ticks
+    cta = make_controller(config)
+    fleet = Fleet(config.n_agvs, config.n_pickers, config.scale)
+    brains = [config.make_policy().brains(fleet, [i], config.seed) for i in range(n)]
+    net = EventNetwork(fleet_faults(FaultSpec(loss=Loss(percent=0.0), seed=1)), seed=config.seed)
+    driver = LabDispatch(fleet.n_agvs, fleet.n_pickers, dt=DT, timeout=config.request_timeout, network=net,
+                         agent_brains=brains)
+    stats = DispatchStats()
+    for t in range(steps):
+        if t == start:
+            net.layer.set(FaultSpec(id="blackout", loss=Loss(percent=100.0), duration=k * DT,
+                                    scope=Scope(key_expr=FLEET_KEY, agents=[victim])), at=t * DT)
+        obs = cta.begin_tick()
+        driver.learn(obs)
+        driver.dispatch(obs, cta.commit, stats)
+        cta.finish_tick()
+    driver.learn(cta.final_observation())
+    W, W_clean = run.monitor.snapshots[steps][0], clean.monitor.snapshots[steps][0]
+    np.testing.assert_array_equal(W, np.vstack([b.weight_rows() for b in brains]))
+    assert driver.view_age_max[start + k - 1] == k * DT
+    assert not np.array_equal(W[victim], W_clean[victim])  # learning felt the stale views
 
 
 # -- broadcast Full-Graph: an AGV asks every free picker, the desk keeps one ----------------------------------------

@@ -23,6 +23,7 @@ from schemas import (
     Latency,
     Loss,
     MetricSample,
+    OnBoard,
     Partition,
     Refusal,
     RegistrationReply,
@@ -128,7 +129,12 @@ json_values = st.recursive(
 MESSAGE_STRATEGIES: dict[type, st.SearchStrategy] = {
     Tick: ticks(),
     Ack: st.builds(Ack, t=tick_no, agent=rid, phase=st.sampled_from([0, 1]), requests_sent=st.lists(rid, max_size=4),
-                   seq=seq),
+                   seq=seq, view_age=st.none() | st.floats(0.0, 1e6)),
+    OnBoard: st.builds(OnBoard, t=tick_no, robot=rid, x=st.integers(0, 999), y=st.integers(0, 999),
+                       heading=st.integers(0, 3), mission=st.integers(0, 3), target_x=st.integers(-1, 999),
+                       target_y=st.integers(-1, 999), task=st.integers(0, 99), needs_picker=st.booleans(),
+                       free=st.booleans(), carrying=st.booleans(), reward=finite, handled=st.booleans(),
+                       final=st.booleans(), replied=st.integers(0, 2**40)),
     Resolve: st.integers(0, 6).flatmap(lambda k: st.builds(
         Resolve, t=tick_no, pickers=st.lists(rid, min_size=k, max_size=k),
         requesters=st.lists(st.lists(rid, max_size=4), min_size=k, max_size=k))),

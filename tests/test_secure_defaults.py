@@ -96,6 +96,23 @@ def test_credentials_are_owner_only_and_the_endpoint_enforces_them(tmp_path):
             assert arrives(operator, keys.faults, b"operator fault", keys.stop)
             # oversized: dropped by the endpoint on arrival, and the session is still there afterwards
             assert not arrives(agent0, keys.agent_state(0), b"\0" * (64 * 1024), own)
+            # a robot's on-board state reaches that robot only: not another robot, not a whole-run subscriber
+            sensed: list[tuple[str, str]] = []
+            subs = [agent0.declare_subscriber(keys.onboard(0), lambda s: sensed.append(("own", str(s.key_expr)))),
+                    agent0.declare_subscriber(keys.onboard(1), lambda s: sensed.append(("other", str(s.key_expr)))),
+                    monitor.declare_subscriber(keys.everything, lambda s: sensed.append(("run", str(s.key_expr))))]
+            deadline = time.monotonic() + 10
+            while ("own", keys.onboard(0)) not in sensed:
+                assert time.monotonic() < deadline, "robot 0 never received its own on-board state"
+                host.put(keys.onboard(1), b"1")
+                host.put(keys.onboard(0), b"0")
+                time.sleep(0.1)
+            host.put(keys.onboard(1), b"1")
+            assert arrives(agent0, keys.ack(0), b"mine again", own)  # a round trip after the last put
+            assert [(who, key) for who, key in sensed if "@onboard" in key] == [("own", keys.onboard(0))] * len(
+                [1 for who, _ in sensed if who == "own"]), sensed
+            for sub in subs:
+                sub.undeclare()
         finally:
             for s in (agent0, operator, monitor):
                 s.close()

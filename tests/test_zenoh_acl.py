@@ -241,3 +241,28 @@ async def test_registration_works_through_the_router_and_an_agent_cannot_fake_th
     finally:
         for bus in (agent, other, sim):
             await bus.close()
+
+
+def test_a_robot_alone_receives_its_on_board_state(router, observer):
+    """The sim publishes each robot's on-board state on a verbatim key: robot 0 receives its own, not robot 1's; a
+    whole-run subscriber (the observer's morph/<run>/**) sees none."""
+    sim, agent0 = _open(router, "sim"), _open(router, "agent-0")
+    got: list[str] = []
+    try:
+        subs = [agent0.declare_subscriber(KEYS.onboard(r), lambda s: got.append(str(s.key_expr))) for r in (0, 1)]
+        deadline = time.monotonic() + 10.0
+        while KEYS.onboard(0) not in got:  # declarations propagate asynchronously
+            assert time.monotonic() < deadline, "robot 0 never received its on-board state"
+            sim.put(KEYS.onboard(1), b"robot 1")
+            sim.put(KEYS.onboard(0), b"robot 0")
+            time.sleep(0.05)
+        sim.put(KEYS.onboard(1), b"robot 1")
+        sim.put(KEYS.tick, b"sentinel")
+        observer.wait_for(KEYS.tick, b"sentinel")
+        for sub in subs:
+            sub.undeclare()
+    finally:
+        sim.close()
+        agent0.close()
+    assert set(got) == {KEYS.onboard(0)}
+    assert not [k for k, _ in observer.seen if "@onboard" in k]

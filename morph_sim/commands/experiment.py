@@ -1,8 +1,9 @@
-"""``morph-sim experiment scale|ablation|shift|emergent|faults|audit``: the in-process lab.
+"""``morph-sim experiment scale|ablation|shift|emergent|faults|network|audit``: the in-process lab.
 
 scale/ablation: conditions × scales × seeds (the reference's study); shift: the paper's six-phase demand-shift
 experiment with recovery times; emergent: W snapshots, Spearman, link lifetimes, η and λ₂ over long episodes;
-faults: the loss/latency sweep (morph_sim/lab/faults_experiment.py); audit: the paper preset's departures from the
+faults: the loss/latency sweep (morph_sim/lab/faults_experiment.py); network: the policies under the named network
+profiles (morph_sim/lab/network_study.py); audit: the paper preset's departures from the
 paper, each measured (morph_sim/lab/audit.py; --conditions picks variants, default scales small,medium and seeds
 11..15). A flag the chosen study cannot honour is refused with a one-line message naming it (``FLAGS``), never
 silently ignored.
@@ -18,7 +19,8 @@ from pydantic import ValidationError
 from schemas.errors import invalid
 
 NAME = "experiment"
-HELP = "run an in-process study: scale, ablation, shift, emergent, faults or audit (parallel, with run records)"
+HELP = ("run an in-process study: scale, ablation, shift, emergent, faults, network or audit (parallel, with run "
+        "records)")
 
 
 def _csv(value: str) -> tuple[str, ...]:
@@ -41,7 +43,12 @@ def _radii(value: str) -> dict[str, int]:
 def add_arguments(parser) -> None:
     # Every optional flag defaults to None (or False), so a flag the user gave is known and a study that cannot
     # honour it refuses it (FLAGS below) instead of running something else than asked.
-    parser.add_argument("suite", choices=SUITES, help="which study: " + ", ".join(SUITES))
+    parser.add_argument("suite", choices=SUITES, help="which study: " + ", ".join(SUITES) + ". faults' default grid: "
+                        "four scales × latency 0–10 ticks and Bernoulli/Gilbert–Elliott loss 0–50 %% on dispatch, "
+                        "fleet broadcast and both × five policies × seeds 1–10, T = 800 (2,600 episodes a scale, "
+                        "≈ 1 h of two idle cores in all). network's default grid: four scales × five profiles × six "
+                        "policies × seeds 301–310, T = 800 (tiny, small), 600 (medium), 400 (large) (1,200 episodes, "
+                        "≈ 9 min of two idle cores)")
     parser.add_argument("--preset", default=None, help="scale/ablation: MORPH preset reference (scale default) or "
                         "paper (ablation default), or a preset TOML path; emergent: comma-separated presets "
                         "(default reference,paper)")
@@ -56,9 +63,18 @@ def add_arguments(parser) -> None:
                         "shift.py's assignment filter, or none (the no-shift control)")
     parser.add_argument("--loss", type=float, default=None, help="shift/emergent: Gilbert–Elliott message loss "
                         "in percent (mean), bursty; default 0 = no faults")
-    parser.add_argument("--quick", action="store_true", help="faults only: the reduced sweep")
-    parser.add_argument("--conditions", default=None, help="scale/ablation/shift: comma-separated conditions "
-                        "(default: the study's)")
+    parser.add_argument("--quick", action="store_true", help="faults only: the reduced sweep (tiny, MORPH reference "
+                        "and Full-Graph, loss 0/30 %%, latency 0/1 tick, 1 seed, 150 steps)")
+    parser.add_argument("--profiles", default=None, help="network: comma-separated network profiles (default lan, "
+                        "wifi-fast-roaming, wifi-legacy-roaming, congested, lossy-mesh)")
+    parser.add_argument("--targets", default=None, help="faults: where the faults act, comma-separated: dispatch "
+                        "(request, reply, commitment, refusal), fleet (the fleet broadcast), both; default all three")
+    parser.add_argument("--loss-levels", default=None, help="faults: loss levels in percent, Bernoulli and "
+                        "Gilbert–Elliott (default 0,10,20,30,40,50)")
+    parser.add_argument("--latency-levels", default=None, help="faults: mean latencies in ticks, jitter ¼ of the "
+                        "mean (default 0,0.1,0.25,0.5,1,2,5,10)")
+    parser.add_argument("--conditions", default=None, help="scale/ablation/shift/faults: comma-separated "
+                        "conditions (default: the study's; faults: morph, morph-paper, full, tsg, proximity)")
     parser.add_argument("--dispatch", choices=("concurrent", "sequential"), default=None,
                         help="scale/ablation: picker resolution, concurrent (all pickers at once) or sequential "
                         "(the reference's); default: sequential with --reference-stream, else concurrent")
@@ -79,7 +95,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-SUITES = ("scale", "ablation", "shift", "emergent", "faults", "audit")
+SUITES = ("scale", "ablation", "shift", "emergent", "faults", "network", "audit")
 _COMMON = {"out", "run_id", "no_progress"}
 _SUITE = {"preset", "scales", "seeds", "steps", "conditions", "dispatch", "reference_stream", "radius", "jobs",
           "fiedler_every", "executor", "scheduler"}
@@ -89,7 +105,9 @@ FLAGS = {
     "ablation": _COMMON | _SUITE,
     "shift": _COMMON | {"scales", "seeds", "phase_steps", "demand", "loss", "conditions", "radius", "jobs"},
     "emergent": _COMMON | {"preset", "scales", "seeds", "steps", "loss", "jobs"},
-    "faults": _COMMON | {"quick", "scales", "seeds", "steps", "jobs", "conditions"},
+    "faults": _COMMON | {"quick", "scales", "seeds", "steps", "jobs", "conditions", "targets", "loss_levels",
+                         "latency_levels"},
+    "network": _COMMON | {"scales", "seeds", "steps", "jobs", "conditions", "profiles"},
     # audit: --conditions names the variants (morph_sim/lab/audit.py)
     "audit": _COMMON | {"scales", "seeds", "steps", "conditions", "jobs"},
 }
@@ -188,52 +206,100 @@ def _run_emergent(args) -> int:
     return 0
 
 
-def _run_faults(args) -> int:
-    from datetime import datetime, timezone
+def _levels(value: str | None, what: str) -> tuple[float, ...] | None:
+    if value is None:
+        return None
+    try:
+        out = tuple(float(v) for v in _csv(value))
+    except ValueError:
+        raise ValueError(f"{what}: expected comma-separated numbers, got {value!r}") from None
+    if not out:
+        raise ValueError(f"{what}: at least one level")
+    return out
 
-    from morph_sim.lab.faults_experiment import CONDITIONS, markdown, run_experiment
 
-    scales = tuple(_csv(args.scales or ("tiny" if args.quick else "tiny,small,medium,large")))
+def _scales(value: str | None, default: str) -> tuple[str, ...]:
     from services.sim.world.layout import named_sizes
 
+    scales = _csv(value or default)
     for sc in scales:
         if sc not in named_sizes():
             raise ValueError(f"scales: unknown scale {sc!r} (choose from {', '.join(named_sizes())})")
-    seeds = _seeds(args.seeds, ()) if args.seeds is not None else None
-    if args.steps is not None and args.steps < 1:
-        raise ValueError("steps: must be >= 1")
-    conditions = tuple(_csv(args.conditions)) if args.conditions else None
-    for c in conditions or ():
-        if c not in CONDITIONS:
-            raise ValueError(f"conditions: unknown {c!r}; choose from {', '.join(CONDITIONS)}")
-    out = Path(args.out) / (args.run_id or f"{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%SZ')}-faults")
-    out.mkdir(parents=True, exist_ok=True)
-    bar = None if args.no_progress else _Progress("faults")
-    res = run_experiment(out, quick=args.quick, scales=scales, seeds=seeds, steps=args.steps,
-                         jobs=2 if args.jobs is None else args.jobs,
-                         conditions=conditions, progress=None if bar is None else bar.update)
-    if bar is not None:
-        bar.close()
-    print(markdown(res["rows"]))
-    print(f"faults experiment: {len(res['rows'])} rows in {res['wall_s']:.1f} s; {res['json']}, "
-          f"{', '.join(res['pngs'])}")
+    if not scales:
+        raise ValueError("scales: at least one scale")
+    return scales
+
+
+def _run_dir(args, kind: str) -> Path:
+    from datetime import datetime, timezone
+
+    from schemas.keys import validate_run_id
+
+    run_id = args.run_id or f"{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%SZ')}-{kind}"
+    validate_run_id(run_id)
+    return Path(args.out) / run_id
+
+
+def _interrupted(kind: str, run_dir: Path, total: int) -> int:
+    from morph_sim.lab.grid import count_done
+
+    print(f"experiment {kind}: interrupted with {count_done(run_dir)} of {total} episodes in the record; the same "
+          f"command with --run-id {run_dir.name} resumes it", file=sys.stderr)
+    return 130
+
+
+def _run_faults(args) -> int:
+    from morph_sim.lab.faults_experiment import fault_tasks, grid_plan, run_experiment
+
+    plan = grid_plan(quick=args.quick, scales=_scales(args.scales, "tiny" if args.quick else "tiny,small,medium,large"),
+                     seeds=_seeds(args.seeds, ()) or None, steps=args.steps,
+                     conditions=_csv(args.conditions) if args.conditions else None,
+                     targets=_csv(args.targets) if args.targets else None,
+                     loss=_levels(args.loss_levels, "loss-levels"), latency=_levels(args.latency_levels,
+                                                                                    "latency-levels"))
+    jobs = 2 if args.jobs is None else args.jobs
+    if jobs < 1:
+        raise ValueError(f"jobs: must be at least 1, got {jobs}")
+    run_dir = _run_dir(args, "faults")
+    n = len(fault_tasks(**{k: plan[k] for k in ("scales", "targets", "conditions", "loss", "latency", "seeds",
+                                                "steps")}))
+    print(f"experiment faults: {len(plan['scales'])} scales × {len(plan['conditions'])} policies × "
+          f"{len(plan['seeds'])} seeds, targets {', '.join(plan['targets'])}, T = {plan['steps']}: {n} episodes "
+          f"→ {run_dir}", file=sys.stderr)
+    try:
+        res = run_experiment(run_dir, progress=not args.no_progress, jobs=jobs, argv=["morph-sim", *sys.argv[1:]],
+                             **{k: v for k, v in plan.items() if k != "steps"}, steps=plan["steps"])
+    except KeyboardInterrupt:
+        return _interrupted("faults", run_dir, n)
+    print(res["markdown"])
+    print(f"faults experiment: {res['ran']} episodes run, {res['skipped']} already in the record, "
+          f"{res['wall_s']:.1f} s; {res['md']}, {res['json']}, {', '.join(res['pngs'])}")
     return 0
 
 
-class _Progress:
-    """A one-line progress bar on stderr: episodes done of total."""
+def _run_network(args) -> int:
+    from morph_sim.lab.network_study import PROFILES, SCALES, SEEDS, grid_plan, network_tasks, run_study
 
-    def __init__(self, what: str):
-        self.what = what
-
-    def update(self, _episode, done: int, total: int) -> None:
-        width = 30
-        filled = width * done // max(total, 1)
-        sys.stderr.write(f"\r{self.what} [{'#' * filled}{'.' * (width - filled)}] {done}/{total}")
-        sys.stderr.flush()
-
-    def close(self) -> None:
-        sys.stderr.write("\n")
+    plan = grid_plan(scales=_scales(args.scales, ",".join(SCALES)),
+                     profiles=_csv(args.profiles) if args.profiles else PROFILES,
+                     conditions=_csv(args.conditions) if args.conditions else None,
+                     seeds=_seeds(args.seeds, SEEDS), steps=args.steps)
+    jobs = 2 if args.jobs is None else args.jobs
+    if jobs < 1:
+        raise ValueError(f"jobs: must be at least 1, got {jobs}")
+    run_dir = _run_dir(args, "network")
+    n = len(network_tasks(plan))
+    print(f"experiment network: {len(plan['scales'])} scales × {len(plan['profiles'])} profiles × "
+          f"{len(plan['conditions'])} policies × {len(plan['seeds'])} seeds = {n} episodes → {run_dir}",
+          file=sys.stderr)
+    try:
+        res = run_study(run_dir, plan, jobs=jobs, progress=not args.no_progress, argv=["morph-sim", *sys.argv[1:]])
+    except KeyboardInterrupt:
+        return _interrupted("network", run_dir, n)
+    print(res["markdown"])
+    print(f"network experiment: {res['ran']} episodes run, {res['skipped']} already in the record, "
+          f"{res['wall_s']:.1f} s; {res['md']}, {res['json']}, {', '.join(res['pngs'])}")
+    return 0
 
 
 def _run_audit(args) -> int:
@@ -269,6 +335,8 @@ def run(args) -> int:
         return _run_emergent(args)
     if args.suite == "faults":
         return _run_faults(args)
+    if args.suite == "network":
+        return _run_network(args)
     started = time.perf_counter()
     from morph_sim.lab.runner import SCALE_STUDY
     from morph_sim.lab.suite import ABLATION_STUDY, SuiteConfig, markdown_table, run_suite, summarise

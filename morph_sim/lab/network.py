@@ -10,7 +10,7 @@ from every Tick as they do there.
 
 :class:`LabDispatch` runs one step of the protocol on the pure core: the AGVs' gates at ``t·Δ``, the pickers'
 decisions at ``t·Δ + Δ/2``, the sim's commitments at ``(t+1)·Δ`` (services.protocol.dispatch.decision_points).
-When a fault can touch the fleet broadcast (the Tick), every agent has its own brain and learns and gates from its
+When a fault can touch the fleet broadcast (``sim/fleet``), every agent has its own brain and learns and gates from its
 own latest view of the fleet; otherwise one brain owns the whole team (identical results, vectorised).
 """
 
@@ -19,12 +19,12 @@ from __future__ import annotations
 import heapq
 import itertools
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from schemas.faults import FaultSpec
-from schemas.keys import RunKeys, matches
+from schemas.keys import FLEET, RunKeys, matches
 from schemas.tick import TickObservation
 from services.faults.layer import FaultLayer
 from services.faults.network import NetworkModel
@@ -38,10 +38,13 @@ from services.protocol.dispatch import (
     Request,
     decision_points,
     gate,
+    view_age_stats,
+    with_own_state,
 )
 
 RUN = "lab"
-FLEET_KEY = "sim/tick"
+#: the fleet broadcast's key (relative to morph/<run>/), the services' own (schemas.keys)
+FLEET_KEY = FLEET
 #: the dispatch protocol's keys (relative to morph/<run>/), the scope of "faults on dispatch messages"
 DISPATCH_KEYS = ("agent/*/request/*", "agent/*/reply/*", "agent/*/commit", "sim/refusal/*")
 
@@ -213,8 +216,9 @@ class LabDispatch:
         self.team_brain = team_brain
         self.agent_brains = agent_brains
         self.views = [FleetView() for _ in range(self.n)] if agent_brains is not None else None
-        self._learnt = [-1.0] * self.n
-        self.view_ages: list[float] = []  # per tick: mean age over agents, sim seconds (per-agent views only)
+        # per tick: mean and max view age over the agents that hold a view, sim seconds (per-agent views only;
+        # nan before any agent holds one) -- the monitor's view_age_mean / view_age_max columns
+        self.view_ages: list[float] = []
         self.view_age_max: list[float] = []
         self.last_draws: dict[int, float] = {}
         self.sent_commits: list[tuple[int, int]] = []
@@ -259,18 +263,17 @@ class LabDispatch:
             return
         size = self._tick_size(obs)
         for agent in range(self.n):  # one publication: one sequence number (its t), a copy per receiver
-            self.net.send(self.keys.tick, "sim", agent, FleetBroadcast(obs, s), s, seq=obs.t, size=size)
+            self.net.send(self.keys.fleet, "sim", agent, FleetBroadcast(obs, s), s, seq=obs.t, size=size)
         self._deliver(s)
         ages = []
-        for agent, (brain, view) in enumerate(zip(self.agent_brains, self.views)):
-            if view.view is not None and view.stamp > self._learnt[agent] + EPS:
-                self._learnt[agent] = view.stamp
-                if not (view.view.final and brain.memoryless):
-                    brain.learn(view.view)
+        for brain, view in zip(self.agent_brains, self.views):
+            new = view.take_new()
+            if new is not None and not (new.final and brain.memoryless):
+                brain.learn(new)
             ages.append(view.age(s))
-        finite = [a for a in ages if np.isfinite(a)]
-        self.view_ages.append(float(np.mean(finite)) if finite else float("nan"))
-        self.view_age_max.append(max(ages) if ages else float("nan"))
+        mean, top = view_age_stats(ages)
+        self.view_ages.append(float("nan") if mean is None else mean)
+        self.view_age_max.append(float("nan") if top is None else top)
 
     def _tick_size(self, obs: TickObservation) -> int:
         """The Tick's bytes on the wire, for a profile's rate limits (its observation fields; the services' Tick also
@@ -289,11 +292,7 @@ class LabDispatch:
         view = self.views[agv].view
         if view is None:
             return self.agent_brains[agv], None
-        if view is obs:
-            return self.agent_brains[agv], obs
-        cells, target = view.cells.copy(), view.target.copy()
-        cells[agv], target[agv] = obs.cells[agv], obs.target[agv]
-        return self.agent_brains[agv], replace(view, cells=cells, target=target)
+        return self.agent_brains[agv], with_own_state(view, agv, obs.cells[agv], obs.target[agv])
 
     def dispatch(self, obs: TickObservation, apply: Callable, count: GateCount,
                  draw: Callable[[int], float] | None = None) -> list[tuple[int, int]]:
@@ -363,6 +362,6 @@ def dispatch_faults(spec: FaultSpec) -> list[FaultSpec]:
 
 
 def fleet_faults(spec: FaultSpec) -> list[FaultSpec]:
-    """``spec`` on the fleet broadcast (the Tick)."""
+    """``spec`` on the fleet broadcast (``sim/fleet``)."""
     return [spec.model_copy(update={"id": (spec.id or "fleet") + "-tick",
                                     "scope": spec.scope.model_copy(update={"key_expr": FLEET_KEY})})]

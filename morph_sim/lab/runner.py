@@ -389,6 +389,11 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
         if trace_hook is not None:
             trace_hook(final, brains)
 
+    if driver is not None:
+        # the monitor's view_age_mean / view_age_max columns: with one team brain every agent holds the broadcast
+        # of its own tick (age 0)
+        for name, ages in (("view_age_mean", driver.view_ages), ("view_age_max", driver.view_age_max)):
+            cols[name] = np.array(ages[:T], dtype=float) if driver.agent_brains is not None else np.zeros(T)
     W = brains.team_weights()
     A = brains.team_links()
     blocks = metrics.mean_w_by_block(W, is_agv)

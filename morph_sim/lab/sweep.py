@@ -32,7 +32,6 @@ import itertools
 import json
 import math
 import os
-import sys
 import time
 import tomllib
 from collections.abc import Callable, Mapping, Sequence
@@ -44,6 +43,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from morph_sim.lab.faults_experiment import BURST as LAB_BURST  # the lab's bursty loss: mean burst, messages
+from morph_sim.lab.grid import RecordMismatch, count_done, read_done as _read_done, run_grid  # noqa: F401 - API
 from services.runconfig import RunConfig
 
 FAULTS = "faults."
@@ -390,137 +390,32 @@ class SweepResult:
     files: dict[str, Path] = field(default_factory=dict)
 
 
-class RecordMismatch(ValueError):
-    pass
-
-
-def _read_done(path: Path) -> dict[str, dict]:
-    done: dict[str, dict] = {}
-    if not path.exists():
-        return done
-    data = path.read_bytes()
-    if data and not data.endswith(b"\n"):  # a kill mid-write: drop the half line so appends stay whole
-        with open(path, "r+b") as f:
-            f.truncate(data.rfind(b"\n") + 1)
-    for line in path.read_text().splitlines():
-        if line.strip():
-            rec = json.loads(line)
-            done[rec["key"]] = rec
-    return done
-
-
 def run_sweep(plan: SweepPlan, out: str | Path = "runs", sweep_id: str | None = None, *, executor: str = "local",
               jobs: int = 2, scheduler: Any = None, progress: bool | Callable[[int, int], None] = True,
               argv: Sequence[str] | None = None) -> SweepResult:
     """Run every episode of ``plan`` not already in ``<out>/<sweep_id>/episodes.jsonl``; write the tables."""
-    from morph_sim.lab.executors import make_executor
-
     t0 = time.perf_counter()
     sweep_id = sweep_id or default_sweep_id()
-    from schemas.keys import validate_run_id
-
-    validate_run_id(sweep_id)
     run_dir = Path(out) / sweep_id
-    run_dir.mkdir(parents=True, exist_ok=True)
     plan_data = plan.model_dump(mode="json")
-    mpath = run_dir / "manifest.json"
-    if mpath.exists():
-        stored = json.loads(mpath.read_text())
-        if stored.get("kind") != "sweep" or stored.get("plan") != plan_data:
-            raise RecordMismatch(f"sweep: {run_dir} holds a different sweep; give another --run-id or --out")
-    else:
-        from morph_sim.lab.suite import _git_revision, _versions
+    tasks = [(key, EpisodeTask(key, plan_data, cond, seed, str(run_dir / "episodes")))
+             for cond, seed in plan.episodes() for key in (plan.episode_key(cond, seed),)]
 
-        manifest = {"run_id": sweep_id, "kind": "sweep", "plan": plan_data, "axes": list(plan.axes),
-                    "seeds": list(plan.seeds), "metrics": list(METRICS), "git_revision": _git_revision(),
-                    "versions": _versions(), "command_line": list(argv) if argv is not None else sys.argv,
-                    "started_at": time.time()}
-        tmp = mpath.with_suffix(".tmp")
-        tmp.write_text(json.dumps(manifest, indent=2))
-        os.replace(tmp, mpath)
-    log = run_dir / "episodes.jsonl"
-    done = _read_done(log)
-    episodes = plan.episodes()
-    todo: list[EpisodeTask] = []
-    for cond, seed in episodes:
-        key = plan.episode_key(cond, seed)
-        if key not in done:
-            todo.append(EpisodeTask(key, plan_data, cond, seed, str(run_dir / "episodes")))
-    skipped = len(episodes) - len(todo)
-    bar = _Progress(progress, len(episodes), skipped)
-    ex = make_executor(executor, jobs=jobs, scheduler=scheduler)
-    try:
-        with open(log, "a", encoding="utf-8") as f, bar:
-            by_key = {t.key: t for t in todo}
-            for res in ex.map_unordered(run_task, todo):
-                task = by_key[res["key"]]
-                rec = {"key": res["key"], "condition": task.condition, "seed": task.seed,
-                       "metrics": res["metrics"], "wall_s": res["wall_s"]}
-                f.write(json.dumps(rec) + "\n")
-                f.flush()
-                done[res["key"]] = rec
-                bar.advance()
-    finally:
-        ex.close()
-    rows = tidy_rows(plan, done)
+    def record(task: EpisodeTask, res: dict) -> dict:
+        return {"key": res["key"], "condition": task.condition, "seed": task.seed, "metrics": res["metrics"],
+                "wall_s": res["wall_s"]}
+
+    grid = run_grid(run_dir, kind="sweep", plan=plan_data, tasks=tasks, fn=run_task, record=record,
+                    executor=executor, jobs=jobs, scheduler=scheduler, progress=progress, argv=argv,
+                    manifest_extra={"axes": list(plan.axes), "seeds": list(plan.seeds), "metrics": list(METRICS)})
+    rows = tidy_rows(plan, grid.done)
     comparison = compare(plan, rows)
     files = write_tables(plan, run_dir, rows, comparison)
-    return SweepResult(plan, run_dir, rows, comparison, len(todo), skipped, time.perf_counter() - t0, files)
+    return SweepResult(plan, run_dir, rows, comparison, grid.ran, grid.skipped, time.perf_counter() - t0, files)
 
 
 def default_sweep_id() -> str:
     return time.strftime("sweep-%Y%m%d-%H%M%S", time.gmtime())
-
-
-def count_done(run_dir: str | Path) -> int:
-    """Episodes already in a sweep record (what a resumed sweep skips)."""
-    return len(_read_done(Path(run_dir) / "episodes.jsonl"))
-
-
-class _Progress:
-    """A progress bar on stderr (rich when installed), or a callback ``progress(done, total)``."""
-
-    def __init__(self, progress, total: int, done: int):
-        self.total, self.done = total, done
-        self.callback = progress if callable(progress) else None
-        self.enabled = bool(progress) and self.callback is None
-        self._rich = None
-        if self.enabled:
-            try:
-                from rich.console import Console
-                from rich.progress import (
-                    BarColumn,
-                    MofNCompleteColumn,
-                    Progress,
-                    TextColumn,
-                    TimeElapsedColumn,
-                    TimeRemainingColumn,
-                )
-
-                self._rich = Progress(TextColumn("sweep"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                                      TimeRemainingColumn(), console=Console(stderr=True), transient=False)
-            except ImportError:
-                pass
-
-    def __enter__(self):
-        if self._rich is not None:
-            self._rich.start()
-            self._task = self._rich.add_task("sweep", total=self.total, completed=self.done)
-        return self
-
-    def advance(self) -> None:
-        self.done += 1
-        if self.callback is not None:
-            self.callback(self.done, self.total)
-        elif self._rich is not None:
-            self._rich.update(self._task, completed=self.done)
-        elif self.enabled:
-            print(f"\rsweep {self.done}/{self.total}", end="" if self.done < self.total else "\n", file=sys.stderr,
-                  flush=True)
-
-    def __exit__(self, *exc):
-        if self._rich is not None:
-            self._rich.stop()
 
 
 # -- tables -------------------------------------------------------------------------------------------------------

@@ -3,9 +3,13 @@
 It owns that robot's :class:`~services.agent.policies.Coordinator` (its plasticity state and its own seeded
 RNG) and nothing else. Per tick ``t`` (docs/services.md):
 
-* on ``Tick`` it rebuilds the observation from the message alone, applies the plasticity update of step t−1,
-  and, as an AGV that needs a picker, picks a candidate by the policy's rule, draws its gate and on success sends a
-  ``HelpRequest`` to that picker; then it acks (with its out-links, for the monitor);
+* what it knows of the other robots is its latest fleet broadcast (``sim/fleet``, a network message that may be
+  late or lost: a :class:`~services.protocol.dispatch.FleetView` with its age); what it knows of itself (cell,
+  mission, target, load) comes on board (``sim/@onboard/<id>``), which is also its decision point;
+* at its decision point it learns once from a fleet view it has not learnt from (the plasticity update of the step
+  before that view), and, as an AGV that needs a picker, picks a candidate from that view with its own on-board
+  cell and target, draws its gate and on success sends a ``HelpRequest`` to that picker; then it acks (with its
+  out-links and its view's age, for the monitor);
 * as a picker, on ``Resolve`` it waits for the requests it was told to expect, takes the first in mission order
   (deterministic), sends ``Commit`` to the sim and ``HelpReply`` to every requester;
 * every ``state_every`` ticks (and at the final tick) it publishes its state (row of W, links, h, η).
@@ -24,10 +28,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas import Ack, AgentState, Commit, Event, HelpReply, HelpRequest, Phase, Refusal, Resolve, Stop, Tick
+from schemas import Ack, AgentState, Commit, Event, HelpReply, HelpRequest, OnBoard, Phase, Refusal, Resolve, Stop
 from schemas.codec import encode_fields, unpack_envelope
 from schemas.keys import RunKeys
-from schemas.tick import TickObservation, decode_tick, observation_from_arrays
+from schemas.tick import decode_tick, observation_from_arrays
 from services.agent.policies import Fleet, MorphBrains
 from services.bus.base import Bus, Sample
 from services.protocol import dispatch as protocol
@@ -54,7 +58,8 @@ class AgentService:
 
     def __init__(self, config: RunConfig, bus: Bus, agent_id: int, *, restore: bool = True, faults=None):
         # this process's FaultRuntime (ingress faults on what this agent receives, its ctl/faults
-        # controller, sim-time stamps); in virtual time it advances on every Tick/Resolve that arrives (_on_arrival)
+        # controller, sim-time stamps); in virtual time it advances on every on-board state, fleet broadcast and
+        # Resolve of the sim that arrives (_on_arrival)
         self.faults = faults
         # picker, with faults: t -> AGVs whose request arrived but was dropped (or held past the boundary)
         self._arrived: dict[int, set[int]] = {}
@@ -70,6 +75,7 @@ class AgentService:
         bus.reject_hook = self._reject  # oversized messages refused on arrival count here
         self.id = agent_id
         self.keys = RunKeys(config.run_id)
+        self._onboard_key = self.keys.onboard(agent_id)
         self.is_agv = agent_id < config.n_agvs
         self.role = "agv" if self.is_agv else "picker"
         fleet = Fleet(config.n_agvs, config.n_pickers, config.scale)
@@ -96,14 +102,16 @@ class AgentService:
             self.endpoint = protocol.AgvEndpoint(agent_id, config.request_timeout, self._next_seq)
         else:
             self.endpoint = protocol.PickerEndpoint(agent_id, config.request_timeout, self._next_seq)
-        self._rank: dict[int, int] = {}  # the fleet's mission order in the latest tick (picker tie-break)
         self._assigned = False  # on board: the picker has a mission (latest tick)
+        # what this robot knows of the others: its latest fleet broadcast, with its age (services/protocol)
+        self.fleet = protocol.FleetView()
+        self._fleet_arrived = -1  # the newest tick whose fleet broadcast physically arrived (delivered, held, lost)
+        self._onboard: OnBoard | None = None  # this tick's on-board state, its decision point not yet taken
         # AGV: replies that physically arrived, per picker decision step, and a decision point waiting for them
         self._reply_arrivals: dict[int, int] = {}  # step the picker decided at -> replies arrived
         self._reply_base = (0, 0)  # (step of the outstanding request, replies announced to this AGV before it)
         self._holding = False  # picker: the request arriving right now is about to be held by the fault layer
         self._replies_seen: set[tuple[str, int]] = set()
-        self._deferred: tuple | None = None
 
     def _reject(self, what: str, why: object) -> None:
         self._rejects.count(what, why)
@@ -120,7 +128,8 @@ class AgentService:
             await self.faults.start()  # ctl/faults, and the schedule from time 0
         restored = await self._restore()
         # inline: the lock-step hot path skips the hop to the loop (3-4x the tick rate over Zenoh, docs/services.md)
-        await bus.subscribe(k.tick, self._on_tick, inline=True)
+        await bus.subscribe(k.fleet, self._on_fleet, inline=True)
+        await bus.subscribe(k.onboard(self.id), self._on_onboard, inline=True)
         await bus.subscribe(k.event("sim"), self._on_probe)
         await bus.subscribe(k.stop, self._on_stop)
         if not self.is_agv:
@@ -213,29 +222,40 @@ class AgentService:
     # -- virtual time ----------------------------------------------------------------------------------------------
     def _on_arrival(self, sample: Sample, fate: list[float]) -> None:
         """Fault layer hook: a sample physically arrived (any thread, under the runtime's lock, before it is
-        delivered, dropped or held). A Tick or Resolve carries the sim's boundary: reach it first (releasing what is
-        due by then, applying the schedule). One that will not be delivered now cannot be answered in its phase:
-        skip it at once, so the sim never waits on a wall timeout. A request that will not be delivered now has
-        arrived all the same: the picker does not wait for it. (Wall time: only a dropped sample is "not delivered";
-        a delayed one comes after a real sleep and is answered then.)"""
+        delivered, dropped or held). The sim's on-board state, fleet broadcast and Resolve carry its boundary: reach
+        it first (releasing what is due by then, applying the schedule). An on-board state or Resolve that will not
+        be delivered now cannot be answered in its phase: skip it at once, so the sim never waits on a wall timeout.
+        A fleet broadcast, reply or request that will not be delivered now has arrived all the same: the decision
+        point does not wait for it. (Wall time: a delayed fleet broadcast is not waited for either — a robot acts on
+        the view it has; a delayed reply or request comes after a real sleep and is answered then.)"""
         k = self.keys
         key = sample.key
         if self._virtual:
             missed = not self._layer.delivers_now(sample, fate)
         else:
             missed = not fate
-        if key == k.tick or key == k.resolve:
+        onboard = key == self._onboard_key
+        if onboard or key == k.fleet or key == k.resolve:
             if sample.sender != "sim":
                 return  # only the sim's own samples carry its boundary (not a stray publisher's, nor a fuzzer's)
             if self._virtual:
-                self.faults.advance(self._layer.sent_at(sample))
-            elif key == k.tick:
+                at = self._layer.sent_at(sample)
+                if at > self.faults.now():  # a tick's on-board state and fleet broadcast share their boundary
+                    self.faults.advance(at)
+            elif onboard:
                 self._advance_wall(sample)
+            if key == k.fleet:
+                if missed or (not self._virtual and min(fate) > 0.0):
+                    t = self._tick_of(sample)
+                    if t is not None:
+                        with self._lock:
+                            self._fleet_seen(t)
+                return
             if not missed or self._stop.is_set():
                 return
             try:
-                if key == k.tick:
-                    t, phase = sample.decode(Tick).t, Phase.TICK
+                if onboard:
+                    t, phase = sample.decode(OnBoard).t, Phase.TICK
                     if t <= self.last_t:
                         return
                 else:
@@ -270,8 +290,19 @@ class AgentService:
                 finally:
                     self._holding = False
 
+    def _tick_of(self, sample: Sample) -> int | None:
+        """The tick number of a fleet broadcast, without validating the rest (its handler does that)."""
+        try:
+            t = unpack_envelope(sample.payload)[1].get("t")
+        except ValueError:
+            return None
+        if type(t) is not int or not 0 <= t <= self.config.steps or (
+                self.last_t >= 0 and t > self.last_t + self._ticks.max_gap):
+            return None
+        return t
+
     def _advance_wall(self, sample: Sample) -> None:
-        """Wall time: a Tick still marks its tick's start, where scheduled and ``at_tick`` commands apply (sim
+        """Wall time: the on-board state still marks its tick's start, where scheduled and ``at_tick`` commands apply (sim
         stamps are wall clock here, so the tick number is read off the message itself)."""
         try:
             t = unpack_envelope(sample.payload)[1].get("t")
@@ -281,44 +312,75 @@ class AgentService:
             self.faults.advance(t * self.config.dt)
 
     def _came_late(self, sample: Sample) -> bool:
-        """Virtual time: a Tick/Resolve released at a later boundary than it was sent at (it was held): this agent
+        """Virtual time: an on-board state or Resolve released at a later boundary than it was sent at (it was held): this agent
         has skipped that phase already, so the protocol drops it as stale."""
         return self._virtual and sample.sent_at < self.faults.now() - 1e-9
 
-    # -- tick ------------------------------------------------------------------------------------------------------------
-    def _on_tick(self, sample: Sample) -> None:
+    # -- tick: the fleet broadcast and the on-board state -----------------------------------------------------------
+    def _on_fleet(self, sample: Sample) -> None:
+        """The fleet broadcast (a network message, maybe late): it becomes this robot's view if newer."""
+        if self._stop.is_set():
+            return  # a stopped agent is gone, even while its session closes
+        try:
+            if sample.sender != "sim":
+                raise ValueError(f"fleet state published by {sample.sender!r}, not the sim")
+            tick = decode_tick(sample.payload)  # validated, straight into arrays (schemas/tick.py)
+            if tick.n != self.config.n_agents:
+                raise ValueError(f"fleet state has {tick.n} robots, this fleet {self.config.n_agents}")
+            if not 0 <= tick.t <= self.config.steps:
+                raise ValueError(f"fleet state of tick t={tick.t} outside 0..{self.config.steps} (steps)")
+            if self.last_t >= 0 and tick.t > self.last_t + self._ticks.max_gap:
+                # kept, a forged far-future view would hide every real one after it
+                raise ValueError(f"fleet state of tick {tick.t}, this robot is at tick {self.last_t}")
+            obs = observation_from_arrays(tick, self.config.steps)
+        except (ValueError, IndexError) as exc:
+            self._reject(sample.key, exc)
+            return
+        with self._lock:
+            self.fleet.update(obs, tick.t * self.config.dt)  # an older copy arriving after a newer one is ignored
+            self._fleet_seen(tick.t)
+
+    def _fleet_seen(self, t: int) -> None:
+        """The fleet broadcast of tick ``t`` has arrived (with ``_lock`` held): a decision point waiting for it goes."""
+        if t > self._fleet_arrived:
+            self._fleet_arrived = t
+            self._try_act()
+
+    def _on_onboard(self, sample: Sample) -> None:
+        """This robot's own state at the start of a tick: its decision point, once what it waits for has arrived."""
         if self._stop.is_set() or self._came_late(sample):
             return  # a stopped agent is gone, even while its session closes
         try:
             if sample.sender != "sim":
-                raise ValueError(f"tick published by {sample.sender!r}, not the sim")
-            tick = decode_tick(sample.payload)  # validated, straight into arrays (schemas/tick.py)
-            if tick.n != self.config.n_agents:
-                raise ValueError(f"tick has {tick.n} robots, this fleet {self.config.n_agents}")
-            obs = observation_from_arrays(tick, self.config.steps)
-            if not self._ticks.admit(tick.t):
-                return  # a duplicate or stale tick: each tick is learnt from once
-        except (ValueError, IndexError) as exc:
+                raise ValueError(f"on-board state published by {sample.sender!r}, not the sim")
+            msg = sample.decode(OnBoard)
+            if msg.robot != self.id:
+                raise ValueError(f"on-board state of robot {msg.robot} on the key of {self.id}")
+            if not self._ticks.admit(msg.t):
+                return  # a duplicate or stale tick: each tick is acted on once
+        except ValueError as exc:
             self._reject(sample.key, exc)
             return
-        self.last_t = tick.t
+        self.last_t = msg.t
         self.counters.ticks += 1
-        final = tick.t >= self.config.steps or bool(getattr(obs, "final", False))
-        if not final or not self.brains.memoryless:
-            # the final tick only reports the last step: a memoryless brain has nothing to learn from it
-            self.brains.learn(obs)
-        if self.is_agv and not final and self.config.mode == "lockstep":
-            # (paced: a real-time robot acts on what it has when the Tick comes; an answer still on its way is
-            # taken into account when it arrives)
-            announced = tick.replied[self.id] if self.id < len(tick.replied) else 0
-            with self._lock:
-                if self.endpoint.outstanding is not None and self._replies_owed(announced) > 0:
-                    # an answer to this AGV's request is still on its way (another path than the Tick's): decide
-                    # once it has arrived, so what the AGV knows at its decision point does not depend on wall-clock
-                    # races between the two paths
-                    self._deferred = (tick, obs, final, announced)
-                    return
-        self._act(tick, obs, final)
+        with self._lock:
+            self._onboard = msg
+            self._try_act()
+
+    def _try_act(self) -> None:
+        """Take this tick's decision point once the fleet broadcast sent with its on-board state has arrived and, for
+        an AGV with a request outstanding, every reply announced to it (with ``_lock`` held). Both travel other
+        paths than the on-board state: waiting for their arrival (not their delivery) makes what the robot knows at
+        its decision point independent of wall-clock races, while a late or lost one is still late or lost."""
+        ob = self._onboard
+        if ob is None or self._fleet_arrived < ob.t:
+            return
+        final = ob.final or ob.t >= self.config.steps
+        if self.is_agv and not final and self.config.mode == "lockstep" and self.endpoint.outstanding is not None \
+                and self._replies_owed(ob.replied) > 0:
+            return  # (paced: a real-time robot acts on what it has; an answer on its way counts when it arrives)
+        self._onboard = None
+        self._act(ob, final)
 
     def _replies_owed(self, announced: int) -> int:
         """Replies sent to this AGV since its request (the sim's cumulative count minus the count when it asked) that
@@ -329,63 +391,65 @@ class AgentService:
 
     def _count_reply(self, sample: Sample, t: int) -> None:
         """A reply to this AGV, decided at step ``t``, physically arrived (once per copy sent, whatever the network
-        did to it); with ``_lock`` held. Resumes a deferred decision point whose replies are all in."""
+        did to it); with ``_lock`` held. Resumes a decision point whose replies are all in."""
         key = (sample.sender, sample.seq)
         if key in self._replies_seen:
             return
         self._replies_seen.add(key)
         self._reply_arrivals[t] = self._reply_arrivals.get(t, 0) + 1
-        deferred = self._deferred
-        if deferred is not None and self._replies_owed(deferred[3]) <= 0:
-            self._deferred = None
-            self._act(*deferred[:3])
+        self._try_act()
 
-    def _act(self, tick, obs: TickObservation, final: bool) -> None:
-        """This robot's decision point of step t (an AGV's gate and request), then its ack."""
+    def _act(self, ob: OnBoard, final: bool) -> None:
+        """This robot's decision point of step t (with ``_lock`` held): learn from a new fleet view, then, as an
+        AGV, gate and request from that view and its own on-board state; then the ack."""
         asked: list[int] = []
-        now = tick.t * self.config.dt  # this robot's decision point of step t
+        t = ob.t
+        now = t * self.config.dt  # this robot's decision point of step t
+        view = self.fleet.take_new()
+        if view is not None and not (view.final and self.brains.memoryless):
+            # the final view only reports the last step: a memoryless brain has nothing to learn from it
+            self.brains.learn(view)
+        age = self.fleet.age(now)
         with self._lock:
-            if not self.is_agv and tick.t > 0:
+            if not self.is_agv and t > 0:
                 # the decision point of step t−1 (again, if requests were decided there: idempotent): a commitment in
                 # flight ends there (refused, took effect, expired) with what the picker knew then, requests or not
-                self.endpoint.check_pending((tick.t - 1) * self.config.dt + self.config.dt / 2, self._assigned,
+                self.endpoint.check_pending((t - 1) * self.config.dt + self.config.dt / 2, self._assigned,
                                             self.outcomes)
             # what became of this robot's dispatch messages by this boundary, for the record (on the ack)
             counts = self.outcomes.counts()
         if not self.is_agv:
-            with self._lock:
-                self._rank = {int(a): i for i, a in enumerate(obs.request_order)}
-                self._assigned = not bool(obs.free_picker[self.id])
+            self._assigned = not ob.free
         elif not final:
-            with self._lock:
-                may_ask = self.endpoint.may_ask(now, bool(obs.needs_picker[self.id]), self.outcomes)
-            if may_ask:
-                g = protocol.gate(self.brains, self.id, obs)
+            may_ask = self.endpoint.may_ask(now, ob.needs_picker, self.outcomes)
+            if may_ask and self.fleet.view is not None:  # no fleet view yet: nothing to choose a picker from
+                cell, target = (ob.x, ob.y), (ob.target_x, ob.target_y)
+                g = protocol.gate(self.brains, self.id, protocol.with_own_state(self.fleet.view, self.id, cell, target))
                 if g.ask:
-                    with self._lock:
-                        reqs = [self.endpoint.request(p, obs.target[self.id], now, self.outcomes) for p in g.targets]
-                        self._reply_base = (tick.t, tick.replied[self.id] if self.id < len(tick.replied) else 0)
-                        self._reply_arrivals = {s: n for s, n in self._reply_arrivals.items() if s >= tick.t}
+                    reqs = [self.endpoint.request(p, target, now, self.outcomes) for p in g.targets]
+                    self._reply_base = (t, ob.replied)
+                    self._reply_arrivals = {s: n for s, n in self._reply_arrivals.items() if s >= t}
                     for req in reqs:  # one (a broadcasting policy: one per free picker it knows of)
                         tx, ty = req.cell
                         self.bus.put(self.keys.request(self.id, req.picker), encode_fields(
-                            HelpRequest, t=tick.t, agv=self.id, picker=req.picker, target_x=tx, target_y=ty,
-                            mission=int(obs.mission[self.id]), seq=req.seq))
+                            HelpRequest, t=t, agv=self.id, picker=req.picker, target_x=tx, target_y=ty,
+                            mission=ob.mission, seq=req.seq))
                         self.counters.requests += 1
                         asked.append(req.picker)
         eta = float(self.brains.state.eta) if isinstance(self.brains, MorphBrains) else None
-        publish_state = tick.t % self.config.state_every == 0 or final
+        publish_state = t % self.config.state_every == 0 or final
         # encoded from plain values (no model round trip: the hot path, codec.encode_fields)
-        ack = encode_fields(Ack, t=tick.t, agent=self.id, phase=int(Phase.TICK), requests_sent=asked,
-                            seq=self._next_seq(), links=self.brains.out_links(self.id), eta=eta, outcomes=counts)
+        ack = encode_fields(Ack, t=t, agent=self.id, phase=int(Phase.TICK), requests_sent=asked,
+                            seq=self._next_seq(), links=self.brains.out_links(self.id), eta=eta,
+                            view_age=None if age == float("inf") else float(age), outcomes=counts)
         if final:
             # Before the ack, on the same link: the last state must reach the monitor before the run ends.
-            self.bus.put(self.keys.agent_state(self.id), self.state_message(tick.t))
+            self.bus.put(self.keys.agent_state(self.id), self.state_message(t))
             publish_state = False
         self.bus.put(self.keys.ack(self.id), ack)  # the ack first: it is on the sim's critical path
         if publish_state:
             # still before this agent's ack of t+1, hence before tick t+2, when the monitor closes row t
-            self.bus.put(self.keys.agent_state(self.id), self.state_message(tick.t))
+            self.bus.put(self.keys.agent_state(self.id), self.state_message(t))
 
     def state_message(self, t: int) -> AgentState:
         b = self.brains
@@ -531,7 +595,9 @@ class AgentService:
         for old in [s for s in self._arrived if s <= t]:
             del self._arrived[old]
         now = t * self.config.dt + self.config.dt / 2  # the picker's decision point of step t
-        commit, replies = self.endpoint.decide(now, self._assigned, self._rank, self.outcomes)
+        view = self.fleet.view  # the mission order as this picker last heard it (the tie-break)
+        rank = {int(a): i for i, a in enumerate(view.request_order)} if view is not None else {}
+        commit, replies = self.endpoint.decide(now, self._assigned, rank, self.outcomes)
         # requests delivered later, or still held by the network, need this picker's next decision point too
         held = self._virtual and (self.faults.vtime.pending > 0 or self._holding)
         self._answer(t, commit, replies, bool(self.endpoint.inbox) or held)

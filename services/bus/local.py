@@ -20,6 +20,10 @@ class LocalNetwork:
 
     def __init__(self) -> None:
         self.subscribers: list[tuple[LocalBus, Subscription[Sample]]] = []
+        # key -> the subscribers it reaches, in declaration order; forgotten whenever a subscription comes or goes.
+        # A run publishes on a few hundred keys against a hundred subscriptions: matching every put against every
+        # subscription was most of an in-process run's bus time.
+        self._routes: dict[str, list[tuple[LocalBus, Subscription[Sample]]]] = {}
         self.queryables: list[tuple[LocalBus, str, Callable[[Query], Awaitable[None] | None]]] = []
         self.tokens: dict[str, list[LocalBus]] = {}
         self.liveliness_subscribers: list[tuple[LocalBus, Subscription[LivelinessEvent]]] = []
@@ -58,14 +62,26 @@ class LocalBus(Bus):
 
     def _send(self, sample: Sample, droppable: bool) -> None:
         loop = asyncio.get_running_loop()
-        for bus, sub in list(self.network.subscribers):
-            if matches(sub.key_expr, sample.key):
-                loop.call_soon(bus._ingress, sub, sample)
+        routes = self.network._routes
+        targets = routes.get(sample.key)
+        if targets is None:
+            if len(routes) >= 4096:  # keys nobody planned (a fuzzer's): the table stays bounded
+                routes.clear()
+            targets = routes[sample.key] = [(bus, sub) for bus, sub in self.network.subscribers
+                                            if matches(sub.key_expr, sample.key)]
+        for bus, sub in targets:
+            loop.call_soon(bus._ingress, sub, sample)
 
     def _declare_subscriber(self, key_expr: str, sub: Subscription[Sample]) -> Callable[[], None]:
         entry = (self, sub)
-        self.network.subscribers.append(entry)
-        return lambda: _remove(self.network.subscribers, entry)
+        network = self.network
+        network.subscribers.append(entry)
+        network._routes = {}
+
+        def undeclare() -> None:
+            _remove(network.subscribers, entry)
+            network._routes = {}
+        return undeclare
 
     def _has_subscribers(self, key: str) -> bool:
         return any(matches(sub.key_expr, key) for _bus, sub in self.network.subscribers)

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from schemas.faults import FaultSpec, Loss
-from schemas.keys import RunKeys, matches, parse_agent_id
+from schemas.keys import ONBOARD, RunKeys, matches, parse_agent_id
 from schemas.messages import FaultCommand, FaultReply
 from services.bus.base import Bus, Sample
 from services.faults.distributions import latency_quantile
@@ -160,7 +160,8 @@ class FaultLayer:
         # latency would silence every robot); the lab, whose fleet broadcast is its own message, counts them
         self.network_latency = True
         self.on_handover: Callable[[HandoverEvent], None] | None = None
-        self._tick_key = self.keys.tick
+        # the fleet broadcast reaches every robot physically whatever its fate: it says where the robots are
+        self._tick_key = self.keys.fleet
 
     # -- control -----------------------------------------------------------------------------------------------
     def set(self, spec: FaultSpec, at: float | None = None) -> str:
@@ -273,7 +274,7 @@ class FaultLayer:
             return [0.0]  # the picker's decision point is synchronisation too
         rel = "/".join(chunks)
         delay = 0.0
-        if self.network is not None and at is not None:
+        if self.network is not None and at is not None and not matches(ONBOARD, rel):  # sensing is not radio
             # the radio legs first (the robots' Wi-Fi), then the fault specs on top, as netem on a real interface
             net = self.network.fate(at, sender, receiver, (msg, rel), size=size)
             if net.delivered_at is None:

@@ -40,11 +40,12 @@ from services.faults.vtime import VirtualTime
 log = logging.getLogger("morph_sim.faults")
 
 FAULT_TIMES = ("virtual", "wall")
-#: whether the services count a network profile's delays or only its losses (FaultLayer.network_latency): only its
-#: losses while the Tick is both the fleet broadcast and the barrier of the tick, because any latency on it makes
-#: the agent skip the tick, and a profile's milliseconds of Wi-Fi latency would silence every robot. Once the fleet
-#: state is its own broadcast this turns True, and the lab and the services judge the radio alike.
-NETWORK_LATENCY = False
+#: whether the services count a network profile's delays or only its losses (FaultLayer.network_latency). They count
+#: both: the fleet state is its own broadcast (``sim/fleet``) and a late one only leaves a robot with an older view,
+#: while its decision point comes on board (docs/decisions.md, "What a robot knows on board and what it hears"), so
+#: the lab and the services judge the radio alike. (While the Tick was also the barrier, any latency on it made the
+#: agent skip the tick, and a profile's milliseconds of Wi-Fi latency would have silenced every robot.)
+NETWORK_LATENCY = True
 
 
 class FaultRuntime:

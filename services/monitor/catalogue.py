@@ -63,6 +63,12 @@ CATALOGUE: tuple[Metric, ...] = (
     Metric("lambda2", "1", "algebraic connectivity λ₂ of the link graph", "row", "morph_lambda2"),
     Metric("eta", "1", "mean neuromodulation signal η over the agents (plastic policies)", "row", "morph_eta"),
     Metric("acks", "agents", "agents that acknowledged tick t", "row"),
+    # what the robots knew of each other at tick t: the age of each agent's latest fleet broadcast at its decision
+    # point (0 when every broadcast arrives in its tick; grows while an agent's broadcasts are late or lost)
+    Metric("view_age_mean", "s", "mean age of the agents' fleet views at their decision point of tick t", "row",
+           "morph_view_age_mean_seconds"),
+    Metric("view_age_max", "s", "largest age of an agent's fleet view at tick t", "row",
+           "morph_view_age_max_seconds"),
     Metric("w_agv_agv", "1", "mean W between AGVs (every --state-every ticks)", "row", "morph_w_agv_agv"),
     Metric("w_agv_picker", "1", "mean W between AGVs and pickers", "row", "morph_w_agv_picker"),
     Metric("w_picker_picker", "1", "mean W between pickers", "row", "morph_w_picker_picker"),

@@ -34,6 +34,7 @@ from services.bus.base import Bus, Query, Sample
 from services.monitor import catalogue, metrics as M
 from services.monitor.recorder import Recorder, read_metrics
 from services.monitor.streams import MessageStats
+from services.protocol.dispatch import view_age_stats
 from services.rejects import Rejects
 from services.runconfig import RunConfig
 from services.tickorder import TickOrder
@@ -76,6 +77,7 @@ class Row:
     # dispatch outcomes by the end of step t: each robot's counts (its ack of t+1), the sim's (its tick t+1)
     outcomes: dict[int, dict[str, int]] = field(default_factory=dict)
     sim_outcomes: dict[str, int] | None = None
+    view_ages: list[float] = field(default_factory=list)
 
 
 @dataclass
@@ -112,6 +114,7 @@ class MonitorService:
         self.bus = bus
         bus.reject_hook = self._reject  # oversized messages refused on arrival count here
         self.keys = RunKeys(config.run_id)
+        self._robot_copies = (self.keys.fleet, self.keys.onboard(0).rsplit("/", 1)[0] + "/")
         self.n = config.n_agents
         self.is_agv = np.arange(self.n) < config.n_agvs
         self.recorder = Recorder(config) if record else None
@@ -222,6 +225,10 @@ class MonitorService:
             self._record_failed(exc)
 
     def _handle(self, sample: Sample) -> None:
+        if sample.key.startswith(self._robot_copies):
+            # the fleet broadcast and the on-board states repeat the world record (sim/tick) for the robots: the
+            # one subscription to the whole run (which keeps its arrival order) brings them, nothing records them
+            return
         try:
             rel = self.keys.relative(sample.key)
         except ValueError as exc:
@@ -342,6 +349,8 @@ class MonitorService:
             if row is not None and ack.agent not in row.ackers:
                 row.ackers.add(ack.agent)
                 row.requests += len(ack.requests_sent)
+                if ack.view_age is not None:
+                    row.view_ages.append(ack.view_age)
                 if ack.requests_sent:
                     self.stats.requested(ack.t, ack.agent)
         if ack.outcomes is not None and 0 < ack.t <= self.config.steps:
@@ -465,6 +474,7 @@ class MonitorService:
             "acks": len(row.ackers), **catalogue.w_block_values(block),
             **self._outcome_values(row),
         }
+        values["view_age_mean"], values["view_age_max"] = view_age_stats(row.view_ages)
         self.result.deliveries_total = self._total
         self._last_values = values
         self._links_sum += values["links"]

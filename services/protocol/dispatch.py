@@ -26,7 +26,7 @@ mission order.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 from schemas.fields import DISPATCH_OUTCOMES
 
@@ -376,11 +376,16 @@ class CommitmentDesk:
 
 @dataclass
 class FleetView:
-    """An agent's latest view of the fleet state (a broadcast), with the sim time it describes."""
+    """An agent's latest view of the fleet state (a broadcast), with the sim time it describes.
+
+    What a robot knows of the *others* is this view only; what it knows of itself comes from on board
+    (:func:`with_own_state`). Its plasticity learns from each new view once (:meth:`take_new`), at its decision
+    point: a view that arrives late is learnt from late, one that is lost is never learnt from."""
 
     view: object | None = None
     stamp: float = -1.0
     received: int = 0  # broadcasts delivered (an older one arriving after a newer one is ignored)
+    learnt: float = -1.0  # the stamp of the last view learnt from
 
     def update(self, view, stamp: float) -> bool:
         """Take ``view`` if it is newer than the one held; returns whether it was."""
@@ -393,6 +398,33 @@ class FleetView:
     def age(self, now: float) -> float:
         """Sim seconds since the held view was taken (infinite before the first)."""
         return now - self.stamp if self.view is not None else float("inf")
+
+    def take_new(self):
+        """The held view if it has not been learnt from yet (it is now), else None."""
+        if self.view is None or self.stamp <= self.learnt + EPS:
+            return None
+        self.learnt = self.stamp
+        return self.view
+
+
+def with_own_state(view, agent: int, cell, target):
+    """The observation an agent gates with: its fleet ``view`` (a TickObservation), with its own ``cell`` and
+    mission ``target`` as its on-board state gives them now (a robot knows where it is even when the fleet's
+    broadcast is late). The view itself is not changed; it is returned as is when it already agrees."""
+    c, g = view.cells[agent], view.target[agent]
+    if c[0] == cell[0] and c[1] == cell[1] and g[0] == target[0] and g[1] == target[1]:
+        return view
+    cells, own_target = view.cells.copy(), view.target.copy()
+    cells[agent], own_target[agent] = cell, target
+    return replace(view, cells=cells, target=own_target)
+
+
+def view_age_stats(ages: Iterable[float | None]) -> tuple[float | None, float | None]:
+    """(mean, max) of the agents' view ages, sim seconds, over the agents that hold a view (None if none does)."""
+    held = [a for a in ages if a is not None and a != float("inf")]
+    if not held:
+        return None, None
+    return sum(held) / len(held), max(held)
 
 
 @dataclass

@@ -2,8 +2,10 @@
 
 Per tick ``t``:
 
-1. the CTA controller runs steps 1–2 (:meth:`CTAController.begin_tick`); the observation becomes a ``Tick`` on
-   ``sim/tick``;
+1. the CTA controller runs steps 1–2 (:meth:`CTAController.begin_tick`); the observation becomes a ``Tick``, the
+   fleet broadcast on ``sim/fleet`` (faults act on it) and the world record on ``sim/tick`` (monitor, tools); each
+   robot's own state goes to it on ``sim/@onboard/<id>`` (on-board sensing; it is also the decision point's
+   synchronisation);
 2. every present agent answers with an ``Ack`` listing the pickers it asked (AGVs send their ``HelpRequest``\\ s
    directly to those pickers);
 3. if anybody asked, the sim publishes ``Resolve`` (per picker, the requesters in mission order); each picker that
@@ -32,9 +34,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from schemas import Ack, Commit, Event, Phase, Refusal, Resolve, Stop
+from schemas import Ack, Commit, Event, OnBoard, Phase, Refusal, Resolve, Stop
+from schemas.codec import encode_fields
 from schemas.keys import RunKeys
-from schemas.tick import TickObservation, encode_tick_body, tick_fields
+from schemas.tick import TickObservation, encode_tick_body, onboard_fields, tick_fields
 from services.bus.base import Bus, LivelinessEvent, Sample
 from services.protocol import dispatch as protocol
 from services.rejects import Rejects
@@ -522,13 +525,23 @@ class SimService:
         await token.close()
         return r
 
-    def _wire_tick(self, obs: TickObservation) -> bytes:
-        """The encoded Tick of ``obs``: observation and world, stamped with its sim time, and the replies sent to each
-        AGV so far (synchronisation for the AGVs)."""
+    def _publish_tick(self, obs: TickObservation) -> None:
+        """Tick start: the fleet broadcast (a network message: faults act on it), the world record (the monitor's,
+        never a robot's), and each robot's on-board state on its own key, which carries the synchronisation of its
+        decision point (an AGV's count of replies sent to it). One encoding serves the broadcast and the record."""
+        k, bus = self.keys, self.bus
+        # the sim's dispatch outcome counts ride along for the record (the monitor's copy is never faulted)
         self._reported_outcomes = self.outcomes.counts()
-        return encode_tick_body(tick_fields(obs, obs.t * self.config.dt,
-                                            {**world_fields(self.ctl, obs), "replied": list(self._replied),
-                                             "outcomes": self._reported_outcomes}))
+        body = tick_fields(obs, obs.t * self.config.dt,
+                           {**world_fields(self.ctl, obs), "outcomes": self._reported_outcomes})
+        tick = encode_tick_body(body)
+        bus.put(k.fleet, tick)
+        bus.put(k.tick, tick)
+        free = set(body["free_pickers"])
+        replied, n_agvs = self._replied, self.config.n_agvs
+        for robot in range(self.n):
+            bus.put(k.onboard(robot), encode_fields(OnBoard, **onboard_fields(
+                body, robot, robot in free, replied[robot] if robot < n_agvs else 0)))
 
     async def _event(self, kind: str, **details) -> None:
         t = self.ctl.t
@@ -659,11 +672,10 @@ class SimService:
             self._commits = {}
             self._expected = {}
             ph = _Phase(t, Phase.TICK, self.present())
-            tick = self._wire_tick(obs)
             t1 = time.monotonic()
             spent["controller"] += t1 - started
             self._phase = ph  # before the tick goes out: inline acks may arrive before _collect starts
-            await self.bus.publish(k.tick, tick)
+            self._publish_tick(obs)
             await self._collect(ph, self._deadline(started, Phase.TICK))
             t2 = time.monotonic()
             spent["tick_phase"] += t2 - t1
@@ -709,7 +721,7 @@ class SimService:
             self.faults.advance(obs.t * cfg.dt)  # its boundary, as every tick: stamps and releases like the others
         ph = _Phase(obs.t, Phase.TICK, self.present())
         self._phase = ph
-        await self.bus.publish(k.tick, self._wire_tick(obs))
+        self._publish_tick(obs)
         wait = 0.5 if self._stop is not None else cfg.phase_timeout if cfg.mode == "lockstep" else cfg.period
         await self._collect(ph, time.monotonic() + wait)
         self.result.wall_seconds = time.monotonic() - t0

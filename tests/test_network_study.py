@@ -1,0 +1,84 @@
+"""``morph-sim experiment network`` in its reduced form (tiny, two seeds, a few steps): every flag reaches the grid,
+the tables and a figure per scale are written, the progress bar runs, and a grid cut short resumes from its run
+record to the same tables as one that ran straight through."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from morph_sim.lab.network_study import CONDITIONS, SEEDS, grid_plan, network_tasks, run_study
+
+
+def _cli(argv):
+    return subprocess.run([sys.executable, "-m", "morph_sim.cli", "experiment", "network", *argv],
+                          capture_output=True, text=True, timeout=300)
+
+
+ARGV = ["--scales", "tiny", "--seeds", "301,302", "--steps", "40", "--profiles", "lan,wifi-legacy-roaming",
+        "--conditions", "morph,full,tsg", "--jobs", "2"]
+
+
+def test_cli_runs_the_grid_asked_for_with_tables_figure_and_progress(tmp_path) -> None:
+    res = _cli([*ARGV, "--out", str(tmp_path), "--run-id", "n"])
+    assert res.returncode == 0, res.stderr
+    record = tmp_path / "n"
+    data = json.loads((record / "network.json").read_text())
+    eps = data["episodes"]
+    assert len(eps) == 12 and {e["seed"] for e in eps} == {301, 302} and {e["steps"] for e in eps} == {40}
+    assert {e["profile"] for e in eps} == {"lan", "wifi-legacy-roaming"}
+    assert {e["condition"] for e in eps} == {"MORPH (reference)", "Full-Graph", "TSG"}
+    # the radio model ran: legacy roaming hands over and stops silent robots, the LAN does neither
+    legacy = [e for e in eps if e["profile"] == "wifi-legacy-roaming"]
+    assert all(e["network_handovers"] > 0 for e in legacy)
+    assert all(e["network_handovers"] == 0 and e["view_age_mean"] == 0 for e in eps if e["profile"] == "lan")
+    assert all(e["view_age_mean"] > 0 for e in legacy)
+    assert (record / "network_tiny.png").stat().st_size > 10_000
+    # the claims table compares MORPH with all-to-all per profile; the per-scale table has every policy
+    assert "### The paper's claims: MORPH against all-to-all (Full-Graph)" in res.stdout
+    assert "| MORPH (reference) | wifi-legacy-roaming | " in res.stdout
+    assert "| wifi-legacy-roaming | TSG | " in res.stdout and "### tiny (T = 40)" in res.stdout
+    assert res.stdout.strip().splitlines()[-1].startswith("network experiment: 12 episodes run, 0 already")
+    assert "12/12" in res.stderr and "2 profiles × 3 policies × 2 seeds = 12 episodes" in res.stderr
+    assert (record / "network.md").read_text().strip() == res.stdout.split("network experiment:")[0].strip()
+
+
+def test_a_grid_cut_short_resumes_to_the_same_tables(tmp_path) -> None:
+    plan = grid_plan(scales=("tiny",), profiles=("congested",), conditions=("morph", "full"), seeds=(301, 302),
+                     steps=30)
+    straight = run_study(tmp_path / "a", plan, jobs=1)
+    cut = run_study(tmp_path / "b", plan, jobs=1)
+    log = tmp_path / "b" / "episodes.jsonl"
+    lines = log.read_text().splitlines(keepends=True)
+    log.write_text("".join(lines[:2]) + lines[2][:15])  # killed while writing the third line
+    resumed = run_study(tmp_path / "b", plan, jobs=1)
+    assert (resumed["ran"], resumed["skipped"]) == (2, 2) and cut["ran"] == 4
+    assert resumed["markdown"] == straight["markdown"]
+    assert (tmp_path / "b" / "network.md").read_text() == (tmp_path / "a" / "network.md").read_text()
+
+
+def test_default_grid_is_the_study_the_issue_asks_for() -> None:
+    plan = grid_plan()
+    assert plan["scales"] == ["tiny", "small", "medium", "large"]
+    assert plan["profiles"] == ["lan", "wifi-fast-roaming", "wifi-legacy-roaming", "congested", "lossy-mesh"]
+    assert {"MORPH (reference)", "MORPH (paper)", "Full-Graph", "TSG", "Proximity"} <= set(plan["conditions"])
+    assert len(SEEDS) >= 10 and not set(SEEDS) & {*range(1, 16), 42, 7, 123, 999, 2024}
+    assert len(network_tasks(plan)) == 4 * 5 * len(plan["conditions"]) * len(SEEDS)
+    assert set(plan["conditions"]) <= set(CONDITIONS)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--profiles", "lan,5g"], "profiles: "),
+    (["--conditions", "morph,all"], "conditions: unknown 'all'"),
+    (["--scales", "huge"], "scales: unknown scale 'huge'"),
+    (["--steps", "0"], "steps: must be >= 1"),
+    (["--quick"], "quick: experiment network does not take --quick"),
+])
+def test_bad_values_are_refused_in_one_line(tmp_path, argv, message) -> None:
+    res = _cli([*argv, "--out", str(tmp_path / "never")])
+    assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
+    assert res.stderr.startswith(f"morph-sim experiment: error: {message}"), res.stderr
+    assert not (tmp_path / "never").exists()
