@@ -104,7 +104,7 @@ def test_cli_progress_and_resume_after_interrupt_give_the_same_tables(tmp_path) 
     import sys
     import time
 
-    from tests._procs import kill_tree
+    from _procs import kill_tree
 
     argv = ["--quick", "--seeds", "1,2,3", "--steps", "200", "--jobs", "1", "--out", str(tmp_path)]
     straight = _cli([*argv, "--run-id", "a"])

@@ -206,11 +206,14 @@ def test_full_shift_experiment_within_budget(tmp_path):
 
 
 def test_experiment_faults_cli_is_wired(tmp_path, capsys):
-    """The faults helper's request L1: `experiment faults --quick` runs its reduced sweep and writes its files."""
+    """`experiment faults --quick` runs its reduced grid at every scale asked for and writes its record, figures and
+    one table section per scale."""
     rc = cli_main(["experiment", "faults", "--quick", "--scales", "tiny,small", "--out", str(tmp_path),
                    "--run-id", "f", "--no-progress"])
     assert rc == 0
     assert (tmp_path / "f" / "faults.json").exists()
     assert (tmp_path / "f" / "faults_tiny.png").exists() and (tmp_path / "f" / "faults_small.png").exists()
     out = capsys.readouterr().out
-    assert "faults experiment" in out and "| small | dispatch | Full-Graph |" in out
+    for scale in ("tiny", "small"):
+        assert f"### {scale}: faults on the dispatch messages" in out
+    assert "| Full-Graph |" in out and "| MORPH (reference) |" in out
