@@ -266,13 +266,20 @@ def _run_faults(args) -> int:
     print(f"experiment faults: {len(plan['scales'])} scales × {len(plan['conditions'])} policies × "
           f"{len(plan['seeds'])} seeds, targets {', '.join(plan['targets'])}, T = {plan['steps']}: {n} episodes "
           f"→ {run_dir}", file=sys.stderr)
+    return _run_grid("faults", run_dir, n, lambda: run_experiment(
+        run_dir, progress=not args.no_progress, jobs=jobs, argv=["morph-sim", *sys.argv[1:]],
+        **{k: v for k, v in plan.items() if k != "steps"}, steps=plan["steps"]))
+
+
+def _run_grid(study: str, run_dir, n: int, run) -> int:
+    """Run a study's grid of ``n`` episodes (``run()``), print its tables and where its files are; Ctrl-C says how to
+    resume."""
     try:
-        res = run_experiment(run_dir, progress=not args.no_progress, jobs=jobs, argv=["morph-sim", *sys.argv[1:]],
-                             **{k: v for k, v in plan.items() if k != "steps"}, steps=plan["steps"])
+        res = run()
     except KeyboardInterrupt:
-        return _interrupted("faults", run_dir, n)
+        return _interrupted(study, run_dir, n)
     print(res["markdown"])
-    print(f"faults experiment: {res['ran']} episodes run, {res['skipped']} already in the record, "
+    print(f"{study} experiment: {res['ran']} episodes run, {res['skipped']} already in the record, "
           f"{res['wall_s']:.1f} s; {res['md']}, {res['json']}, {', '.join(res['pngs'])}")
     return 0
 
@@ -292,14 +299,8 @@ def _run_network(args) -> int:
     print(f"experiment network: {len(plan['scales'])} scales × {len(plan['profiles'])} profiles × "
           f"{len(plan['conditions'])} policies × {len(plan['seeds'])} seeds = {n} episodes → {run_dir}",
           file=sys.stderr)
-    try:
-        res = run_study(run_dir, plan, jobs=jobs, progress=not args.no_progress, argv=["morph-sim", *sys.argv[1:]])
-    except KeyboardInterrupt:
-        return _interrupted("network", run_dir, n)
-    print(res["markdown"])
-    print(f"network experiment: {res['ran']} episodes run, {res['skipped']} already in the record, "
-          f"{res['wall_s']:.1f} s; {res['md']}, {res['json']}, {', '.join(res['pngs'])}")
-    return 0
+    return _run_grid("network", run_dir, n, lambda: run_study(
+        run_dir, plan, jobs=jobs, progress=not args.no_progress, argv=["morph-sim", *sys.argv[1:]]))
 
 
 def _run_audit(args) -> int:
