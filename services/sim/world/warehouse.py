@@ -20,16 +20,10 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from schemas.fields import Heading as Direction  # TA-RWARE's name for a robot's heading, one enum on the wire and here
 from services.sim.world.astar import Planner
 from services.sim.world.conflicts import commit_cells
 from services.sim.world.layout import Layout, LayoutConfig, layout_for
-
-
-class Direction(IntEnum):
-    UP = 0
-    DOWN = 1
-    LEFT = 2
-    RIGHT = 3
 
 
 class Action(IntEnum):
