@@ -45,6 +45,12 @@ STOP_GRACE = 3.0  # seconds an agent waits for the sim's end of run after someon
 RESTORE_TIMEOUT = 5.0  # seconds a (re)starting agent waits for the monitor's latest states
 
 
+def _check_from_sim(sample: Sample, what: str) -> None:
+    """ValueError unless the sim published ``sample``: only the sim speaks for the world and its clock."""
+    if sample.sender != "sim":
+        raise ValueError(f"{what} published by {sample.sender!r}, not the sim")
+
+
 @dataclass
 class AgentCounters:
     ticks: int = 0
@@ -322,8 +328,7 @@ class AgentService:
         if self._stop.is_set():
             return  # a stopped agent is gone, even while its session closes
         try:
-            if sample.sender != "sim":
-                raise ValueError(f"fleet state published by {sample.sender!r}, not the sim")
+            _check_from_sim(sample, "fleet state")
             tick = decode_tick(sample.payload)  # validated, straight into arrays (schemas/tick.py)
             if tick.n != self.config.n_agents:
                 raise ValueError(f"fleet state has {tick.n} robots, this fleet {self.config.n_agents}")
@@ -351,8 +356,7 @@ class AgentService:
         if self._stop.is_set() or self._came_late(sample):
             return  # a stopped agent is gone, even while its session closes
         try:
-            if sample.sender != "sim":
-                raise ValueError(f"on-board state published by {sample.sender!r}, not the sim")
+            _check_from_sim(sample, "on-board state")
             msg = sample.decode(OnBoard)
             if msg.robot != self.id:
                 raise ValueError(f"on-board state of robot {msg.robot} on the key of {self.id}")
@@ -536,8 +540,7 @@ class AgentService:
         if self._stop.is_set() or self._came_late(sample):
             return  # a stopped agent is gone, even while its session closes
         try:
-            if sample.sender != "sim":
-                raise ValueError(f"resolve published by {sample.sender!r}, not the sim")
+            _check_from_sim(sample, "resolve")
             msg = sample.decode(Resolve)
             if self.last_t >= 0 and msg.t > self.last_t + self._ticks.max_gap:  # of the tick just taken (or of one
                 # lost on the way)
