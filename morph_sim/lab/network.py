@@ -20,6 +20,7 @@ import heapq
 import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -41,6 +42,9 @@ from services.protocol.dispatch import (
     view_age_stats,
     with_own_state,
 )
+
+if TYPE_CHECKING:  # the runner imports this module; its statistics type is only named here
+    from morph_sim.lab.runner import DispatchStats
 
 RUN = "lab"
 #: the fleet broadcast's key (relative to morph/<run>/), the services' own (schemas.keys)
@@ -187,22 +191,6 @@ class Team:
         return np.concatenate([b.h() for b in self.brains])
 
 
-@dataclass
-class GateCount:
-    """The dispatch statistics the lab reports (one gate decision = one AGV that reached a candidate)."""
-
-    decisions: int = 0
-    dispatched: int = 0
-    p_sum: float = 0.0
-    w_positive: int = 0
-
-    def count(self, ask: bool, p: float) -> None:
-        self.decisions += 1
-        self.dispatched += int(ask)
-        self.p_sum += p
-        self.w_positive += int(p > 0.25 + 1e-12)
-
-
 class LabDispatch:
     """One fleet's protocol endpoints on an :class:`EventNetwork`, stepped by the lab's tick loop."""
 
@@ -294,7 +282,7 @@ class LabDispatch:
             return self.agent_brains[agv], None
         return self.agent_brains[agv], with_own_state(view, agv, obs.cells[agv], obs.target[agv])
 
-    def dispatch(self, obs: TickObservation, apply: Callable, count: GateCount,
+    def dispatch(self, obs: TickObservation, apply: Callable, count: DispatchStats,
                  draw: Callable[[int], float] | None = None) -> list[tuple[int, int]]:
         """AGVs ask, pickers decide, the sim applies what has arrived; returns the (picker, AGV) pairs applied."""
         ep, out, net, k = self.ep, self.ep.outcomes, self.net, self.keys
