@@ -222,3 +222,98 @@ def sample_rss(pid: int, name: str, into: list[int]) -> None:
                 into.append(proc.memory_info().rss)
         except psutil.Error:
             pass
+
+
+class Observer:
+    """A process that watches a live run as a user's client does (``morph-sim watch``, a Zenoh script): started once
+    the run's endpoint accepts connections and ``after_rows`` rows are in its record; stdout and stderr in files."""
+
+    def __init__(self, name: str, argv: list[str], *, after_rows: int = 0, env: dict[str, str] | None = None):
+        self.name, self.argv, self.after_rows, self.env = name, argv, after_rows, env
+        self.proc: subprocess.Popen | None = None
+        self.out = self.err = ""
+
+    def start(self, logs) -> None:
+        with open(logs / f"{self.name}.out", "wb") as out, open(logs / f"{self.name}.err", "wb") as err:
+            self.proc = subprocess.Popen(self.argv, stdout=out, stderr=err, env=self.env, start_new_session=True)
+
+    def finish(self, logs, timeout: float) -> None:
+        """Wait for the observer to end by itself (killed with its descendants after ``timeout``); read its output."""
+        if self.proc is None:
+            return
+        try:
+            self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            kill_tree(self.proc)
+        self.out = (logs / f"{self.name}.out").read_text(errors="replace")
+        self.err = (logs / f"{self.name}.err").read_text(errors="replace")
+
+    @property
+    def returncode(self) -> int | None:
+        return None if self.proc is None else self.proc.returncode
+
+
+class SharedRun:
+    """One live ``morph-sim up`` that several tests read (the ``shared_*`` fixtures in tests/conftest.py): the run and
+    the observers that must see it from its start or join it mid-run are followed to the end in a background thread
+    (every descendant noted, the resident memory of ``sample`` children sampled every 0.5 s), so no test's order
+    decides what is observed. Each test calls :meth:`finished` and asserts its own property on the outcome."""
+
+    def __init__(self, run: LiveRun, observers: list[Observer], *, timeout: float, sample: str = "monitor"):
+        import threading
+
+        self.run, self.observers, self.timeout, self.sample = run, {o.name: o for o in observers}, timeout, sample
+        self.rss: list[int] = []
+        self.left_behind: list[int] | None = None  # processes of the run alive after it ended by itself
+        self.failure: str | None = None  # why following the run failed (every test that reads the run fails with it)
+        self._thread = threading.Thread(target=self._follow, name=f"follow-{run.run_id}", daemon=True)
+
+    def start(self) -> SharedRun:
+        self.run.start()
+        self._thread.start()
+        return self
+
+    def _follow(self) -> None:
+        run, logs = self.run, self.run._logs
+        pending = sorted(self.observers.values(), key=lambda o: o.after_rows)
+        deadline = time.monotonic() + self.timeout
+        try:
+            run.wait_for_endpoint(60)
+            while run.running() and time.monotonic() < deadline:
+                rows = run.rows() if pending else 0
+                while pending and rows >= pending[0].after_rows:
+                    pending.pop(0).start(logs)
+                run._note_children()
+                sample_rss(run.pid, self.sample, self.rss)
+                time.sleep(0.5)
+            if run.running():
+                self.failure = f"up did not end within {self.timeout} s\n{run.stderr()[-3000:]}"
+            else:
+                self.left_behind = run.left_behind()  # before anything is killed below
+        except (AssertionError, OSError, psutil.Error) as exc:
+            self.failure = f"following the run failed: {exc}"
+        finally:
+            for observer in self.observers.values():
+                observer.finish(logs, 30)
+            run.kill()
+
+    def finished(self) -> SharedRun:
+        """Wait until the run and its observers have ended; fail (in the test that asks) if following it failed."""
+        self._thread.join(self.timeout + 60)
+        assert not self._thread.is_alive(), f"the shared run {self.run.run_id} is still being followed"
+        assert self.failure is None, self.failure
+        return self
+
+    def observer(self, name: str) -> Observer:
+        """The observer ``name`` after the run (fails if the run ended before it could join)."""
+        observer = self.observers[name]
+        assert observer.proc is not None, f"the run ended before {name} joined it (after {observer.after_rows} rows)"
+        return observer
+
+    def stop(self) -> None:
+        """Kill the run and its observers (fixture teardown)."""
+        for observer in self.observers.values():
+            if observer.proc is not None:
+                kill_tree(observer.proc)
+        self.run.kill()
+        self._thread.join(30)

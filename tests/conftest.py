@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from _procs import LiveRun
+from _procs import LiveRun, Observer, SharedRun
 
 KINDS: dict[str, tuple[str, ...]] = {
     "unit": (
@@ -84,3 +84,83 @@ def live_run(tmp_path):
     yield start
     for run in runs:
         run.kill()
+
+
+# -- shared live runs ----------------------------------------------------------------------------------------------------
+# A live `morph-sim up` costs ~6 CPU-s before its first tick and ~20 CPU-ms a tick at tiny scale: tests that only read
+# a run of the same kind read one. Each shared run starts, with the observers that must see it from the start or join
+# it mid-run, when the first test asks for it, and is followed to its end in the background (tests/_procs.py,
+# SharedRun); every test then asserts its own property on the outcome.
+
+# A default-settings Zenoh client (a user's script, with the run's operator credentials as the README's subscriber):
+# per one-second window, the metric streams and the ticks seen; the last deliveries_total; when the run finished.
+STREAM_SUBSCRIBER = r'''
+import json, sys, time, collections, msgpack, zenoh
+port, run, duration, credentials = sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4]
+while True:  # `up` writes the run's operator credentials before it starts the sim
+    try:
+        conf = zenoh.Config.from_file(credentials)
+        break
+    except Exception:
+        time.sleep(0.1)
+conf.insert_json5("mode", '"client"'); conf.insert_json5("connect/endpoints", '["tcp/127.0.0.1:%s"]' % port)
+seconds = collections.defaultdict(set)
+ticks = collections.defaultdict(int)
+last = {}
+t0 = time.monotonic()
+def on_metric(s):
+    sec = int(time.monotonic() - t0)
+    name = str(s.key_expr).split("/metrics/", 1)[1]
+    seconds[sec].add(name)
+    if name == "deliveries_total":
+        m = msgpack.unpackb(s.payload.to_bytes())
+        if m["t"] >= last.get("t", -1):
+            last.update(t=m["t"], value=m["value"])
+    elif name == "latency_seconds":
+        last["latency_labels"] = msgpack.unpackb(s.payload.to_bytes())["labels"]
+def on_tick(s):
+    ticks[int(time.monotonic() - t0)] += 1
+def on_event(s):
+    if b"run.finished" in s.payload.to_bytes():
+        last["finished_at"] = int(time.monotonic() - t0)
+with zenoh.open(conf) as session:
+    session.declare_subscriber(f"morph/{run}/metrics/**", on_metric)
+    session.declare_subscriber(f"morph/{run}/sim/tick", on_tick)
+    session.declare_subscriber(f"morph/{run}/events/*", on_event)
+    end = time.monotonic() + duration
+    while time.monotonic() < end and "finished_at" not in last:
+        time.sleep(0.1)
+    time.sleep(1.0)  # the monitor's last publications follow the sim's end
+print(json.dumps({"seconds": {k: sorted(v) for k, v in seconds.items()}, "ticks": ticks, "last": last}))
+'''
+
+SHARED_STEPS = 1200  # a default run long enough (> 5 s at full speed) to judge its streams second by second
+LATE_JOIN_ROWS = 20  # the late watcher joins once the record has this many rows
+
+
+@pytest.fixture(scope="session", params=[SHARED_STEPS, pytest.param(2500, marks=pytest.mark.slow)],
+                ids=lambda steps: f"{steps}steps")
+def shared_default_up(request, tmp_path_factory):
+    """A default lockstep ``morph-sim up`` (tiny, morph, progress lines on), listening on a free port, watched from
+    its start by a user's Zenoh client (``streams``, :data:`STREAM_SUBSCRIBER`) and by ``morph-sim watch --run``
+    (``watch``), and joined mid-run by ``morph-sim watch --duration 3`` without ``--run`` (``late-watch``).
+    :class:`_procs.SharedRun`: call ``finished()`` before reading it."""
+    import os
+    import sys
+
+    steps = request.param
+    tmp = tmp_path_factory.mktemp("shared-default-up")
+    run = LiveRun(tmp, "live", "--steps", str(steps), quiet=False)
+    cli = [sys.executable, "-m", "morph_sim.cli"]
+    user_env = {k: v for k, v in os.environ.items() if not k.startswith("ZENOH_")}
+    shared = SharedRun(run, [
+        Observer("streams", [sys.executable, "-c", STREAM_SUBSCRIBER, str(run.port), run.run_id, "240",
+                             str(run.record / "credentials" / "operator.json5")], env=user_env),
+        Observer("watch", [*cli, "watch", "--run", run.run_id, "--endpoint", run.endpoint, "--duration", "240",
+                           "--output-dir", str(run.output_dir)]),
+        Observer("late-watch", [*cli, "watch", "--endpoint", run.endpoint, "--duration", "3", "--output-dir",
+                                str(run.output_dir)], after_rows=LATE_JOIN_ROWS, env={**os.environ, "COLUMNS": "120"}),
+    ], timeout=240)
+    shared.start()
+    yield shared
+    shared.stop()

@@ -22,19 +22,19 @@ from _procs import alive, descendants, kill_all
 UP_TIMEOUT = 120
 
 
-def test_up_runs_to_completion_and_leaves_no_process(live_run, tmp_path):
-    up = live_run("done", "--policy", "morph", "--steps", "40", listen=False)
-    try:
-        assert up.wait(UP_TIMEOUT) == 0, up.stderr()
-        assert "completed" in up.stdout()
-        assert len(up.seen) >= 10  # sim + 8 agents + monitor
-        rows = read_metrics(tmp_path / "done")
-        assert [int(r["t"]) for r in rows] == list(range(40))
-        assert all(int(r["acks"]) == 8 for r in rows)
-    finally:
-        left = up.left_behind()
-        kill_all(left)
-    assert left == [], f"processes left behind: {left}"
+def test_up_runs_to_completion_and_leaves_no_process(shared_default_up):
+    """The shared default ``up`` run (tests/conftest.py): it completes, every tick acked by all 8 agents, and none of
+    its processes is alive once ``up`` has ended."""
+    shared = shared_default_up.finished()
+    up = shared.run
+    steps = int(up.argv[up.argv.index("--steps") + 1])
+    assert up.proc.returncode == 0, up.stderr()[-3000:]
+    assert "completed" in up.stdout()
+    assert len(up.seen) >= 10  # sim + 8 agents + monitor
+    rows = read_metrics(up.record)
+    assert [int(r["t"]) for r in rows] == list(range(steps))
+    assert all(int(r["acks"]) == 8 for r in rows)
+    assert shared.left_behind == [], f"processes left behind: {shared.left_behind}"
 
 
 def test_sigterm_ends_every_process_within_5s(live_run, tmp_path):

@@ -13,7 +13,6 @@ from services.bus.local import LocalNetwork
 from services.runconfig import RunConfig
 from services.supervisor.local import run_local
 
-from _procs import wait_for_port
 
 
 def _text(renderable) -> str:
@@ -67,40 +66,17 @@ async def test_watch_joins_a_live_run_late_and_follows_it_to_the_end(tmp_path):
     assert "finished" in _text(state.renderable()) and "cumulative deliveries" in out.getvalue()
 
 
-def test_the_watch_command_follows_a_live_up_run(tmp_path):
-    import os
-    import signal
-    import subprocess
-    import sys
-    import time
-
-    from services.bus.zenoh_bus import free_port
-
-    port = free_port()
-    up = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "up", "--scale", "tiny", "--steps", "100000",
-                           "--quiet", "--run-id", "watchup", "--listen", f"tcp/127.0.0.1:{port}", "--output-dir",
-                           str(tmp_path)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                          start_new_session=True)
-    try:
-        deadline = time.monotonic() + 60
-        wait_for_port(port, up, deadline, 0.2)
-        metrics = tmp_path / "watchup" / "metrics.csv"
-        while not metrics.exists() or metrics.read_text().count("\n") < 20:  # join late, mid-run
-            assert up.poll() is None and time.monotonic() < deadline
-            time.sleep(0.2)
-        out = subprocess.run([sys.executable, "-m", "morph_sim.cli", "watch", "--endpoint", f"tcp/127.0.0.1:{port}",
-                              "--duration", "3", "--output-dir", str(tmp_path)], capture_output=True, text=True, timeout=60,
-                             env={**os.environ, "COLUMNS": "120"})
-    finally:
-        os.killpg(up.pid, signal.SIGTERM)
-        try:
-            up.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            os.killpg(up.pid, signal.SIGKILL)
-            up.wait(timeout=5)
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert "watchup" in out.stdout and "cumulative deliveries" in out.stdout and "picker" in out.stdout
+def test_the_watch_command_follows_a_live_up_run(shared_default_up):
+    """``morph-sim watch`` without ``--run`` joins the shared default ``up`` run (tests/conftest.py) mid-run, once its
+    record has rows, finds the run by itself and follows it for ``--duration 3``."""
     import re
 
-    m = re.search(r"run watchup: tick (\d+), deliveries (\S+)", out.stdout)
-    assert m and int(m.group(1)) > 20, out.stdout[-600:]
+    from conftest import LATE_JOIN_ROWS
+
+    shared = shared_default_up.finished()
+    late = shared.observer("late-watch")
+    run = shared.run.run_id
+    assert late.returncode == 0, late.err[-2000:]
+    assert run in late.out and "cumulative deliveries" in late.out and "picker" in late.out
+    m = re.search(rf"run {run}: tick (\d+), deliveries (\S+)", late.out)
+    assert m and int(m.group(1)) > LATE_JOIN_ROWS, late.out[-600:]
