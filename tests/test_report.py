@@ -6,22 +6,16 @@ import asyncio
 import json
 import os
 import signal
-import subprocess
-import sys
-import time
 
 import numpy as np
 import psutil
 import pytest
 from PIL import Image
 
-from services.bus.zenoh_bus import free_port
 from services.monitor.recorder import Recorder, read_metrics
 from services.monitor.report import load, numbers, write_report
 from services.runconfig import RunConfig
 from services.supervisor.local import run_local
-
-from _procs import wait_for_port
 
 
 def test_the_report_renders_every_figure_and_the_gif(tmp_path):
@@ -60,44 +54,35 @@ def test_a_restarted_recorder_trims_a_cut_line_and_resumes(tmp_path):
     assert [r["t"] for r in read_metrics(config.record_dir)] == ["0", "1"]
 
 
-def test_a_monitor_killed_and_restarted_mid_run_leaves_a_record_equal_apart_from_the_gap(tmp_path):
-    flags = ["--scale", "tiny", "--steps", "1500", "--seed", "5", "--policy", "morph", "--run-id", "killed"]
-    port = free_port()
-    up = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "up", *flags, "--quiet", "--listen",
-                           f"tcp/127.0.0.1:{port}", "--output-dir", str(tmp_path / "live")],
-                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
-    try:
-        wait_for_port(port, up, time.monotonic() + 60, 0.1)
-        metrics = tmp_path / "live" / "killed" / "metrics.csv"
-        deadline = time.monotonic() + 90
-        while not metrics.exists() or metrics.read_text().count("\n") < 300:
-            assert up.poll() is None and time.monotonic() < deadline
-            time.sleep(0.1)
-        monitor = [p for p in psutil.Process(up.pid).children(recursive=True)
-                   if "monitor" in p.cmdline() and "morph_sim.cli" in p.cmdline()]
-        assert len(monitor) == 1
-        os.kill(monitor[0].pid, signal.SIGKILL)  # no chance to flush or close; the supervisor restarts it
-        out, _ = up.communicate(timeout=120)
-        # the record is incomplete (the gap): up says so and fails
-        assert up.returncode == 1, out
-        last_line = out.decode().strip().splitlines()[-1]
-        assert "record is incomplete" in last_line and "declared lost: monitor restarted" in last_line, last_line
-    finally:
-        if up.poll() is None:
-            os.killpg(up.pid, signal.SIGKILL)
-            up.wait(timeout=5)
+STEPS = 600  # the monitor is killed after KILL_AT rows: a gap of up to ~200 ticks, then ~300 ticks recorded again
+KILL_AT = 100
+
+
+def test_a_monitor_killed_and_restarted_mid_run_leaves_a_record_equal_apart_from_the_gap(tmp_path, live_run):
+    up = live_run("killed", "--steps", str(STEPS), "--seed", "5", "--policy", "morph",
+                  output_dir=tmp_path / "live")
+    up.wait_for_endpoint()
+    up.wait_for_rows(KILL_AT)
+    monitor = [p for p in psutil.Process(up.pid).children(recursive=True)
+               if "monitor" in p.cmdline() and "morph_sim.cli" in p.cmdline()]
+    assert len(monitor) == 1
+    os.kill(monitor[0].pid, signal.SIGKILL)  # no chance to flush or close; the supervisor restarts it
+    # the record is incomplete (the gap): up says so and fails
+    assert up.wait(120) == 1, up.stdout() + up.stderr()
+    last_line = (up.stdout() + up.stderr()).strip().splitlines()[-1]
+    assert "record is incomplete" in last_line and "declared lost: monitor restarted" in last_line, last_line
     killed = load(tmp_path / "live" / "killed")
     assert len(killed.gaps) == 1, killed.events
     first, last = killed.gaps[0]
-    config = RunConfig(run_id="calm", scale="tiny", steps=1500, seed=5, policy="morph", output_dir=tmp_path)
+    config = RunConfig(run_id="calm", scale="tiny", steps=STEPS, seed=5, policy="morph", output_dir=tmp_path)
     asyncio.run(run_local(config))
     calm = read_metrics(config.record_dir)
     rows = read_metrics(killed.dir)
     ts = [int(r["t"]) for r in rows]
-    assert ts == [t for t in range(1500) if not first <= t <= last]  # every row once, only the gap missing
+    assert ts == [t for t in range(STEPS) if not first <= t <= last]  # every row once, only the gap missing
     assert rows == [calm[t] for t in ts]  # every column, the cumulative ones included
     # every table outside the gap, byte for byte (positions: one line per tick, the final tick included)
-    for name, ticks in (("links.csv", ts), ("positions.csv", ts + [1500])):
+    for name, ticks in (("links.csv", ts), ("positions.csv", ts + [STEPS])):
         ours = [ln for ln in (killed.dir / name).read_text().splitlines() if ln[:1].isdigit()]
         theirs = {int(ln.split(",", 1)[0]): ln for ln in (config.record_dir / name).read_text().splitlines()
                   if ln[:1].isdigit()}

@@ -14,7 +14,6 @@ from services.runconfig import RunConfig
 from services.supervisor.local import run_local
 
 
-
 def _text(renderable) -> str:
     console = Console(file=io.StringIO(), width=120, color_system=None)
     console.print(renderable)
