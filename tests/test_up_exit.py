@@ -53,9 +53,10 @@ def test_a_taken_run_id_and_an_unusable_output_dir_are_refused_in_one_line(tmp_p
 
 
 def test_a_record_that_cannot_be_written_stops_the_run_with_one_line(tmp_path):
-    # a full disk, as the monitor meets it: its files may not grow beyond 32 KB (RLIMIT_FSIZE; Python then gets
-    # EFBIG instead of SIGXFSZ); positions.csv reaches that after ~650 ticks
-    limit = 32 * 1024
+    # a full disk, as the monitor meets it: its files may not grow beyond 16 KB (RLIMIT_FSIZE; Python then gets
+    # EFBIG instead of SIGXFSZ), which the record's tables reach within a few hundred ticks (and the run's
+    # credentials, ~11 KB, fit)
+    limit = 16 * 1024
 
     def small_disk() -> None:
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
@@ -74,11 +75,14 @@ def test_a_record_that_cannot_be_written_stops_the_run_with_one_line(tmp_path):
 
 def test_a_stop_from_outside_ends_up_with_status_3_naming_it(tmp_path):
     port = free_port()
-    proc = _up(tmp_path, "outside", "--steps", "1000000", "--listen", endpoint(port))
+    # paced (20 ticks/s): the run goes on while the stop command starts, connects and is answered, for no more ticks
+    # than that takes
+    proc = _up(tmp_path, "outside", "--steps", "1000000", "--mode", "paced", "--period", "0.05",
+               "--listen", endpoint(port))
     wait_for_port(port, proc, time.monotonic() + 60, 0.05)
     metrics = tmp_path / "outside" / "metrics.csv"
     deadline = time.monotonic() + 60
-    while not metrics.exists() or metrics.read_text().count("\n") < 50:
+    while not metrics.exists() or metrics.read_text().count("\n") < 20:
         assert proc.poll() is None and time.monotonic() < deadline, proc.communicate(timeout=10)
         time.sleep(0.05)
 
