@@ -92,6 +92,27 @@ def live_run(tmp_path):
 # it mid-run, when the first test asks for it, and is followed to its end in the background (tests/_procs.py,
 # SharedRun); every test then asserts its own property on the outcome.
 
+@pytest.fixture(scope="session")
+def shared_live_run(tmp_path_factory):
+    """``live_run`` for tests that each act on a live run of the same kind and may end it: the run started with the
+    same id, flags and options is handed to the next test that asks while it still runs; once a test has ended it,
+    the next one gets a new run. (Tests that only read a whole run use a ``shared_*`` fixture below.)"""
+    runs: dict[tuple, LiveRun] = {}
+
+    def get(run_id: str, *flags: str, **options) -> LiveRun:
+        key = (run_id, flags, tuple(sorted(options.items())))
+        run = runs.get(key)
+        if run is None or not run.running():
+            if run is not None:
+                run.kill()
+            run = runs[key] = LiveRun(tmp_path_factory.mktemp(run_id), run_id, *flags, **options).start()
+        return run
+
+    yield get
+    for run in runs.values():
+        run.kill()
+
+
 # A default-settings Zenoh client (a user's script, with the run's operator credentials as the README's subscriber):
 # per one-second window, the metric streams and the ticks seen; the last deliveries_total; when the run finished.
 STREAM_SUBSCRIBER = r'''

@@ -28,7 +28,7 @@ from services.monitor.report import load
 
 from _procs import alive, descendants, kill_all
 
-STEPS = 300
+STEPS = 220  # the commands below take ~10 s at most of its 17.6 s (a loaded machine included)
 PERIOD = 0.08  # s per tick: 50 ticks = 4 s, more than a CLI process needs to answer
 AHEAD = 50
 VICTIM = 1
@@ -87,20 +87,28 @@ async def test_faults_cli_verdicts_and_a_crash_carried_out_at_its_tick(tmp_path)
         assert reply["ok"] and reply["sources"] == ["supervisor"]  # no agent answers for a crash
         assert [s["crash"]["at_tick"] for s in reply["active"]] == [at]
 
-        code, lines, err = await _cli("faults", "set", *ctl, "--spec",
-                                      json.dumps({"crash": {"agent": 2, "at_tick": 3}}))
+        # the refusals and a loss window set and reset, side by side while the crash approaches
+        async def loss_window() -> tuple:
+            # (on agent states, which only the unfaulted monitor receives: the acks below stay the crash's alone)
+            set_l1 = await _cli("faults", "set", *ctl, "--loss", "10", "--key", "agent/*/state", "--id", "L1")
+            return set_l1, await _cli("faults", "reset", *ctl, "--id", "L1")
+
+        past, too_many, (set_l1, reset_l1) = await asyncio.gather(
+            _cli("faults", "set", *ctl, "--spec", json.dumps({"crash": {"agent": 2, "at_tick": 3}})),
+            _cli("faults", "set", *ctl, "--loss", "10", "--agents", "99"),
+            loss_window())
+        code, lines, err = past
         assert code == 1 and len(lines) == 1, (code, lines, err)
         reply = json.loads(lines[0])
         assert not reply["ok"] and reply["error"].startswith("crash.at_tick: tick 3 has passed (the run is at tick ")
 
-        code, lines, err = await _cli("faults", "set", *ctl, "--loss", "10", "--agents", "99")
+        code, lines, err = too_many
         assert code == 1 and len(lines) == 1, (code, lines, err)
         assert json.loads(lines[0])["error"].startswith("scope.agents: agent 99 is not in this run (robot ids 0..7")
 
-        # (on agent states, which only the unfaulted monitor receives: the acks below stay the crash's alone)
-        code, lines, err = await _cli("faults", "set", *ctl, "--loss", "10", "--key", "agent/*/state", "--id", "L1")
+        code, lines, err = set_l1
         assert code == 0 and json.loads(lines[0])["ok"], (code, lines, err)
-        code, lines, err = await _cli("faults", "reset", *ctl, "--id", "L1")
+        code, lines, err = reset_l1
         assert code == 0 and len(lines) == 1, (code, lines, err)
         reply = json.loads(lines[0])
         assert reply["ok"] and "supervisor" not in reply["sources"] and "sim" in reply["sources"]

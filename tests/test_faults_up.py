@@ -23,7 +23,7 @@ from _procs import alive, descendants, kill_all
 
 UP_TIMEOUT = 150
 VICTIM = 6  # a picker at tiny (5 AGVs + 3 pickers)
-STEPS = 390  # the last kill (tick 300) leaves the restarted agent 5 s to start, restore and rejoin (loaded CI)
+STEPS = 290  # kills at ticks 100 and 200; the last leaves the restarted agent 5 s to start, restore and rejoin
 
 
 def _events(record: Path) -> list[dict]:
@@ -85,7 +85,7 @@ async def test_up_kills_an_agent_every_100_ticks_and_it_rejoins_with_its_state(t
             await asyncio.sleep(0.1)
         out, err = proc.communicate(timeout=10)
         assert proc.returncode == 0, err[-3000:]
-        assert "completed" in out and "4 restarts" in out, out
+        assert "completed" in out and "3 restarts" in out, out
     finally:
         if bus is not None:
             await bus.close()
@@ -103,7 +103,7 @@ async def test_up_kills_an_agent_every_100_ticks_and_it_rejoins_with_its_state(t
     crashes = [e for e in events if e["kind"] == "agent.crash"]
     restarts = [e for e in events if e["kind"] == "agent.restart"]
     assert [(e["details"]["tick"], e["details"]["agent"]) for e in crashes] == [
-        (100, VICTIM), (150, 1), (200, VICTIM), (300, VICTIM)]
+        (100, VICTIM), (150, 1), (200, VICTIM)]
     assert all(e["details"]["pid"] for e in crashes)
     # each crash at the tick it was due and its sim time (Δ = 1 s); the specs scheduled at tick 0 are in the record,
     # planned by the supervisor (the process that carries them out) and by no other process
@@ -113,20 +113,20 @@ async def test_up_kills_an_agent_every_100_ticks_and_it_rejoins_with_its_state(t
         ("fault.crash_planned", "supervisor", "cold-1", 0, 0.0),
         ("fault.crash_planned", "supervisor", f"kill-{VICTIM}", 0, 0.0)]
     assert [(e["details"]["agent"], e["details"]["planned"], e["details"]["cold"]) for e in restarts] == [
-        (VICTIM, True, False), (1, True, True), (VICTIM, True, False), (VICTIM, True, False)]
+        (VICTIM, True, False), (1, True, True), (VICTIM, True, False)]
     assert not [e for e in events if e["kind"] == "agent.restored" and e["source"] == 1]  # cold: nothing restored
     assert any(e["kind"] == "agent.restored" and e["source"] == VICTIM for e in events)  # the record has them too
 
     # Each restarted agent resumed with the W row its predecessor published last.
     restored = [(i, e) for i, (kind, e) in enumerate(received) if kind == "restored"]
-    assert len(restored) == 3, [k for k, _ in received]
+    assert len(restored) == 2, [k for k, _ in received]
     for i, event in restored:
         last = [s for kind, s in received[:i] if kind == "state"][-1]
         assert event.details["from_t"] == last.t
         assert event.details["w_row"] == last.w_row
     assert any(any(e.details["w_row"]) for _, e in restored)  # a learnt state came back, not zeros
     froms = [e.details["from_t"] for _, e in restored]
-    assert all(t - 10 <= f <= t + 10 for f, t in zip(froms, (100, 200, 300))), froms
+    assert all(t - 10 <= f <= t + 10 for f, t in zip(froms, (100, 200))), froms
     # after each restart the agent took part again: it published states beyond the one it restored
     assert max(s.t for kind, s in received if kind == "state") >= STEPS - 10
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import json
 import os
 import signal
 import time
@@ -37,11 +38,57 @@ def test_up_runs_to_completion_and_leaves_no_process(shared_default_up):
     assert shared.left_behind == [], f"processes left behind: {shared.left_behind}"
 
 
-def test_sigterm_ends_every_process_within_5s(live_run, tmp_path):
-    up = live_run("term", "--policy", "full", "--steps", "1000000", listen=False)
-    metrics = tmp_path / "term" / "metrics.csv"
+# An endless run that the restart test acts on and the SIGTERM test then ends (tests/conftest.py, shared_live_run:
+# either test started alone gets a run of its own).
+ENDLESS = ("endless", "--policy", "full", "--steps", "1000000", "--phase-timeout", "2")
+
+
+def _first_rows(up) -> None:
+    metrics = up.record / "metrics.csv"
+    up.wait_until(lambda: metrics.exists() and metrics.stat().st_size > 200, UP_TIMEOUT, "the first rows")
+
+
+def test_up_restarts_an_agent_that_dies(shared_live_run):
+    up = shared_live_run(*ENDLESS, listen=False)
+    _first_rows(up)
+
+    def agent_pids(agent: int) -> list[int]:
+        out = []
+        for pid in descendants(up.pid):
+            try:
+                cmd = psutil.Process(pid).cmdline()
+            except psutil.NoSuchProcess:
+                continue
+            if "agent" in cmd and cmd[cmd.index("--id") + 1] == str(agent):
+                out.append(pid)
+        return out
+
+    victim = agent_pids(2)
+    assert len(victim) == 1
+    os.kill(victim[0], signal.SIGKILL)
+    restarted: list[int] = []
+
+    def rejoined() -> bool:
+        restarted[:] = [p for p in agent_pids(2) if p != victim[0]]
+        if not restarted:
+            return False
+        rows = read_metrics(up.record)
+        return len(rows) > 5 and int(rows[-1]["acks"]) == 8 and any(int(r["acks"]) == 7 for r in rows)
+
+    up.wait_until(rejoined, 60, "agent 2 restarted and rejoined")
+    events = up.record / "events.jsonl"
+
+    def recorded() -> bool:  # the restart is in the run record
+        return any(e["kind"] == "agent.restart" and e["details"]["agent"] == 2
+                   for e in map(json.loads, events.read_text().splitlines()))
+
+    up.wait_until(recorded, 30, "the agent.restart event in the record")
+
+
+def test_sigterm_ends_every_process_within_5s(shared_live_run):
+    up = shared_live_run(*ENDLESS, listen=False)
     try:
-        up.wait_until(lambda: metrics.exists() and metrics.stat().st_size > 200, UP_TIMEOUT, "the first rows")
+        _first_rows(up)
         up.seen |= descendants(up.pid)
         t0 = time.monotonic()
         up.signal(signal.SIGTERM)
@@ -58,51 +105,8 @@ def test_sigterm_ends_every_process_within_5s(live_run, tmp_path):
     assert len(up.seen) >= 10
     assert left == [], f"processes left behind: {left}"
     # the record of the interrupted run is complete up to where it stopped
-    summary = (tmp_path / "term" / "summary.json").read_text()
+    summary = (up.record / "summary.json").read_text()
     assert "stopped_early" in summary
-
-
-def test_up_restarts_an_agent_that_dies(live_run, tmp_path):
-    up = live_run("crash", "--policy", "full", "--steps", "1000000", "--phase-timeout", "2", listen=False)
-    metrics = tmp_path / "crash" / "metrics.csv"
-    try:
-        up.wait_until(lambda: metrics.exists() and metrics.stat().st_size > 200, UP_TIMEOUT, "the first rows")
-
-        def agent_pids(agent: int) -> list[int]:
-            out = []
-            for pid in descendants(up.pid):
-                try:
-                    cmd = psutil.Process(pid).cmdline()
-                except psutil.NoSuchProcess:
-                    continue
-                if "agent" in cmd and cmd[cmd.index("--id") + 1] == str(agent):
-                    out.append(pid)
-            return out
-
-        victim = agent_pids(2)
-        assert len(victim) == 1
-        os.kill(victim[0], signal.SIGKILL)
-        restarted: list[int] = []
-
-        def rejoined() -> bool:
-            restarted[:] = [p for p in agent_pids(2) if p != victim[0]]
-            if not restarted:
-                return False
-            rows = read_metrics(tmp_path / "crash")
-            return len(rows) > 5 and int(rows[-1]["acks"]) == 8 and any(int(r["acks"]) == 7 for r in rows)
-
-        up.wait_until(rejoined, 60, "agent 2 restarted and rejoined")
-        up.signal(signal.SIGTERM)
-        up.proc.wait(timeout=10)
-        events = (tmp_path / "crash" / "events.jsonl").read_text()
-        assert '"agent.restart"' in events and '"agent": 2' in events  # the restart is in the run record
-    finally:
-        if up.running():  # the supervisor only: what it started must be gone by itself
-            up.proc.kill()
-            up.proc.wait(timeout=10)
-        left = up.left_behind()
-        kill_all(left)
-    assert left == [], f"processes left behind: {left}"
 
 
 def test_up_fails_clearly_when_nothing_listens_on_the_endpoint(live_run):
