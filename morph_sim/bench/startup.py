@@ -45,6 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _role(cmdline: list[str]) -> str | None:
+    if "services.supervisor.preload" in cmdline:
+        return "launcher"
     for role in ("sim", "agent", "monitor"):
         if role in cmdline:
             return role
