@@ -310,7 +310,7 @@ class Supervisor:
             raise StartError(f"nothing listens on the Zenoh endpoint {self.endpoint} (--endpoint): start the router "
                              "first, or leave --endpoint out to host the endpoint in the sim")
         if self.preload:
-            self._start_launcher()
+            await self._start_launcher()
         sim = self.children["sim"]
         sim.start()
         self._event("start", f"sim pid {sim.pid} ({'connects to' if self.external else 'listens on'} {self.endpoint})")
@@ -331,15 +331,19 @@ class Supervisor:
         finally:
             await bus.close()
 
-    def _start_launcher(self) -> None:
+    async def _start_launcher(self) -> None:
         """Start the run's preloaded launcher, from the thread that runs the supervisor (the launcher's death signal
-        follows that thread); if it cannot fork, every process starts by exec and the event log says why."""
+        follows that thread), and wait for its imports off the event loop (signals are still handled); if it cannot
+        fork, every process starts by exec and the log says why."""
         room = max(len(" ".join([*spec.command(), "--cold-restart"]).encode()) for spec in self.specs) + 256
         launcher = Launcher(self.config.record_dir / "logs" / "launcher.log", room)
         try:
-            launcher.start(self.specs[0].environment())
-        except LauncherError as exc:
+            launcher.launch(self.specs[0].environment())
+            await asyncio.get_running_loop().run_in_executor(None, launcher.wait_ready)
+        except (LauncherError, OSError) as exc:
+            log.warning("%s; starting every process by exec", exc)
             self._event("launcher", f"{exc}; starting every process by exec")
+            launcher.close()
             return
         self.launcher = launcher
         for child in self.children.values():

@@ -257,6 +257,12 @@ class Launcher:
     def start(self, env: dict[str, str]) -> None:
         """Start the launcher with ``env`` (the services' common environment: thread counts of the numeric libraries
         are read as they are imported) and wait until it has preloaded; LauncherError if it cannot fork."""
+        self.launch(env)
+        self.wait_ready()
+
+    def launch(self, env: dict[str, str]) -> None:
+        """Start the launcher process (it then preloads: :meth:`wait_ready`). Call it from the thread that outlives
+        the run: the launcher gets SIGKILL when that thread ends."""
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         with open(self.log_path, "ab") as log:
             log.write(f"--- start launcher at {time.time():.3f}\n".encode())
@@ -267,6 +273,9 @@ class Launcher:
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log, start_new_session=True,
                 preexec_fn=lambda: _die_with(signal.SIGKILL), close_fds=True)
         os.set_blocking(self.proc.stdout.fileno(), False)
+
+    def wait_ready(self) -> None:
+        """Wait until the launched launcher has preloaded; LauncherError (and the launcher ended) if it cannot fork."""
         hello = self._next(lambda m: "ready" in m, START_TIMEOUT)
         if hello is None or not hello.get("ready"):
             why = (hello or {}).get("why") or f"no answer within {START_TIMEOUT:.0f} s"
@@ -311,7 +320,7 @@ class Launcher:
                     child.returncode = -signal.SIGTERM
 
     def _read(self, timeout: float) -> None:
-        if self.proc is None:
+        if self.proc is None or self.proc.stdout.closed:
             return
         fd = self.proc.stdout.fileno()
         try:
@@ -357,7 +366,7 @@ class Launcher:
 
     def close(self, timeout: float = 2.0) -> None:
         """End the launcher (after its children: any still running get SIGTERM as it exits)."""
-        if self.proc is None:
+        if self.proc is None or self.proc.stdout.closed:
             return
         try:
             self.proc.stdin.close()
