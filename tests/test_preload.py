@@ -82,6 +82,8 @@ def test_exit_codes_and_signals_reach_the_supervisor_unchanged(launcher, tmp_pat
                            tmp_path / "exec.log")  # not the morph-sim CLI: exec'd from the fork
     assert other.wait(timeout=30) == 7
     assert "exec path" in (tmp_path / "exec.log").read_text()
+    launcher.close()  # what the supervisor does at the end; the statuses stay readable
+    assert (bad.poll(), child.poll(), other.poll()) == (2, -signal.SIGKILL, 7)
 
 
 def test_forked_services_die_with_the_launcher(launcher, tmp_path):
