@@ -149,7 +149,11 @@ def serve() -> int:
 
     set_cmdline([sys.executable, "-m", "services.supervisor.preload"])
     for name in PRELOAD:
-        importlib.import_module(name)
+        try:
+            importlib.import_module(name)
+        except Exception as exc:  # a broken install: the services started by exec will say what is wrong
+            reply({"ready": False, "why": f"cannot import {name}: {exc}"})
+            return 1
     threads = _threads()
     if threads != 1:
         reply({"ready": False, "why": f"{threads} threads after preloading; forking needs one"})
@@ -278,7 +282,9 @@ class Launcher:
         """Wait until the launched launcher has preloaded; LauncherError (and the launcher ended) if it cannot fork."""
         hello = self._next(lambda m: "ready" in m, START_TIMEOUT)
         if hello is None or not hello.get("ready"):
-            why = (hello or {}).get("why") or f"no answer within {START_TIMEOUT:.0f} s"
+            ended = None if self.proc is None else self.proc.poll()
+            why = (hello or {}).get("why") or (f"it exited with status {ended} (log {self.log_path})" if ended is not None
+                                               else f"no answer within {START_TIMEOUT:.0f} s")
             self.close()
             raise LauncherError(f"the preloaded launcher cannot fork: {why}")
 
