@@ -78,7 +78,9 @@ def measure_up(scale: str, steps: int, env: dict[str, str], cwd: str) -> dict:
                         procs = []
                     for p in procs:
                         try:
-                            if roles.get(p.pid, "other") == "other":  # (a child between fork and exec: not yet)
+                            # a child between fork and exec (or the launcher's fork and its own command line)
+                            # shows its parent's command line: look again until it has its own
+                            if roles.get(p.pid) not in ("supervisor", "sim", "agent", "monitor"):
                                 roles[p.pid] = "supervisor" if p.pid == up.pid else (_role(p.cmdline()) or "other")
                             cpu = p.cpu_times()
                             samples.setdefault(p.pid, []).append((time.time(), cpu.user + cpu.system))
