@@ -100,3 +100,23 @@ def test_the_launcher_refuses_to_fork_with_threads(tmp_path):
     with pytest.raises(LauncherError, match="threads after preloading"):
         launcher.start(_env(OPENBLAS_NUM_THREADS="4", OMP_NUM_THREADS="4"))
     assert launcher.proc.poll() is not None
+
+
+def test_a_sigkilled_up_leaves_no_process_behind(live_run):
+    """SIGKILL to the supervisor alone (no handler runs): the launcher gets SIGKILL, each service SIGTERM."""
+    run = live_run("killed-up", "--steps", "100000", "--mode", "paced", "--period", "0.05")
+    run.wait_for_rows(3)
+    run._note_children()
+    commands = set()
+    for pid in run.seen:
+        try:
+            argv = Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
+        except OSError:
+            continue
+        commands.add(" ".join(argv[2:4]).strip())
+    # the services were forked by the launcher and show their own command lines
+    assert {"services.supervisor.preload", "morph_sim.cli sim", "morph_sim.cli agent", "morph_sim.cli monitor"} <= (
+        commands), commands
+    os.kill(run.pid, signal.SIGKILL)
+    run.proc.wait(timeout=10)
+    _wait(lambda: not run.left_behind(), timeout=15)
