@@ -60,11 +60,3 @@ def test_the_base_dependencies_hold_no_extra():
     extras = project["optional-dependencies"]
     (everything,) = extras["all"]
     assert set(everything.removeprefix("morph-sim[").rstrip("]").split(",")) == set(extras) - {"all", "test"}
-
-
-def test_the_preloaded_launcher_imports_the_base_dependencies_only():
-    # `up` in a service-only install (the Docker image's default command) forks from the launcher
-    proc = _probe("import importlib\nfrom services.supervisor.preload import PRELOAD\n"
-                  "for name in PRELOAD:\n    importlib.import_module(name)")
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert json.loads(proc.stdout.splitlines()[-1]) == []

@@ -26,7 +26,6 @@ from pathlib import Path
 
 from services.runconfig import RunConfig
 from services.supervisor.graph import ProcessSpec, process_graph
-from services.supervisor.preload import Forked, Launcher, LauncherError
 
 log = logging.getLogger("morph_sim.supervisor")
 
@@ -79,7 +78,7 @@ class RunStalled(StartError):
 class Child:
     spec: ProcessSpec
     log_path: Path
-    proc: subprocess.Popen | Forked | None = None
+    proc: subprocess.Popen | None = None
     restarts: int = 0
     exit_codes: list[int] = field(default_factory=list)
     pids: list[int] = field(default_factory=list)  # every pid this child ever had (tests check they are gone)
@@ -88,8 +87,6 @@ class Child:
     planned: dict[int, bool] = field(default_factory=dict)  # pid killed by a crash fault -> restart it cold?
     # ZENOH_CONFIG naming this process's credentials file (secure runs): a file name, never the secret itself
     extra_env: dict[str, str] = field(default_factory=dict)
-    # the run's preloaded launcher (services/supervisor/preload.py): forks this process instead of exec, if set
-    launcher: Launcher | None = None
 
     @property
     def pid(self) -> int | None:
@@ -108,18 +105,10 @@ class Child:
         with open(self.log_path, "ab") as out:
             out.write(f"--- start {' '.join(self.spec.argv + extra)} at {time.time():.3f}\n".encode())
             out.flush()
-            argv, env = self.spec.command() + list(extra), {**self.spec.environment(), **self.extra_env}
-            self.proc = None
-            if self.launcher is not None:
-                try:
-                    self.proc = self.launcher.spawn(argv, env, self.log_path)
-                except LauncherError as exc:  # e.g. the launcher was killed: this process and the rest start by exec
-                    log.warning("%s: %s; starting processes by exec", self.spec.name, exc)
-                    self.launcher = None
-            if self.proc is None:
-                self.proc = subprocess.Popen(
-                    argv, env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
-                    start_new_session=True, preexec_fn=_die_with_parent, close_fds=True)
+            self.proc = subprocess.Popen(
+                self.spec.command() + list(extra), env={**self.spec.environment(), **self.extra_env},
+                stdin=subprocess.DEVNULL, stdout=out,
+                stderr=subprocess.STDOUT, start_new_session=True, preexec_fn=_die_with_parent, close_fds=True)
         self.pids.append(self.proc.pid)
 
     def log_tail(self, lines: int = 15) -> str:
@@ -172,7 +161,7 @@ class Supervisor:
     def __init__(self, config: RunConfig, *, endpoint: str | None = None,
                  on_progress: Callable[[Progress, str], None] | None = None, ready_timeout: float | None = None,
                  stall_timeout: float | None = None, insecure: bool = False, monitor_args: tuple[str, ...] = (),
-                 end_grace: float = 0.0, preload: bool = True):
+                 end_grace: float = 0.0):
         from services.bus.zenoh_bus import endpoint as make_endpoint, free_port
         from services.credentials import RunCredentials, run_credentials
         from services.supervisor.process import ZENOH_CONFIG_ENV
@@ -182,9 +171,6 @@ class Supervisor:
         self.endpoint = config.endpoint or endpoint or config.listen or make_endpoint(free_port())
         self.specs = process_graph(config, self.endpoint, monitor_args)
         self.end_grace = end_grace  # seconds the monitor keeps serving after the run (Prometheus), waited for too
-        # Processes are forked from one preloaded launcher (services/supervisor/preload.py), else started by exec.
-        self.preload = preload
-        self.launcher: Launcher | None = None
         logs = config.record_dir / "logs"
         self.children = {spec.name: Child(spec, logs / f"{spec.name}.log") for spec in self.specs}
         from services.faults.schedule import load_schedule
@@ -309,8 +295,6 @@ class Supervisor:
         if self.external and not await self._tcp_reachable(3.0):
             raise StartError(f"nothing listens on the Zenoh endpoint {self.endpoint} (--endpoint): start the router "
                              "first, or leave --endpoint out to host the endpoint in the sim")
-        if self.preload:
-            await self._start_launcher()
         sim = self.children["sim"]
         sim.start()
         self._event("start", f"sim pid {sim.pid} ({'connects to' if self.external else 'listens on'} {self.endpoint})")
@@ -330,25 +314,6 @@ class Supervisor:
             return await self._watch(bus)
         finally:
             await bus.close()
-
-    async def _start_launcher(self) -> None:
-        """Start the run's preloaded launcher, from the thread that runs the supervisor (the launcher's death signal
-        follows that thread), and wait for its imports off the event loop (signals are still handled); if it cannot
-        fork, every process starts by exec and the log says why."""
-        room = max(len(" ".join([*spec.command(), "--cold-restart"]).encode()) for spec in self.specs) + 256
-        launcher = Launcher(self.config.record_dir / "logs" / "launcher.log", room)
-        try:
-            launcher.launch(self.specs[0].environment())
-            await asyncio.get_running_loop().run_in_executor(None, launcher.wait_ready)
-        except (LauncherError, OSError) as exc:
-            log.warning("%s; starting every process by exec", exc)
-            self._event("launcher", f"{exc}; starting every process by exec")
-            launcher.close()
-            return
-        self.launcher = launcher
-        for child in self.children.values():
-            child.launcher = launcher
-        self._event("start", f"preloaded launcher pid {launcher.proc.pid}")
 
     def _check_port_free(self) -> None:
         """The endpoint's port must be ours to listen on: if another program holds it, the wait for the sim's port
@@ -602,5 +567,3 @@ class Supervisor:
                     child.proc.wait(timeout=0.5)
                 except subprocess.TimeoutExpired:
                     pass
-        if self.launcher is not None:
-            self.launcher.close()
