@@ -45,10 +45,8 @@ def _lines(path: Path) -> int:
 
 
 def _interrupt_at_half(args: list[str], log: Path, sig: int, total: int) -> subprocess.CompletedProcess:
-    # The sweep runs at the lowest priority (its workers inherit it): on a loaded machine this process, which watches
-    # the record and sends the signal, is never starved while the sweep runs the second half to its end.
-    proc = subprocess.Popen(["nice", "-n", "19", sys.executable, "-m", "morph_sim.cli", "sweep", *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "sweep", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 240
         while _lines(log) < total // 2:
