@@ -87,42 +87,21 @@ def live_run(tmp_path):
 
 
 # -- shared live runs ---------------------------------------------------------------------------------------------------
-# Tests that only need *a* live run of one kind share it instead of each starting `morph-sim up` (about 6 CPU-s of
-# process start-up each). Built on _procs.LiveRun like the `live_run` fixture above.
+# One definition per kind of live run a test needs, built on _procs.LiveRun like `live_run` above; tests that only
+# read a finished run of one kind share it (a session fixture) instead of each starting `morph-sim up`.
 ENDLESS_PERIOD = 0.1  # seconds per tick: a run that waits for a test to finish with it costs little CPU meanwhile
 
 
-class SharedRun:
-    """One ``morph-sim up`` that several tests use in turn. :meth:`get` gives the live run, starting a new one (in a
-    fresh directory, under a fresh run id) when there is none or a test ended the previous one."""
+@pytest.fixture
+def endless_run(live_run):
+    """``endless_run()``: a secure ``morph-sim up --scale tiny`` listening on a loopback port that runs until someone
+    stops it (``--steps 100000``), paced at :data:`ENDLESS_PERIOD` so it idles between ticks while the test works (a
+    lockstep run would take both cores the whole time). Killed at the end of the test if it still runs."""
 
-    def __init__(self, factory, name: str, *flags: str, **options):
-        self._factory, self._name, self._flags, self._options = factory, name, flags, options
-        self._runs: list[LiveRun] = []
+    def start() -> LiveRun:
+        return live_run("endless", "--steps", "100000", "--mode", "paced", "--period", str(ENDLESS_PERIOD))
 
-    def get(self) -> LiveRun:
-        if not self._runs or not self._runs[-1].running():
-            run_id = f"{self._name}-{len(self._runs) + 1}"
-            run = LiveRun(self._factory.mktemp(run_id), run_id, *self._flags, **self._options)
-            self._runs.append(run)
-            run.start()
-        return self._runs[-1]
-
-    def kill(self) -> None:
-        for run in self._runs:
-            run.kill()
-
-
-@pytest.fixture(scope="session")
-def endless_run(tmp_path_factory):
-    """``endless_run()``: a secure ``morph-sim up --scale tiny`` listening on a loopback port, running until someone
-    stops it (``--steps 100000``, paced at :data:`ENDLESS_PERIOD`, so it idles between ticks while a test works).
-    The README's subscriber and the operator's stop use it; whatever still runs at the end of the session is
-    killed."""
-    shared = SharedRun(tmp_path_factory, "endless", "--steps", "100000", "--mode", "paced", "--period",
-                       str(ENDLESS_PERIOD))
-    yield shared.get
-    shared.kill()
+    return start
 
 
 class RecordedRun:

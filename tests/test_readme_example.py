@@ -44,9 +44,9 @@ def test_the_readme_example_is_five_lines():
 def test_the_example_prints_metrics_of_a_live_up_run(endless_run):
     # the example runs with the environment a user has: no Zenoh settings inherited from this test process
     user_env = {k: v for k, v in os.environ.items() if not k.startswith("ZENOH_")}
-    up = endless_run()  # a live run of its own kind, shared (tests/conftest.py)
-    # the example's run id is "demo" under runs/: here the shared run's id under its directory; it listens for
-    # EXAMPLE_SECONDS instead of 10 (at the shared run's pace that is dozens of ticks)
+    up = endless_run()  # until stopped, paced (tests/conftest.py)
+    # the example's run id is "demo" under runs/: here the test run's id under its directory; it listens for
+    # EXAMPLE_SECONDS instead of 10 (at the run's pace that is dozens of ticks)
     code = readme_example().replace("7447", str(up.port)).replace("runs/demo/", f"{up.record}/")
     assert "time.sleep(10)" in code
     code = code.replace("time.sleep(10)", f"time.sleep({EXAMPLE_SECONDS})")

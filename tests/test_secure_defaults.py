@@ -122,7 +122,7 @@ def test_credentials_are_owner_only_and_the_endpoint_enforces_them(tmp_path):
 
 
 def test_the_operator_stops_a_secure_run_and_nobody_else_can(endless_run):
-    up = endless_run()  # secure (the default), until stopped: this test ends it (tests/conftest.py)
+    up = endless_run()  # secure (the default), until stopped, paced (tests/conftest.py)
     ep, run_id, record = up.endpoint, up.run_id, up.record
     up.wait_for_rows(3)
     # with a robot's credentials the stop is refused by the endpoint (the command sends it, nobody hears it);
