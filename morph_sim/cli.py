@@ -11,21 +11,28 @@ from collections.abc import Sequence
 from morph_sim import __version__, commands
 
 
-def _command_modules():
-    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
-        if info.name.startswith("_"):
-            continue
-        yield importlib.import_module(f"{commands.__name__}.{info.name}")
+def _command_names() -> list[str]:
+    """The subcommands, from the module names alone (nothing imported)."""
+    return sorted(info.name for info in pkgutil.iter_modules(commands.__path__) if not info.name.startswith("_"))
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _command_modules(only: str | None = None):
+    for name in _command_names():
+        if only is None or name == only:
+            yield importlib.import_module(f"{commands.__name__}.{name}")
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The whole command line, or with ``only`` the one subcommand of that name: a process started as
+    ``morph-sim agent …`` (each process of a distributed run) then imports and builds its own command and not
+    the others, whose option set-up imports the lab, the presets and the reports."""
     parser = argparse.ArgumentParser(
         prog="morph-sim",
         description="MORPH multi-robot task allocation in a TA-RWARE-style warehouse.",
     )
     parser.add_argument("--version", action="version", version=f"morph-sim {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module in _command_modules():
+    for module in _command_modules(only):
         cmd = sub.add_parser(module.NAME, help=module.HELP, description=module.HELP,
                              epilog=getattr(module, "EPILOG", None))
         module.add_arguments(cmd)
@@ -43,7 +50,10 @@ def _chosen(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpar
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # the full parser when no subcommand comes first (--help, --version, a typo: argparse lists every choice)
+    only = argv[0] if argv and argv[0] in _command_names() else None
+    parser = build_parser(only)
     args, unknown = parser.parse_known_args(argv)
     if unknown:  # argparse would blame the top-level command; name the subcommand's usage instead
         _chosen(parser, args).error(f"unrecognized arguments: {' '.join(unknown)}")

@@ -84,3 +84,17 @@ def test_before_after_measures_both_checkouts_in_one_invocation(tmp_path):
     for label in ("before", "after"):
         assert out["summary"][label]["ticks_per_s"] > 0 and out["summary"][label]["cpu_ms_per_tick"] > 0
     assert out["summary"]["after_over_before"]["ticks_per_s"] > 0
+
+
+def test_bench_startup_measures_every_role_of_one_up_run():
+    done = subprocess.run([sys.executable, "-m", "morph_sim.cli", "bench", "startup", "--rounds", "1", "--steps", "5",
+                           "--json"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    run = out["runs"]["after"][0]
+    roles = run["first_tick_cpu_s"]
+    assert {"supervisor", "sim", "agent", "monitor"} <= set(roles)  # every process of the run was seen starting
+    assert 0 < roles["total"] <= run["cpu_s"] and run["first_tick_wall_s"] > 0
+    bad = subprocess.run([sys.executable, "-m", "morph_sim.cli", "bench", "startup", "--rounds", "0"],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and bad.stderr.strip().endswith("--rounds: 0 must be at least 1")
