@@ -185,3 +185,56 @@ def shared_default_up(request, tmp_path_factory):
     shared.start()
     yield shared
     shared.stop()
+
+# -- shared live runs ---------------------------------------------------------------------------------------------------
+# One definition per kind of live run a test needs, built on _procs.LiveRun like `live_run` above; tests that only
+# read a finished run of one kind share it (a session fixture) instead of each starting `morph-sim up`.
+ENDLESS_PERIOD = 0.1  # seconds per tick: a run that waits for a test to finish with it costs little CPU meanwhile
+
+
+@pytest.fixture
+def endless_run(live_run):
+    """``endless_run()``: a secure ``morph-sim up --scale tiny`` listening on a loopback port that runs until someone
+    stops it (``--steps 100000``), paced at :data:`ENDLESS_PERIOD` so it idles between ticks while the test works (a
+    lockstep run would take both cores the whole time). Killed at the end of the test if it still runs."""
+
+    def start() -> LiveRun:
+        return live_run("endless", "--steps", "100000", "--mode", "paced", "--period", str(ENDLESS_PERIOD))
+
+    return start
+
+
+class RecordedRun:
+    """A finished ``morph-sim up`` and the ``morph-sim record`` process that followed it (see ``recorded_run``)."""
+
+    def __init__(self, up: LiveRun, code: int, record, recording, steps: int, seed: int):
+        self.up, self.code, self.record, self.recording = up, code, record, recording
+        self.steps, self.seed = steps, seed
+
+
+@pytest.fixture(scope="session")
+def recorded_run(tmp_path_factory):
+    """A secure ``morph-sim up`` (tiny, MORPH with the reference preset, seed 42, 200 ticks, on-board states every
+    10 ticks and W snapshots every 50) that ``morph-sim record`` followed from its start over its endpoint, both
+    run to their end: the record equals the LocalBus run (tests/test_equivalence.py) and replays to the record
+    (tests/test_record_replay.py)."""
+    import subprocess
+    import sys
+
+    out = tmp_path_factory.mktemp("recorded")
+    steps, seed = 200, 42
+    up = LiveRun(out, "recorded", "--policy", "morph", "--preset", "reference", "--seed", str(seed), "--steps",
+                 str(steps), "--state-every", "10", "--snapshot-every", "50").start()
+    try:
+        up.wait_for_endpoint()
+        # no run flags: the recorder learns the run's configuration from the run; the operator's credentials are
+        # found in the run directory (--output-dir) that `up` wrote them to
+        record = subprocess.run([sys.executable, "-m", "morph_sim.cli", "record", "--run-id", up.run_id,
+                                 "--endpoint", up.endpoint, "--out", str(out / "recorded.mbr"), "--timeout", "120",
+                                 "--output-dir", str(out)], capture_output=True, text=True, timeout=180)
+        code = up.wait(timeout=120)
+    except BaseException:
+        up.kill()
+        raise
+    yield RecordedRun(up, code, record, out / "recorded.mbr", steps, seed)
+    up.kill()

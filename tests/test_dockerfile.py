@@ -246,10 +246,13 @@ def test_the_wheel_installs_into_a_fresh_venv_and_runs_up(tmp_path):
     for data in ("schemas/json/tick.json", "morph_sim/presets/layouts.toml", "morph_sim/presets/morph_paper.toml"):
         assert data in names, f"{data} is missing from the wheel"
 
+    # The venv has no pip of its own (seeding one costs seconds of CPU; the image uninstalls its pip anyway): this
+    # process's pip installs into it and checks it (pip --python).
     venv = tmp_path / "venv"
-    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=120)
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=120)
     py = venv / "bin" / "python"
-    installed = subprocess.run([str(py), "-m", "pip", "install", "--no-deps", "--no-index", str(wheel)],
+    pip = [sys.executable, "-m", "pip", "--python", str(py)]
+    installed = subprocess.run([*pip, "install", "--no-deps", "--no-index", str(wheel)],
                                capture_output=True, text=True, timeout=300)
     assert installed.returncode == 0, installed.stdout[-3000:] + installed.stderr[-3000:]
     site = subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
@@ -264,8 +267,7 @@ def test_the_wheel_installs_into_a_fresh_venv_and_runs_up(tmp_path):
                            env=env, capture_output=True, text=True, timeout=120)
     assert where.returncode == 0, where.stderr
     assert where.stdout.strip().startswith(str(venv)), f"services imported from {where.stdout.strip()}"
-    check = subprocess.run([str(py), "-m", "pip", "check"], cwd=run_dir, env=env, capture_output=True, text=True,
-                           timeout=120)
+    check = subprocess.run([*pip, "check"], cwd=run_dir, env=env, capture_output=True, text=True, timeout=120)
     assert check.returncode == 0, f"the wheel's requirements are not met: {check.stdout}"  # e.g. eclipse-zenoh pin
 
     up = subprocess.run([str(venv / "bin" / "morph-sim"), "up", "--scale", "tiny", "--steps", "20", "--quiet",

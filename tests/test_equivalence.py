@@ -25,10 +25,16 @@ def check_equal(live_run, tmp_path: Path, scale: str, policy: str, preset: str, 
     up = live_run("eq", "--policy", policy, "--preset", preset, "--steps", str(steps), "--seed", str(seed),
                   "--state-every", "10", "--snapshot-every", "50", scale=scale, listen=False, output_dir=tmp_path / "up")
     assert up.wait(timeout=300) == 0, up.stderr()[-3000:]
-    config = RunConfig(run_id="eq", scale=scale, policy=policy, preset=preset, steps=steps, seed=seed,
+    check_record_equal(up.record, tmp_path, scale, policy, preset, steps, seed)
+
+
+def check_record_equal(up: Path, tmp_path: Path, scale: str, policy: str, preset: str, steps: int, seed: int
+                       ) -> None:
+    """The record of a finished ``up`` run (directory ``up``) equals the LocalBus run of the same configuration."""
+    config = RunConfig(run_id=up.name, scale=scale, policy=policy, preset=preset, steps=steps, seed=seed,
                        state_every=10, snapshot_every=50, output_dir=tmp_path / "local")
     asyncio.run(run_local(config))
-    up, local = tmp_path / "up" / "eq", tmp_path / "local" / "eq"
+    local = config.record_dir
     up_rows, local_rows = read_metrics(up), read_metrics(local)
     assert len(up_rows) == len(local_rows) == steps
     for name in ("deliveries", "links", "lambda2", "requests", "commits", "acks", "eta"):
@@ -41,8 +47,12 @@ def check_equal(live_run, tmp_path: Path, scale: str, policy: str, preset: str, 
         np.testing.assert_array_equal(up_snaps[t]["A"], local_snaps[t]["A"], err_msg=f"A at tick {t}")
 
 
-def test_up_equals_local_tiny_morph(live_run, tmp_path):
-    check_equal(live_run, tmp_path, "tiny", "morph", "reference")
+def test_up_equals_local_tiny_morph(recorded_run, tmp_path):
+    """The shared recorded run (tests/conftest.py) is a tiny MORPH run of this kind; a recorder that followed it
+    changes nothing."""
+    assert recorded_run.code == 0, recorded_run.up.stderr()[-3000:]
+    check_record_equal(recorded_run.up.record, tmp_path, "tiny", "morph", "reference", recorded_run.steps,
+                       recorded_run.seed)
 
 
 @pytest.mark.slow

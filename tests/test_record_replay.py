@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import os
-import signal
 import subprocess
 import sys
 
@@ -12,13 +10,10 @@ import msgpack
 import pytest
 
 from services.bus.local import LocalNetwork
-from services.bus.zenoh_bus import free_port
 from services.monitor.recorder import read_metrics
 from services.monitor.replay import BusRecorder, read_record, replay
 from services.runconfig import RunConfig
 from services.supervisor.local import run_local
-
-from _procs import wait_for_port
 
 
 @pytest.mark.parametrize("policy", ["morph", "proximity"])
@@ -54,38 +49,21 @@ def test_a_truncated_record_replays_up_to_its_last_whole_frame(tmp_path):
         read_record(tmp_path / "bad.mbr")
 
 
-def test_record_and_replay_commands_against_a_live_up_run(tmp_path):
-    port = free_port()
-    flags = ["--scale", "tiny", "--steps", "150", "--run-id", "recup", "--seed", "3"]
-    up = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "up", *flags, "--quiet", "--listen",
-                           f"tcp/127.0.0.1:{port}", "--output-dir", str(tmp_path / "live")],
-                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
-    try:
-        import time
-
-        wait_for_port(port, up, time.monotonic() + 60, 0.1)
-        # no run flags: the recorder learns the run's configuration from the run; the operator's credentials are
-        # found in the run directory (--output-dir) that `up` wrote them to
-        rec = subprocess.run([sys.executable, "-m", "morph_sim.cli", "record", "--run-id", "recup", "--endpoint",
-                              f"tcp/127.0.0.1:{port}", "--out", str(tmp_path / "up.mbr"), "--timeout", "90",
-                              "--output-dir", str(tmp_path / "live")],
-                             capture_output=True, text=True, timeout=120)
-        assert rec.returncode == 0, rec.stderr[-2000:]
-        assert rec.stderr.startswith("recording run recup (tiny, 150 steps)"), rec.stderr
-        assert up.wait(timeout=60) == 0
-    finally:
-        if up.poll() is None:
-            os.killpg(up.pid, signal.SIGKILL)
-            up.wait(timeout=5)
-    rep = subprocess.run([sys.executable, "-m", "morph_sim.cli", "replay", str(tmp_path / "up.mbr"), "--output-dir",
-                          str(tmp_path / "replayed")], capture_output=True, text=True, timeout=120)
+def test_record_and_replay_commands_against_a_live_up_run(tmp_path, recorded_run):
+    """``morph-sim record`` followed the shared run from its start (tests/conftest.py); ``morph-sim replay`` of what
+    it wrote recomputes the live run's record."""
+    up, rec = recorded_run.up, recorded_run.record
+    assert rec.returncode == 0, rec.stderr[-2000:]
+    assert rec.stderr.startswith(f"recording run {up.run_id} (tiny, {recorded_run.steps} steps)"), rec.stderr
+    assert recorded_run.code == 0, up.stderr()[-3000:]
+    rep = subprocess.run([sys.executable, "-m", "morph_sim.cli", "replay", str(recorded_run.recording),
+                          "--output-dir", str(tmp_path / "replayed")], capture_output=True, text=True, timeout=300)
     assert rep.returncode == 0, rep.stderr[-2000:]
-    replayed, live = read_metrics(tmp_path / "replayed" / "recup"), read_metrics(tmp_path / "live" / "recup")
-    assert len(replayed) == len(live) == 150
+    replayed, live = read_metrics(tmp_path / "replayed" / up.run_id), read_metrics(up.record)
+    assert len(replayed) == len(live) == recorded_run.steps
     # Over Zenoh the recorder and the monitor are two subscribers; the monitor holds a row until every agent's ack
     # and link report is in (a grace of a few ticks), so every column, links included, must agree.
     cols = ("t", "sim_time", "deliveries", "deliveries_total", "requests", "commits", "acks", "links", "lambda2", "eta")
     assert [[r[c] for c in cols] for r in replayed] == [[r[c] for c in cols] for r in live]
     for name in ("metrics.csv", "links.csv", "positions.csv"):  # byte for byte
-        assert (tmp_path / "replayed" / "recup" / name).read_bytes() == (tmp_path / "live" / "recup" / name
-                                                                          ).read_bytes(), name
+        assert (tmp_path / "replayed" / up.run_id / name).read_bytes() == (up.record / name).read_bytes(), name

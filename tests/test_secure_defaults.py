@@ -3,6 +3,7 @@ refused in one line before a run starts."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import socket
@@ -26,6 +27,7 @@ import zenoh  # noqa: E402  (after zenoh_bus set the runtime environment)
 from _procs import kill_tree
 
 CLI = [sys.executable, "-m", "morph_sim.cli"]
+WAIT = 180  # seconds: a bound on each command and wait, for a hang (a loaded machine is slow, not stuck)
 
 
 def test_tick_order_takes_the_clock_forward_only_and_resyncs_on_two_consecutive_ticks():
@@ -120,43 +122,33 @@ def test_credentials_are_owner_only_and_the_endpoint_enforces_them(tmp_path):
         host.close()
 
 
-def test_the_operator_stops_a_secure_run_and_nobody_else_can(tmp_path):
-    port = free_port()
-    ep = endpoint(port)
-    run_id = "opstop"
-    up = subprocess.Popen([*CLI, "up", "--quiet", "--scale", "tiny", "--steps", "100000", "--run-id", run_id,
-                           "--listen", ep, "--output-dir", str(tmp_path)],
-                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+def test_the_operator_stops_a_secure_run_and_nobody_else_can(endless_run):
+    up = endless_run()  # secure (the default), until stopped, paced (tests/conftest.py)
+    ep, run_id, record = up.endpoint, up.run_id, up.record
+    up.wait_for_rows(3)
+    # with a robot's credentials the stop is refused by the endpoint (the command sends it, nobody hears it);
+    # without credentials there is no session at all (both at once: neither may end the run)
+    env = {k: v for k, v in os.environ.items() if k != "ZENOH_CONFIG"}
+    robot_cmd = subprocess.Popen([*CLI, "stop", "--run", run_id, "--endpoint", ep, "--timeout", "2",
+                                  "--credentials", str(record / "credentials" / "agent-0.json5")],
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        metrics = tmp_path / run_id / "metrics.csv"
-        deadline = time.monotonic() + 90
-        while not metrics.exists() or metrics.read_text().count("\n") < 3:
-            assert up.poll() is None and time.monotonic() < deadline, "up did not start its run"
-            time.sleep(0.2)
-        # with a robot's credentials the stop is refused by the endpoint (the command sends it, nobody hears it);
-        # without credentials there is no session at all (both at once: neither may end the run)
-        env = {k: v for k, v in os.environ.items() if k != "ZENOH_CONFIG"}
-        robot_cmd = subprocess.Popen([*CLI, "stop", "--run", run_id, "--endpoint", ep, "--timeout", "2",
-                                      "--credentials", str(tmp_path / run_id / "credentials" / "agent-0.json5")],
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        try:
-            anon = subprocess.run([*CLI, "stop", "--run", "other-run", "--endpoint", ep], capture_output=True,
-                                  text=True, timeout=60, env=env)
-            out, err = robot_cmd.communicate(timeout=60)
-            robot = subprocess.CompletedProcess(robot_cmd.args, robot_cmd.returncode, out, err)
-        finally:
-            kill_tree(robot_cmd)
-        time.sleep(1.0)
-        assert up.poll() is None, "a robot's credentials stopped the run"
-        assert anon.returncode == 1 and "no credentials" in anon.stderr and "Traceback" not in anon.stderr
-        op = subprocess.run([*CLI, "stop", "--run", run_id, "--endpoint", ep, "--output-dir", str(tmp_path)],
-                            capture_output=True, text=True, timeout=60)
-        assert op.returncode == 0, op.stderr
-        up.communicate(timeout=60)
+        anon = subprocess.run([*CLI, "stop", "--run", "other-run", "--endpoint", ep], capture_output=True,
+                              text=True, timeout=WAIT, env=env)
+        out, err = robot_cmd.communicate(timeout=WAIT)
+        robot = subprocess.CompletedProcess(robot_cmd.args, robot_cmd.returncode, out, err)
     finally:
-        kill_tree(up)
+        kill_tree(robot_cmd)
+    # the run goes on after both commands are done: more ticks come into its record
+    after = up.rows()
+    up.wait_until(lambda: up.rows() >= after + 5, WAIT, "ticks after the robot's and the anonymous stop")
     assert robot.returncode in (0, 1) and "Traceback" not in robot.stderr
-    summary = json.loads((tmp_path / run_id / "summary.json").read_text())
+    assert anon.returncode == 1 and "no credentials" in anon.stderr and "Traceback" not in anon.stderr
+    op = subprocess.run([*CLI, "stop", "--run", run_id, "--endpoint", ep, "--output-dir", str(record.parent)],
+                        capture_output=True, text=True, timeout=WAIT)
+    assert op.returncode == 0, op.stderr
+    assert up.wait(timeout=WAIT) == 3, up.stderr()[-3000:]  # stopped from outside
+    summary = json.loads((record / "summary.json").read_text())
     assert summary["finished"]["stopped_early"] == "operator stop"
 
 
@@ -165,7 +157,21 @@ def _up_error(*flags: str, tmp_path: Path) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=60)
 
 
-def test_bad_input_is_refused_in_one_line_before_any_process_starts(tmp_path):
+_HERE = itertools.count()
+
+
+def _up_error_here(*flags: str, tmp_path: Path, capsys) -> tuple[int, str]:
+    """The same command line through the CLI's ``main`` in this process (same parser, same error handling): for
+    more bad values once a real process has shown the exit status and the one line."""
+    from morph_sim.cli import main
+
+    # an id of its own per call: the default id names this process, the same for every call
+    code = main(["up", "--quiet", "--steps", "5", "--output-dir", str(tmp_path), "--run-id", f"here-{next(_HERE)}",
+                 *flags])
+    return code, capsys.readouterr().err
+
+
+def test_bad_input_is_refused_in_one_line_before_any_process_starts(tmp_path, capsys):
     too_big = _up_error("--agvs", "200", tmp_path=tmp_path)
     assert too_big.returncode == 2
     lines = too_big.stderr.strip().splitlines()
@@ -182,16 +188,16 @@ def test_bad_input_is_refused_in_one_line_before_any_process_starts(tmp_path):
     assert len(lines) == 1 and f"port {port}" in lines[0] and "not free" in lines[0], busy.stderr
     schedule = tmp_path / "crash.toml"
     schedule.write_text('[[at]]\ntick = 10\nspec = { id = "k", crash = { agent = 99, at_tick = 10 } }\n')
-    crash = _up_error("--fault-schedule", str(schedule), tmp_path=tmp_path)
-    assert crash.returncode == 2 and crash.stderr.strip().splitlines() == [
+    code, err = _up_error_here("--fault-schedule", str(schedule), tmp_path=tmp_path, capsys=capsys)
+    assert code == 2 and err.strip().splitlines() == [
         f"morph-sim up: error: fault schedule {schedule}: at[0].spec.crash.agent: agent 99 outside 0..7 "
         "(a fleet of 8)"]
     binary = tmp_path / "bin.toml"
     binary.write_bytes(b"\xff\xfe[[at]]")
     for path, why in ((binary, "not UTF-8"), (tmp_path, "is a directory")):
-        bad = _up_error("--fault-schedule", str(path), tmp_path=tmp_path)
-        assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
-        assert str(path) in bad.stderr and why in bad.stderr
+        code, err = _up_error_here("--fault-schedule", str(path), tmp_path=tmp_path, capsys=capsys)
+        assert code == 2 and len(err.strip().splitlines()) == 1, err
+        assert str(path) in err and why in err
 
 
 def test_the_credentials_command_writes_the_files_of_a_by_hand_run(tmp_path):

@@ -22,7 +22,7 @@ from _procs import kill_tree
 GRID = ["--grid", "policy=morph,full,tsg", "--grid", "faults.loss=0,10,30", "--grid", "scale=tiny,small"]
 ACCEPTANCE = [*GRID, "--seeds", "1-5"]
 REDUCED = [*GRID, "--seeds", "1-2"]
-SHORT = ["--set", "steps=50"]
+SHORT = ["--set", "steps=40"]
 LONG = ["--set", "steps=400"]
 
 
@@ -60,12 +60,16 @@ def _interrupt_at_half(args: list[str], log: Path, sig: int, total: int) -> subp
         kill_tree(proc)
 
 
-def _check_interrupted_then_resumed(tmp_path: Path, grid: list[str], total: int, sig: int, jobs: str
+def _check_interrupted_then_resumed(tmp_path: Path, grid: list[str], total: int, sig: int, jobs: str,
+                                    whole: tuple[Path, subprocess.CompletedProcess] | None = None
                                     ) -> subprocess.CompletedProcess:
+    """``whole``: the uninterrupted sweep of the same command line (its directory and its process), if one ran."""
     common = [*grid, "--out", str(tmp_path), "--no-progress", "--jobs", jobs]
-    whole = _cli(*common, "--run-id", "whole")
-    assert whole.returncode == 0, whole.stderr
-    assert f"{total} episodes run, 0 already in the record" in whole.stdout.splitlines()[-1]
+    if whole is None:
+        whole = (tmp_path / "whole", _cli(*common, "--run-id", "whole"))
+    whole_dir, done_whole = whole
+    assert done_whole.returncode == 0, done_whole.stderr
+    assert f"{total} episodes run, 0 already in the record" in done_whole.stdout.splitlines()[-1]
 
     log = tmp_path / "cut" / "episodes.jsonl"
     cut = _interrupt_at_half([*common, "--run-id", "cut"], log, sig, total)
@@ -83,16 +87,25 @@ def _check_interrupted_then_resumed(tmp_path: Path, grid: list[str], total: int,
     assert resumed.stdout.splitlines()[-1].startswith(f"sweep cut: {total - done} episodes run, {done} already in "
                                                       "the record")
     for name in ("results.csv", "comparison.csv", "comparison.md"):
-        assert (tmp_path / "cut" / name).read_text() == (tmp_path / "whole" / name).read_text(), name
+        assert (tmp_path / "cut" / name).read_text() == (whole_dir / name).read_text(), name
     assert _lines(log) == total  # nothing ran twice
-    rows = list(csv.DictReader(open(tmp_path / "whole" / "results.csv")))
+    rows = list(csv.DictReader(open(whole_dir / "results.csv")))
     assert len(rows) == total
-    return whole
+    return done_whole
 
 
-def test_interrupted_at_half_and_resumed_equals_an_uninterrupted_sweep(tmp_path):
-    whole = _check_interrupted_then_resumed(tmp_path, [*REDUCED, "--set", "steps=40"], 36, signal.SIGINT, "2")
-    _check_tidy(tmp_path / "whole", whole.stdout)
+@pytest.fixture(scope="module")
+def reduced_sweep(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    """The reduced acceptance sweep (short episodes, two seeds) from the CLI on local processes, run to its end once:
+    the uninterrupted sweep that the interrupted one and the Dask one must equal. (Its directory, its process.)"""
+    out = tmp_path_factory.mktemp("sweep")
+    done = _cli(*REDUCED, *SHORT, "--out", str(out), "--run-id", "whole", "--no-progress", "--jobs", "2")
+    return out / "whole", done
+
+
+def test_interrupted_at_half_and_resumed_equals_an_uninterrupted_sweep(tmp_path, reduced_sweep):
+    whole = _check_interrupted_then_resumed(tmp_path, [*REDUCED, *SHORT], 36, signal.SIGINT, "2", reduced_sweep)
+    _check_tidy(reduced_sweep[0], whole.stdout)
 
 
 def test_a_killed_sweep_resumes_too(tmp_path):
@@ -135,10 +148,10 @@ def _local_cluster():
                         dashboard_address=None)
 
 
-def test_dask_local_cluster_equals_local_processes_episode_for_episode(tmp_path):
+def test_dask_local_cluster_equals_local_processes_episode_for_episode(tmp_path, reduced_sweep):
     """The CLI in its own process sends the acceptance grid (short episodes, two seeds) to a LocalCluster's
     scheduler; the slow test below runs all five seeds at length."""
-    local = _cli(*REDUCED, *SHORT, "--out", str(tmp_path), "--run-id", "local", "--no-progress")
+    local_dir, local = reduced_sweep
     assert local.returncode == 0, local.stderr
     with _local_cluster() as cluster:
         res = _cli(*REDUCED, *SHORT, "--out", str(tmp_path), "--run-id", "dask", "--no-progress",
@@ -146,8 +159,8 @@ def test_dask_local_cluster_equals_local_processes_episode_for_episode(tmp_path)
     assert res.returncode == 0, res.stderr
     assert "(lab engine, dask executor)" in res.stderr
     for name in ("results.csv", "comparison.csv"):
-        assert (tmp_path / "dask" / name).read_text() == (tmp_path / "local" / name).read_text()
-    a = [json.loads(x) for x in (tmp_path / "local" / "episodes.jsonl").read_text().splitlines()]
+        assert (tmp_path / "dask" / name).read_text() == (local_dir / name).read_text()
+    a = [json.loads(x) for x in (local_dir / "episodes.jsonl").read_text().splitlines()]
     b = {r["key"]: r["metrics"] for r in map(json.loads, (tmp_path / "dask" / "episodes.jsonl").read_text().splitlines())}
     assert len(a) == 36 and all(b[r["key"]] == r["metrics"] for r in a)
 
