@@ -139,8 +139,11 @@ def client_config(user: str, password: str) -> dict:
 def _write_private(path: Path, text: str) -> None:
     """Create ``path`` with mode 0600 from the start (never world-readable, not even for a moment)."""
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as out:
-        out.write(text)
+    try:
+        with os.fdopen(fd, "w") as out:
+            out.write(text)
+    except OSError as exc:  # a failed write names no file of its own: name the one it was writing
+        raise OSError(exc.errno, exc.strerror, str(path)) from None
     os.chmod(path, 0o600)  # an existing file keeps its old mode through O_CREAT
 
 

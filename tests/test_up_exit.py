@@ -73,6 +73,21 @@ def test_a_record_that_cannot_be_written_stops_the_run_with_one_line(tmp_path):
     assert 0 < len(rows) < 20000  # the run did stop early
 
 
+def test_credentials_that_cannot_be_written_refuse_the_run_in_one_line(tmp_path):
+    # a disk too full for the run's credentials (RLIMIT_FSIZE 2 KB, under the endpoint's access-control file): the
+    # run is refused before any process starts, naming the file, with no traceback
+    def tiny_disk() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (2048, 2048))
+
+    proc = _up(tmp_path, "nocreds", "--steps", "5", preexec_fn=tiny_disk)
+    out, err = _finish(proc, 120)
+    assert proc.returncode == 1, (out, err)
+    assert "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("morph-sim up: error: credentials: cannot write "), err
+    assert "/nocreds/credentials/" in lines[0] and "File too large" in lines[0], lines[0]
+
+
 def test_a_stop_from_outside_ends_up_with_status_3_naming_it(tmp_path):
     port = free_port()
     # paced (20 ticks/s): the run goes on while the stop command starts, connects and is answered, for no more ticks

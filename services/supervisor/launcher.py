@@ -185,8 +185,13 @@ class Supervisor:
         if not self.external:
             self._check_port_free()  # StartError naming the port, before anything is written or started
         if not insecure and not self.external:
-            self.credentials = RunCredentials.create(run_credentials(config.record_dir).directory, config.run_id,
-                                                     config.n_agents, where=self.endpoint)
+            directory = run_credentials(config.record_dir).directory
+            try:
+                self.credentials = RunCredentials.create(directory, config.run_id, config.n_agents,
+                                                         where=self.endpoint)
+            except OSError as exc:  # a full disk or quota: nothing was started yet, so the run is refused whole
+                raise StartError(f"credentials: cannot write {exc.filename or directory}: "
+                                 f"{exc.strerror or exc}") from None
             for child in self.children.values():
                 child.extra_env[ZENOH_CONFIG_ENV] = str(self.credentials.for_role(child.spec.role, child.spec.agent))
         self.progress = Progress()
