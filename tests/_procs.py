@@ -317,3 +317,16 @@ class SharedRun:
                 kill_tree(observer.proc)
         self.run.kill()
         self._thread.join(30)
+
+
+# The start of a user's Zenoh client script run with the run's operator credentials (``port`` and ``credentials``
+# come from its argv): it waits until ``up`` has written them, then connects as a client to the run's endpoint.
+OPERATOR_CLIENT = r'''
+while True:  # `up` writes the run's operator credentials before it starts the sim
+    try:
+        conf = zenoh.Config.from_file(credentials)
+        break
+    except Exception:
+        time.sleep(0.1)
+conf.insert_json5("mode", '"client"'); conf.insert_json5("connect/endpoints", '["tcp/127.0.0.1:%s"]' % port)
+'''

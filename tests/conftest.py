@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from _procs import LiveRun, Observer, SharedRun
+from _procs import OPERATOR_CLIENT, LiveRun, Observer, SharedRun
 
 KINDS: dict[str, tuple[str, ...]] = {
     "unit": (
@@ -118,14 +118,7 @@ def shared_live_run(tmp_path_factory):
 STREAM_SUBSCRIBER = r'''
 import json, sys, time, collections, msgpack, zenoh
 port, run, duration, credentials = sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4]
-while True:  # `up` writes the run's operator credentials before it starts the sim
-    try:
-        conf = zenoh.Config.from_file(credentials)
-        break
-    except Exception:
-        time.sleep(0.1)
-conf.insert_json5("mode", '"client"'); conf.insert_json5("connect/endpoints", '["tcp/127.0.0.1:%s"]' % port)
-seconds = collections.defaultdict(set)
+''' + OPERATOR_CLIENT + r'''seconds = collections.defaultdict(set)
 ticks = collections.defaultdict(int)
 last = {}
 t0 = time.monotonic()

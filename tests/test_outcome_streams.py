@@ -14,19 +14,14 @@ from morph_sim.lab.network import dispatch_faults
 from services.monitor import catalogue
 from services.monitor.recorder import read_metrics
 
+from _procs import OPERATOR_CLIENT
+
 # A default-settings Zenoh client with the run's operator credentials (the README's subscriber): every sample of the
 # dispatch outcome streams, and the end of the run.
 SUBSCRIBER = r'''
 import json, sys, time, msgpack, zenoh
 port, run, credentials, duration, last = sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4]), int(sys.argv[5])
-while True:  # `up` writes the operator's credentials before it starts the sim
-    try:
-        conf = zenoh.Config.from_file(credentials)
-        break
-    except Exception:
-        time.sleep(0.1)
-conf.insert_json5("mode", '"client"'); conf.insert_json5("connect/endpoints", '["tcp/127.0.0.1:%s"]' % port)
-got, end = {}, {}
+''' + OPERATOR_CLIENT + r'''got, end = {}, {}
 def on_metric(s):
     m = msgpack.unpackb(s.payload.to_bytes())
     if m["name"].startswith("dispatch_") and m["name"] != "dispatch_delay":
