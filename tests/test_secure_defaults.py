@@ -186,6 +186,7 @@ def test_bad_input_is_refused_in_one_line_before_any_process_starts(tmp_path, ca
     assert busy.returncode == 1
     lines = busy.stderr.strip().splitlines()
     assert len(lines) == 1 and f"port {port}" in lines[0] and "not free" in lines[0], busy.stderr
+    assert not list(tmp_path.iterdir())  # the refused run left no directory: its id is free for the fixed command
     schedule = tmp_path / "crash.toml"
     schedule.write_text('[[at]]\ntick = 10\nspec = { id = "k", crash = { agent = 99, at_tick = 10 } }\n')
     code, err = _up_error_here("--fault-schedule", str(schedule), tmp_path=tmp_path, capsys=capsys)
@@ -198,6 +199,7 @@ def test_bad_input_is_refused_in_one_line_before_any_process_starts(tmp_path, ca
         code, err = _up_error_here("--fault-schedule", str(path), tmp_path=tmp_path, capsys=capsys)
         assert code == 2 and len(err.strip().splitlines()) == 1, err
         assert str(path) in err and why in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bin.toml", "crash.toml"]  # no run directory left
 
 
 def test_the_credentials_command_writes_the_files_of_a_by_hand_run(tmp_path):

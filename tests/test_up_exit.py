@@ -86,6 +86,7 @@ def test_credentials_that_cannot_be_written_refuse_the_run_in_one_line(tmp_path)
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("morph-sim up: error: credentials: cannot write "), err
     assert "/nocreds/credentials/" in lines[0] and "File too large" in lines[0], lines[0]
+    assert not (tmp_path / "nocreds").exists()  # refused whole: the run id is free again
 
 
 def test_a_stop_from_outside_ends_up_with_status_3_naming_it(tmp_path):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import shutil
 import sys
 
 NAME = "up"
@@ -59,9 +60,14 @@ def run(args: argparse.Namespace) -> int:
     try:
         supervisor = Supervisor(config, on_progress=show, insecure=args.insecure, monitor_args=monitor_args,
                                 end_grace=grace)
-    except StartError as exc:
+    except (StartError, ValueError) as exc:
         if status is not None:
             status.stop()
+        # refused before any process started: the directory this call created goes, so the run id stays free for
+        # the corrected command
+        shutil.rmtree(config.record_dir, ignore_errors=True)
+        if isinstance(exc, ValueError):
+            raise  # bad configuration: one line, exit 2
         print(f"morph-sim up: error: {exc}", file=sys.stderr)
         return 1
     if supervisor.credentials is not None:
