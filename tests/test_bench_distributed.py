@@ -69,7 +69,7 @@ def test_a_measurement_of_another_checkout_runs_that_checkout_s_code(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "morph_sim.cli", "bench", "distributed", "--against", str(tmp_path)],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and bad.stderr.strip().endswith(
-        f"--against: {tmp_path.resolve()} is not a morph-sim checkout (no morph_sim/ and services/ there)")
+        f"--against: {tmp_path.resolve()} is not a morph-sim checkout (no morph_sim/ there)")
 
 
 @pytest.mark.slow

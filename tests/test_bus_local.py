@@ -398,6 +398,106 @@ async def test_inline_subscription_with_delaying_fault_layer(env) -> None:
     assert min(lags) >= 0.05
 
 
+class CountEgress:
+    """An interposer that counts what passes the egress seam, per key, and lets everything through."""
+
+    def __init__(self) -> None:
+        self.egress: dict[str, int] = {}
+
+    def on_publish(self, sample, send) -> None:
+        self.egress[sample.key] = self.egress.get(sample.key, 0) + 1
+        send(sample)
+
+    def on_deliver(self, sample, receiver, deliver) -> None:
+        deliver(sample)
+
+
+async def test_put_together_gives_each_receiver_the_shared_sample_and_its_own_once(env) -> None:
+    """The sim's tick start: each robot takes its own sample and the shared broadcast, each exactly once, with the
+    headers separate puts would have; the shared sample passes the egress seam once per call, not once per robot."""
+    sim = await env.open("sim")
+    seam = CountEgress()
+    sim.set_interposer(seam)
+    robots = [await env.open(f"agent-{i}") for i in range(3)]
+    got: dict[int, list[tuple[str, str, int, bytes]]] = {i: [] for i in range(3)}
+    for i, bus in enumerate(robots):
+        def take(s: Sample, i=i) -> None:
+            got[i].append((s.key, s.sender, s.seq, s.payload))
+        await bus.subscribe(K.fleet, take, inline=True)
+        await bus.subscribe(K.onboard(i), take, inline=True)
+    # a second subscription to a robot's own key (not inline): the carrier reaches it too, the samples still come
+    # once to each subscription they match
+    second: list[int] = []
+    await robots[2].subscribe(K.onboard(2), lambda s: second.append(s.seq))
+    for i in range(3):
+        await env.settle(sim, K.onboard(i))
+    for n in range(4):
+        sim.put_together((K.fleet, f"fleet {n}".encode()), [(K.onboard(i), f"own {i} {n}".encode()) for i in range(3)])
+    await until(lambda: all(len(v) == 8 for v in got.values()) and len(second) == 4)
+    await asyncio.sleep(0.05)
+    for i in range(3):
+        assert sorted(got[i]) == sorted(
+            [(K.fleet, "sim", n, f"fleet {n}".encode()) for n in range(4)]
+            + [(K.onboard(i), "sim", n, f"own {i} {n}".encode()) for n in range(4)])
+    assert second == [0, 1, 2, 3]
+    assert seam.egress == {K.fleet: 4, **{K.onboard(i): 4 for i in range(3)}}
+    assert all(bus.counters.rejected == 0 for bus in robots)
+
+
+async def test_zenoh_carries_the_shared_sample_inside_each_own_one() -> None:
+    """Over Zenoh the shared sample travels only inside the own ones: a session subscribed to the shared key alone
+    (a tool on ``sim/fleet``) gets nothing, one that takes an own key gets both."""
+    e = ZenohEnv()
+    try:
+        sim, robot, tool = await e.open("sim"), await e.open("agent-0"), await e.open("tool")
+        robot_got, tool_got = [], []
+        await robot.subscribe(K.fleet, lambda s: robot_got.append(s.key))
+        await robot.subscribe(K.onboard(0), lambda s: robot_got.append(s.key))
+        await tool.subscribe(K.fleet, lambda s: tool_got.append(s.key))
+        await e.settle(sim, K.onboard(0))
+        await e.settle(sim, K.fleet)
+        sim.put_together((K.fleet, b"f"), [(K.onboard(0), b"o")])
+        await until(lambda: len(robot_got) == 2)
+        await asyncio.sleep(0.2)
+        assert sorted(robot_got) == sorted([K.fleet, K.onboard(0)]) and tool_got == []
+    finally:
+        for bus in reversed(e.buses):
+            await asyncio.wait_for(bus.close(), 5.0)
+
+
+@pytest.mark.parametrize("forged, field", [
+    # another author's message inside the sim's carrier
+    (lambda: [(K.ack(3), 0, 0.0, b"a"), (K.onboard(0), 0, 0.0, b"o")], "bundle[0].key"),
+    # the carrier's own sample missing: a bundle is always its carrier's sample plus what rides with it
+    (lambda: [(K.fleet, 0, 0.0, b"f")], "its last sample is not the carrier's own"),
+    (lambda: [(K.fleet, 0, 0.0, b"f")] * 5 + [(K.onboard(0), 0, 0.0, b"o")], "expected 1..4 samples"),
+    (lambda: [(K.fleet, "zero", 0.0, b"f"), (K.onboard(0), 0, 0.0, b"o")], "bundle[0]: expected [key, seq"),
+    (lambda: [("morph/t1/sim/*", 0, 0.0, b"f"), (K.onboard(0), 0, 0.0, b"o")], "wildcard"),
+])
+async def test_a_forged_bundle_is_refused_counted_and_harmless(forged, field) -> None:
+    """A bundle that breaks the rules is one counted refusal naming what is wrong; nothing in it is delivered and
+    the session keeps receiving."""
+    import msgpack
+
+    e = ZenohEnv()
+    try:
+        sim, robot = await e.open("sim"), await e.open("agent-0")
+        got, why = [], []
+        robot.reject_hook = lambda key, reason: why.append((key, str(reason)))
+        for key in (K.fleet, K.onboard(0), K.ack(3)):
+            await robot.subscribe(key, lambda s: got.append((s.key, s.payload)), inline=True)
+        await e.settle(sim, K.onboard(0))
+        sim.put(K.onboard(0), msgpack.packb(forged(), use_bin_type=True))
+        await until(lambda: why)
+        assert why == [(K.onboard(0), why[0][1])] and field in why[0][1] and robot.counters.rejected == 1
+        sim.put_together((K.fleet, b"f"), [(K.onboard(0), b"o")])
+        await until(lambda: len(got) == 2)
+        assert sorted(got) == sorted([(K.fleet, b"f"), (K.onboard(0), b"o")])
+    finally:
+        for bus in reversed(e.buses):
+            await asyncio.wait_for(bus.close(), 5.0)
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # LocalBus only: deterministic delivery
 # ---------------------------------------------------------------------------------------------------------------

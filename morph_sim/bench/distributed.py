@@ -157,9 +157,18 @@ def distributed_rate(config) -> dict:
 def checkout(path: str, flag: str) -> Path:
     """A git checkout of morph-sim to measure (ValueError naming ``flag`` if it is not one)."""
     root = Path(path).expanduser().resolve()
-    if not (root / "morph_sim" / "__init__.py").is_file() or not (root / "services").is_dir():
-        raise ValueError(f"{flag}: {root} is not a morph-sim checkout (no morph_sim/ and services/ there)")
+    if not (root / "morph_sim" / "__init__.py").is_file():
+        raise ValueError(f"{flag}: {root} is not a morph-sim checkout (no morph_sim/ there)")
     return root
+
+
+def packages_of(root: Path | None) -> tuple[str, ...]:
+    """The top-level packages of checkout ``root`` whose origin a measurement checks: ``morph_sim`` and, from the
+    layout with the running system at the top, ``services`` (older checkouts hold it inside ``morph_sim``); the
+    installed code (None) has both."""
+    if root is not None and not (root / "services" / "__init__.py").is_file():
+        return ("morph_sim",)
+    return ("morph_sim", "services")
 
 
 def revision(root: Path) -> str:
@@ -191,13 +200,14 @@ def code_cwd(root: Path | None) -> str:
     return str(root) if root is not None else tempfile.gettempdir()
 
 
-def code_of(env: dict[str, str], cwd: str) -> Path | None:
-    """The checkout whose ``morph_sim`` and ``services`` a process started with ``env`` in ``cwd`` imports."""
+def code_of(env: dict[str, str], cwd: str, packages: tuple[str, ...] = ("morph_sim", "services")) -> Path | None:
+    """The checkout whose ``packages`` a process started with ``env`` in ``cwd`` imports (None: more than one)."""
     import subprocess
     import sys
 
+    show = "; ".join(f"import {name}; print({name}.__file__)" for name in packages)
     where = subprocess.run(
-        [sys.executable, "-c", "import morph_sim, services; print(morph_sim.__file__); print(services.__file__)"],
+        [sys.executable, "-c", show],
         capture_output=True, text=True, env=env, cwd=cwd, timeout=60)
     if where.returncode != 0:
         return None
@@ -212,7 +222,7 @@ def measure_code(args: argparse.Namespace, root: Path | None) -> dict:
     import sys
 
     env, cwd = code_env(root), code_cwd(root)
-    code = code_of(env, cwd)
+    code = code_of(env, cwd, packages_of(root))
     if root is not None and code != root:
         raise RuntimeError(f"code: the measurement would import {code}, not {root}")
     argv = [sys.executable, "-m", "morph_sim.cli", "bench", "distributed", "--json", "--scale", args.scale,

@@ -123,7 +123,7 @@ def _line(label: str, r: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from morph_sim.bench.distributed import checkout, code_cwd, code_env, code_of, revision
+    from morph_sim.bench.distributed import checkout, code_cwd, code_env, code_of, packages_of, revision
 
     if args.rounds < 1:
         raise ValueError(f"--rounds: {args.rounds} must be at least 1")
@@ -137,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
     for i in range(args.rounds):
         for label, root in checkouts:  # alternately, so a change of load hits both alike
             env, cwd = code_env(root), code_cwd(root)
-            code = code_of(env, cwd)
+            code = code_of(env, cwd, packages_of(root))
             if root is not None and code != root:
                 raise RuntimeError(f"code: the measurement would import {code}, not {root}")
             revisions[label] = revision(code) if code is not None else "(no git revision)"

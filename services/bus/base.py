@@ -292,6 +292,54 @@ def unpack_header(data: bytes | None) -> tuple[str, int, float]:
 
 _payload_bound = lru_cache(maxsize=4096)(max_payload_of_key)  # few distinct keys; checked on every arrival
 
+#: At most this many samples travel in one bundle (the sim's tick start carries two: fleet broadcast, on-board state).
+MAX_BUNDLE = 4
+# A message payload is a msgpack map (an envelope); a bundle is a msgpack array of samples. Its first byte says which.
+_ARRAY_FIRST_BYTES = frozenset([*range(0x90, 0xA0), 0xDC, 0xDD])
+
+
+def is_bundle(payload: bytes) -> bool:
+    """Whether a received payload is a bundle of samples (:func:`pack_bundle`) rather than one message."""
+    return bool(payload) and payload[0] in _ARRAY_FIRST_BYTES
+
+
+def pack_bundle(samples: list[Sample]) -> bytes:
+    """Several samples of one publisher as one transport message: ``[[key, seq, sent_at, payload], …]``, the
+    carrier's own sample (whose key and header the transport message has) last."""
+    return msgpack.packb([(s.key, s.seq, s.sent_at, s.payload) for s in samples], use_bin_type=True)
+
+
+def unpack_bundle(carrier: Sample) -> list[Sample]:
+    """The samples a bundle carried, each with its own key and header; ValueError naming what is wrong.
+
+    A bundle speaks only for its publisher: every sample in it must lie in the carrier key's own key space (the
+    same ``morph/<run>/<head>``, and for ``agent/<id>/…`` keys the same id), and the last one is the carrier's own
+    sample (its key and sequence number), so a bundle cannot smuggle another author's messages past a check made
+    on the carrier's key.
+    """
+    try:
+        entries = msgpack.unpackb(carrier.payload, raw=False, use_list=False)
+    except Exception as exc:  # msgpack raises several unrelated types
+        raise ValueError(f"bundle: not msgpack: {type(exc).__name__}") from None
+    if not isinstance(entries, tuple) or not 1 <= len(entries) <= MAX_BUNDLE:
+        raise ValueError(f"bundle: expected 1..{MAX_BUNDLE} samples")
+    chunks = carrier.key.split("/")
+    space = "/".join(chunks[:4] if len(chunks) > 3 and chunks[2] == "agent" else chunks[:3]) + "/"
+    out: list[Sample] = []
+    for i, entry in enumerate(entries):
+        if not (isinstance(entry, tuple) and len(entry) == 4 and isinstance(entry[0], str)
+                and type(entry[1]) is int and isinstance(entry[2], (int, float)) and isinstance(entry[3], bytes)):
+            raise ValueError(f"bundle[{i}]: expected [key, seq, sent_at, payload]")
+        key, seq, sent_at, payload = entry
+        if not key.startswith(space):
+            raise ValueError(f"bundle[{i}].key: {key!r} is outside the carrier's key space {space!r}")
+        validate_key(key)
+        out.append(Sample(key, payload, carrier.sender, seq, float(sent_at)))
+    last = out[-1]
+    if last.key != carrier.key or last.seq != carrier.seq:
+        raise ValueError("bundle: its last sample is not the carrier's own (key and sequence number)")
+    return out
+
 
 class Bus(ABC):
     """One participant's session on the run's bus. Use ``async with`` or call :meth:`close`."""
@@ -378,18 +426,35 @@ class Bus(ABC):
 
     def put(self, key: str, payload: Message | bytes, *, droppable: bool = False) -> None:
         """:meth:`publish` without the coroutine: usable from a plain (sync) handler on the loop."""
-        self._check_open()
-        validate_key(key)
-        data = to_payload(payload)
-        counter = self._seq.get(key)
-        if counter is None:  # setdefault is atomic: inline handlers on another thread may publish too
-            counter = self._seq.setdefault(key, itertools.count())
-        sample = Sample(key, data, self.identity, next(counter), self._clock())
-        self.counters.published += 1
+        sample = self._stamp(key, payload)
         if self._interposer is not None:
             self._interposer.on_publish(sample, lambda s: self._send(s, droppable))
         else:
             self._send(sample, droppable)
+
+    def put_together(self, shared: tuple[str, Message | bytes], own: list[tuple[str, Message | bytes]]) -> None:
+        """Publish ``shared`` once and each of ``own`` on its key, for receivers that each take one of the ``own``
+        samples and the shared one (the sim's tick start: every robot's on-board state beside the fleet broadcast).
+
+        Every sample gets its own header and passes the egress seam on its own, so to a receiver and its fault layer
+        this is the same as separate puts. A transport may carry the shared sample inside each own one instead of
+        sending it alone: :class:`~services.bus.zenoh_bus.ZenohBus` does (one message per robot and tick instead of
+        two, and each received message costs a thread wake-up); over it, a subscriber of the shared key that takes
+        none of the own keys does not get the shared sample.
+        """
+        self.put(*shared)
+        for key, payload in own:
+            self.put(key, payload)
+
+    def _stamp(self, key: str, payload: Message | bytes) -> Sample:
+        """A sample of this bus on ``key``, with its header (publisher, next sequence number of the key, clock)."""
+        self._check_open()
+        validate_key(key)
+        counter = self._seq.get(key)
+        if counter is None:  # setdefault is atomic: inline handlers on another thread may publish too
+            counter = self._seq.setdefault(key, itertools.count())
+        self.counters.published += 1
+        return Sample(key, to_payload(payload), self.identity, next(counter), self._clock())
 
     async def subscribe(self, key_expr: str, handler: Callable[[Sample], Awaitable[None] | None] | None = None,
                         *, inline: bool = False) -> Subscription[Sample]:

@@ -53,6 +53,9 @@ configure_runtime_env()
 
 import zenoh  # noqa: E402  (after the runtime environment is set)
 
+from schemas.base import Message  # noqa: E402
+from schemas.keys import intersects  # noqa: E402
+from schemas.limits import MAX_MESSAGE_BYTES  # noqa: E402
 from services.bus.base import (  # noqa: E402
     Bus,
     LivelinessEvent,
@@ -60,7 +63,10 @@ from services.bus.base import (  # noqa: E402
     Reply,
     Sample,
     Subscription,
+    is_bundle,
+    pack_bundle,
     pack_header,
+    unpack_bundle,
     unpack_header,
 )
 
@@ -224,6 +230,9 @@ class ZenohBus(Bus):
         # Re-entrant: an inline handler may trigger a nested delivery (e.g. a fault layer delivering at once).
         self._inline_lock = threading.RLock()
         self._pub_lock = threading.Lock()
+        # the sample subscriptions of this session, and per key the ones it reaches: where a bundle's samples go
+        self._sample_subs: list[Subscription[Sample]] = []
+        self._routes: dict[str, list[Subscription[Sample]]] = {}
         with _OPEN_LOCK:
             _OPEN_SESSIONS.add(session)
 
@@ -307,6 +316,39 @@ class ZenohBus(Bus):
         pub = self._publishers.get((sample.key, droppable)) or self._publisher(sample.key, droppable)
         pub.put(sample.payload, attachment=pack_header(sample.sender, sample.seq, sample.sent_at))
 
+    def put_together(self, shared: tuple[str, Message | bytes], own: list[tuple[str, Message | bytes]]) -> None:
+        """The shared sample rides inside each own one: one Zenoh message per receiver (see :meth:`Bus.put_together`).
+
+        Each sample still passes the egress seam on its own; a copy that the seam sends later than now (a delay at
+        the publisher) goes out alone on its key."""
+        riders: list[Sample] = []
+        building = True
+
+        def carry(sample: Sample) -> None:
+            if building:
+                riders.append(sample)
+            else:
+                self._send(sample, False)
+
+        self._egress(self._stamp(*shared), carry)
+        building = False
+        for key, payload in own:
+            self._egress(self._stamp(key, payload), self._send_with(riders))
+
+    def _egress(self, sample: Sample, send: Callable[[Sample], None]) -> None:
+        if self._interposer is not None:
+            self._interposer.on_publish(sample, send)
+        else:
+            send(sample)
+
+    def _send_with(self, riders: list[Sample]) -> Callable[[Sample], None]:
+        def send(sample: Sample) -> None:
+            if self._closed:
+                return
+            pub = self._publishers.get((sample.key, False)) or self._publisher(sample.key, False)
+            pub.put(pack_bundle([*riders, sample]), attachment=pack_header(sample.sender, sample.seq, sample.sent_at))
+        return send
+
     def _make_deliver(self, sub: Subscription[Sample]) -> Callable[[Sample], None]:
         deliver = super()._make_deliver(sub)
         if not sub.inline:
@@ -328,13 +370,57 @@ class ZenohBus(Bus):
             att = zs.attachment
             sender, seq, sent_at = unpack_header(None if att is None else att.to_bytes())
             sample = Sample(str(zs.key_expr), zs.payload.to_bytes(), sender, seq, sent_at)
-            if inline:
+            if is_bundle(sample.payload):
+                self._unbundle(sub, sample)
+            elif inline:
                 ingress(sub, sample)  # straight to the handler on this thread (deliver_locked serializes)
             else:
                 post(ingress, sub, sample)
 
         zsub = self.session.declare_subscriber(key_expr, on_sample)
-        return zsub.undeclare
+        self._sample_subs.append(sub)
+        self._routes = {}
+
+        def undeclare() -> None:
+            if sub in self._sample_subs:
+                self._sample_subs.remove(sub)
+                self._routes = {}
+            zsub.undeclare()
+        return undeclare
+
+    def _route(self, key: str) -> list[Subscription[Sample]]:
+        """This session's subscriptions that ``key`` reaches, in declaration order (cached per key)."""
+        routes = self._routes
+        subs = routes.get(key)
+        if subs is None:
+            if len(routes) >= 4096:  # keys nobody planned (a fuzzer's): the table stays bounded
+                routes.clear()
+            subs = routes[key] = [s for s in self._sample_subs if intersects(s.key_expr, key)]
+        return subs
+
+    def _unbundle(self, sub: Subscription[Sample], carrier: Sample) -> None:
+        """A bundle arrived for ``sub`` (Zenoh thread): each sample in it goes to every subscription of this session
+        its own key reaches, as if it had come alone. Zenoh hands the carrier to each subscription that matches its
+        key; the first of them in declaration order unpacks it, the others leave it."""
+        takers = self._route(carrier.key)
+        if not takers or takers[0] is not sub or self._closed:
+            return
+        if len(carrier.payload) > MAX_MESSAGE_BYTES:
+            self._refuse(carrier, f"bundle of {len(carrier.payload)} bytes exceeds the transport's "
+                                  f"{MAX_MESSAGE_BYTES}-byte bound")
+            return
+        try:
+            samples = unpack_bundle(carrier)
+        except ValueError as exc:
+            self._refuse(carrier, str(exc))
+            return
+        ingress, post = self._ingress, self._post
+        for sample in samples:
+            for target in self._route(sample.key):
+                if target.inline:
+                    ingress(target, sample)
+                else:
+                    post(ingress, target, sample)
 
     def _declare_queryable(self, key_expr: str, handler: Callable[[Query], Awaitable[None] | None]
                            ) -> Callable[[], None]:

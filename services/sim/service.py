@@ -535,13 +535,14 @@ class SimService:
         body = tick_fields(obs, obs.t * self.config.dt,
                            {**world_fields(self.ctl, obs), "outcomes": self._reported_outcomes})
         tick = encode_tick_body(body)
-        bus.put(k.fleet, tick)
         bus.put(k.tick, tick)
         free = set(body["free_pickers"])
         replied, n_agvs = self._replied, self.config.n_agvs
-        for robot in range(self.n):
-            bus.put(k.onboard(robot), encode_fields(OnBoard, **onboard_fields(
+        # each robot takes its on-board state and the broadcast together (over Zenoh in one message: bus.put_together)
+        bus.put_together((k.fleet, tick), [
+            (k.onboard(robot), encode_fields(OnBoard, **onboard_fields(
                 body, robot, robot in free, replied[robot] if robot < n_agvs else 0)))
+            for robot in range(self.n)])
 
     async def _event(self, kind: str, **details) -> None:
         t = self.ctl.t

@@ -131,7 +131,9 @@ class Child:
 
 @dataclass
 class Progress:
-    """What the live line shows; fed from the run's metric stream."""
+    """What the live line shows; fed from the run's metric streams :attr:`STREAMS` (and the tick from every Tick)."""
+
+    STREAMS = ("deliveries_total", "links")
 
     t: int = -1
     deliveries: float = 0.0
@@ -384,7 +386,8 @@ class Supervisor:
             if msg.value is not None:
                 self.progress.update(msg.name, msg.t, msg.value)
 
-        await bus.subscribe(keys.metrics, on_metric)
+        for name in Progress.STREAMS:  # only what the line shows: a run has many more streams, each a message
+            await bus.subscribe(keys.metric(name), on_metric)
 
         from services.tickorder import TickOrder
 
