@@ -23,7 +23,7 @@ def test_warehouse_custom_fleet_and_images(tmp_path, capsys):
     code = main(["warehouse", "--scale", "small", "--agvs", "3", "--pickers", "2", "--steps", "30", "--png", str(png),
                  "--gif", str(gif), "--gif-every", "5", "--cell-px", "8", "--no-progress"])
     assert code == 0
-    out = capsys.readouterr().out
+    out = " ".join(capsys.readouterr().out.split())  # the console wraps a long image path at its width
     assert "small 3+2" in out and "(6 frames)" in out
     with Image.open(png) as im:
         assert im.size[0] > 14 * 8
