@@ -50,6 +50,10 @@ KIND_OF = {name: kind for kind, names in KINDS.items() for name in names}
 SLOW_TIMEOUT = 1800  # seconds: an experiment-scale test may take many minutes on 2 cores
 
 
+#: The session fixtures that run one `morph-sim up` for tests in several files.
+SHARED_RUNS = ("shared_default_up", "recorded_run", "shared_live_run")
+
+
 def pytest_configure(config):
     for kind, what in (("unit", "pure code"), ("fidelity", "against the original and the reference code"),
                        ("services", "services wired in this process"), ("e2e", "real morph-sim processes")):
@@ -65,6 +69,9 @@ def pytest_collection_modifyitems(config, items):
             unknown.add(name)
             continue
         item.add_marker(getattr(pytest.mark, kind))
+        # one pytest worker per file (its module fixtures are built once), and the tests of a shared session run on
+        # one worker whatever their file, so that run is started once (pyproject's `--dist loadgroup`)
+        item.add_marker(pytest.mark.xdist_group(next((f for f in SHARED_RUNS if f in item.fixturenames), name)))
         if item.get_closest_marker("slow") and not item.get_closest_marker("timeout"):
             item.add_marker(pytest.mark.timeout(SLOW_TIMEOUT))
     if unknown:

@@ -45,6 +45,15 @@ def _argv(service: str, environ: dict[str, str] | None = None) -> list[str]:
     return interpolate(SERVICES[service]["command"], environ or {})
 
 
+def _live_monitor_argv(where: str) -> list[str]:
+    """The compose monitor's arguments for a live test on this machine: connected to ``where``, its Prometheus
+    exporter on a free loopback port (compose's 9464 on every interface may be taken by another test's monitor)."""
+    from services.bus.zenoh_bus import free_port
+
+    argv = _without_prometheus(_argv("monitor", {"MORPH_PROMETHEUS_PORT": str(free_port())}))[1:]
+    return [where if c == "tcp/sim:7447" else "127.0.0.1" if c == "0.0.0.0" else c for c in argv]
+
+
 def _parse(argv: list[str]):
     assert argv[0] == "morph-sim", f"command {argv} does not start with morph-sim"
     try:
@@ -303,7 +312,7 @@ def test_the_services_pass_the_healthcheck_and_stop_within_the_grace_period(tmp_
         assert _run_check(SERVICES["sim"]["healthcheck"]["test"], port) == 0
         where = f"tcp/127.0.0.1:{port}"
         agent_argv = [c.replace("tcp/sim:7447", where) for c in _argv("agent")[1:]]
-        monitor_argv = [c.replace("tcp/sim:7447", where) for c in _without_prometheus(_argv("monitor"))[1:]]
+        monitor_argv = _live_monitor_argv(where)
         procs.append(subprocess.Popen(cli + agent_argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT))
         procs.append(subprocess.Popen(cli + monitor_argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT))
         # A service declares its liveliness token after installing its signal handlers: once all three tokens are
@@ -368,7 +377,7 @@ def test_a_compose_shaped_run_completes_with_agents_that_claim_their_ids(tmp_pat
         sim = subprocess.Popen(cli + sim_argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         procs.append(sim)
         _wait_port(port, 30.0)
-        monitor_argv = [c.replace("tcp/sim:7447", where) for c in _without_prometheus(_argv("monitor"))[1:]]
+        monitor_argv = _live_monitor_argv(where)
         procs.append(subprocess.Popen(cli + monitor_argv, env=env, stdout=subprocess.DEVNULL,
                                       stderr=subprocess.DEVNULL))
         agents = []
