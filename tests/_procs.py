@@ -297,9 +297,13 @@ class SharedRun:
                 observer.finish(logs, 30)
             run.kill()
 
+    def join(self) -> None:
+        """Wait until the run and its observers have ended (without judging how)."""
+        self._thread.join(self.timeout + 60)
+
     def finished(self) -> SharedRun:
         """Wait until the run and its observers have ended; fail (in the test that asks) if following it failed."""
-        self._thread.join(self.timeout + 60)
+        self.join()
         assert not self._thread.is_alive(), f"the shared run {self.run.run_id} is still being followed"
         assert self.failure is None, self.failure
         return self

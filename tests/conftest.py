@@ -15,6 +15,9 @@ default timeout (pyproject.toml; slow tests get :data:`SLOW_TIMEOUT`), so a hang
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import os
 from pathlib import Path
 
 import pytest
@@ -50,6 +53,33 @@ KIND_OF = {name: kind for kind, names in KINDS.items() for name in names}
 SLOW_TIMEOUT = 1800  # seconds: an experiment-scale test may take many minutes on 2 cores
 
 
+@contextlib.contextmanager
+def machine_share(tmp_path_factory, *, alone: bool):
+    """Between pytest workers (pyproject's ``-n 2``): a test holds the machine shared with the other worker, or
+    ``alone`` while it measures wall-clock behaviour (every stream every second, a real-time period) that the other
+    worker's CPU would decide instead of the code. A lock file in the workers' common temporary directory."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        yield
+        return
+    with open(tmp_path_factory.getbasetemp().parent / "machine.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+@pytest.fixture(autouse=True)
+def _share_the_machine(request, tmp_path_factory):
+    """Each test shares the machine with the other worker, or has it alone if marked ``alone``. (The tests of
+    ``shared_default_up`` read a run that had the machine alone while it ran, see there.)"""
+    if "shared_default_up" in request.fixturenames:
+        yield
+        return
+    with machine_share(tmp_path_factory, alone=request.node.get_closest_marker("alone") is not None):
+        yield
+
+
 #: The session fixtures that run one `morph-sim up` for tests in several files.
 SHARED_RUNS = ("shared_default_up", "recorded_run", "shared_live_run")
 
@@ -58,6 +88,7 @@ def pytest_configure(config):
     for kind, what in (("unit", "pure code"), ("fidelity", "against the original and the reference code"),
                        ("services", "services wired in this process"), ("e2e", "real morph-sim processes")):
         config.addinivalue_line("markers", f"{kind}: {what} (set by tests/conftest.py from the file name)")
+    config.addinivalue_line("markers", "alone: runs while the other pytest worker waits (wall-clock behaviour)")
 
 
 def pytest_collection_modifyitems(config, items):
@@ -166,7 +197,6 @@ def shared_default_up(request, tmp_path_factory):
     its start by a user's Zenoh client (``streams``, :data:`STREAM_SUBSCRIBER`) and by ``morph-sim watch --run``
     (``watch``), and joined mid-run by ``morph-sim watch --duration 3`` without ``--run`` (``late-watch``).
     :class:`_procs.SharedRun`: call ``finished()`` before reading it."""
-    import os
     import sys
 
     steps = request.param
@@ -182,7 +212,9 @@ def shared_default_up(request, tmp_path_factory):
         Observer("late-watch", [*cli, "watch", "--endpoint", run.endpoint, "--duration", "3", "--output-dir",
                                 str(run.output_dir)], after_rows=LATE_JOIN_ROWS, env={**os.environ, "COLUMNS": "120"}),
     ], timeout=240)
-    shared.start()
+    with machine_share(tmp_path_factory, alone=True):  # its streams are judged second by second
+        shared.start()
+        shared.join()
     yield shared
     shared.stop()
 

@@ -66,10 +66,11 @@ PUBLISHER = """
             await bus.declare_token(k.alive(9))
             await wait_for_alive(bus, k.alive("sim"), 1, timeout=5)   # the receiver is there
             await bus.wait_for_subscribers(k.ack(9), timeout=5)       # and its subscriber is known here
+            # close() may discard unflushed data: wait for the receiver's go-ahead (its token going away), watched
+            # from before the first ack (the receiver may take its token away as soon as the last one arrives)
+            sub = await bus.subscribe_liveliness(k.alive("sim"))
             for t in range(int(sys.argv[2])):
                 await bus.publish(k.ack(9), Ack(t=t, agent=9, seq=t))
-            # close() may discard unflushed data: wait for the receiver's go-ahead (its token going away)
-            sub = await bus.subscribe_liveliness(k.alive("sim"))
             while True:
                 ev = await sub.next(timeout=8)
                 if not ev.alive:

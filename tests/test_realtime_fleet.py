@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from services.monitor.recorder import read_metrics
 from services.monitor.service import ROW_GRACE_TICKS
 
@@ -16,6 +18,8 @@ PAUSED, AT, PAUSE_TICKS = 6, 40, 40  # tiny: AGVs 0-4, pickers 5-7; SIGSTOP at t
 # what "keeps the period" means here: no two tick starts further apart than this (the stopped agent would make
 # it 2 s if the sim waited for it)
 MAX_INTERVAL = 0.5
+
+pytestmark = pytest.mark.alone  # the period is wall-clock: the other pytest worker waits meanwhile
 
 
 def test_a_paced_run_keeps_its_period_while_an_agent_is_stopped(tmp_path, live_run):
