@@ -311,10 +311,14 @@ class ZenohBus(Bus):
         return bool(self._publisher(key, False).matching_status.matching)
 
     def _send(self, sample: Sample, droppable: bool) -> None:
+        self._put(sample, sample.payload, droppable)
+
+    def _put(self, sample: Sample, payload: bytes, droppable: bool) -> None:
+        """One Zenoh message on ``sample``'s key with its header: its payload, or a bundle carrying it."""
         if self._closed:
             return
         pub = self._publishers.get((sample.key, droppable)) or self._publisher(sample.key, droppable)
-        pub.put(sample.payload, attachment=pack_header(sample.sender, sample.seq, sample.sent_at))
+        pub.put(payload, attachment=pack_header(sample.sender, sample.seq, sample.sent_at))
 
     def put_together(self, shared: tuple[str, Message | bytes], own: list[tuple[str, Message | bytes]]) -> None:
         """The shared sample rides inside each own one: one Zenoh message per receiver (see :meth:`Bus.put_together`).
@@ -343,10 +347,7 @@ class ZenohBus(Bus):
 
     def _send_with(self, riders: list[Sample]) -> Callable[[Sample], None]:
         def send(sample: Sample) -> None:
-            if self._closed:
-                return
-            pub = self._publishers.get((sample.key, False)) or self._publisher(sample.key, False)
-            pub.put(pack_bundle([*riders, sample]), attachment=pack_header(sample.sender, sample.seq, sample.sent_at))
+            self._put(sample, pack_bundle([*riders, sample]), False)
         return send
 
     def _make_deliver(self, sub: Subscription[Sample]) -> Callable[[Sample], None]:
