@@ -426,11 +426,7 @@ class Bus(ABC):
 
     def put(self, key: str, payload: Message | bytes, *, droppable: bool = False) -> None:
         """:meth:`publish` without the coroutine: usable from a plain (sync) handler on the loop."""
-        sample = self._stamp(key, payload)
-        if self._interposer is not None:
-            self._interposer.on_publish(sample, lambda s: self._send(s, droppable))
-        else:
-            self._send(sample, droppable)
+        self._egress(self._stamp(key, payload), lambda s: self._send(s, droppable))
 
     def put_together(self, shared: tuple[str, Message | bytes], own: list[tuple[str, Message | bytes]]) -> None:
         """Publish ``shared`` once and each of ``own`` on its key, for receivers that each take one of the ``own``
@@ -445,6 +441,13 @@ class Bus(ABC):
         self.put(*shared)
         for key, payload in own:
             self.put(key, payload)
+
+    def _egress(self, sample: Sample, send: Callable[[Sample], None]) -> None:
+        """``sample`` through the egress seam (the fault layer decides when ``send`` runs), or straight to ``send``."""
+        if self._interposer is not None:
+            self._interposer.on_publish(sample, send)
+        else:
+            send(sample)
 
     def _stamp(self, key: str, payload: Message | bytes) -> Sample:
         """A sample of this bus on ``key``, with its header (publisher, next sequence number of the key, clock)."""

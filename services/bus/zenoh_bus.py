@@ -339,12 +339,6 @@ class ZenohBus(Bus):
         for key, payload in own:
             self._egress(self._stamp(key, payload), self._send_with(riders))
 
-    def _egress(self, sample: Sample, send: Callable[[Sample], None]) -> None:
-        if self._interposer is not None:
-            self._interposer.on_publish(sample, send)
-        else:
-            send(sample)
-
     def _send_with(self, riders: list[Sample]) -> Callable[[Sample], None]:
         def send(sample: Sample) -> None:
             self._put(sample, pack_bundle([*riders, sample]), False)
