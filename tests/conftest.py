@@ -72,8 +72,8 @@ def machine_share(tmp_path_factory, *, alone: bool):
 @pytest.fixture(autouse=True)
 def _share_the_machine(request, tmp_path_factory):
     """Each test shares the machine with the other worker, or has it alone if marked ``alone``. (The tests of
-    ``shared_default_up`` read a run that had the machine alone while it ran, see there.)"""
-    if "shared_default_up" in request.fixturenames:
+    ``shared_default_up`` and ``recorded_run`` read a run that had the machine alone while it ran, see there.)"""
+    if "shared_default_up" in request.fixturenames or "recorded_run" in request.fixturenames:
         yield
         return
     with machine_share(tmp_path_factory, alone=request.node.get_closest_marker("alone") is not None):
@@ -250,11 +250,19 @@ def recorded_run(tmp_path_factory):
     10 ticks and W snapshots every 50) that ``morph-sim record`` followed from its start over its endpoint, both
     run to their end: the record equals the LocalBus run (tests/test_equivalence.py) and replays to the record
     (tests/test_record_replay.py)."""
+    out = tmp_path_factory.mktemp("recorded")
+    steps, seed = 200, 42
+    # alone: the recorder's start races the run's first ticks, which the other worker's CPU would decide
+    with machine_share(tmp_path_factory, alone=True):
+        up, record, code = _record_a_run(out, steps, seed)
+    yield RecordedRun(up, code, record, out / "recorded.mbr", steps, seed)
+    up.kill()
+
+
+def _record_a_run(out, steps: int, seed: int):
     import subprocess
     import sys
 
-    out = tmp_path_factory.mktemp("recorded")
-    steps, seed = 200, 42
     up = LiveRun(out, "recorded", "--policy", "morph", "--preset", "reference", "--seed", str(seed), "--steps",
                  str(steps), "--state-every", "10", "--snapshot-every", "50").start()
     try:
@@ -268,5 +276,4 @@ def recorded_run(tmp_path_factory):
     except BaseException:
         up.kill()
         raise
-    yield RecordedRun(up, code, record, out / "recorded.mbr", steps, seed)
-    up.kill()
+    return up, record, code
