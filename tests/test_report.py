@@ -54,6 +54,38 @@ def test_a_restarted_recorder_trims_a_cut_line_and_resumes(tmp_path):
     assert [r["t"] for r in read_metrics(config.record_dir)] == ["0", "1"]
 
 
+def _ticks_on_disk(path):
+    return {int(ln.split(",", 1)[0]) for ln in path.read_text().splitlines() if ln[:1].isdigit()}
+
+
+@pytest.mark.parametrize("flush_chars", [1 << 20, 5_000, 300])
+def test_a_killed_recorder_never_leaves_a_row_on_disk_without_its_positions_and_links(tmp_path, monkeypatch,
+                                                                                       flush_chars):
+    # The monitor makes row t two ticks after it took the positions of tick t. Whatever moment a kill comes, what
+    # is on disk then must be a record a restarted monitor can continue without a hole before its declared gap.
+    import services.monitor.recorder as recorder_module
+
+    monkeypatch.setattr(recorder_module, "FLUSH_CHARS", flush_chars)
+    config = RunConfig(run_id="kill", scale="tiny", output_dir=tmp_path)
+    rec = Recorder(config)
+    n = config.n_agvs + config.n_pickers
+    A = np.eye(n, dtype=bool) | np.eye(n, k=1, dtype=bool)
+    zeros = [0] * n
+    for t in range(400):
+        rec.positions(t, zeros, zeros, zeros, zeros)
+        if t >= 2:
+            rec.row({"t": t - 2, "deliveries": 0, "deliveries_total": 0, "w_mean": 0.123456789}, links=A)
+            rows = {int(r["t"]) for r in read_metrics(config.record_dir)}
+            assert rows <= _ticks_on_disk(config.record_dir / "positions.csv"), t
+            assert rows <= _ticks_on_disk(config.record_dir / "links.csv"), t
+    # the last flush the kill left behind is where a restarted monitor goes on from
+    on_disk = max({int(r["t"]) for r in read_metrics(config.record_dir)}, default=-1)
+    again = Recorder(config)
+    assert (again.resume_from or (-1, 0))[0] == on_disk
+    again.close()
+    assert (on_disk > 0) == (flush_chars < 1 << 20)  # the size rule flushed on its own, before a second was up
+
+
 STEPS = 600  # the monitor is killed after KILL_AT rows: a gap of up to ~200 ticks, then ~300 ticks recorded again
 KILL_AT = 100
 

@@ -34,6 +34,8 @@ from services.monitor.catalogue import COLUMNS  # per-tick columns; ``deliveries
 from services.runconfig import RunConfig
 
 FLUSH_SECONDS = 1.0
+#: pending characters that make a flush happen before its second is up (a fast run keeps little in memory)
+FLUSH_CHARS = 1 << 20
 
 
 def _version(dist: str) -> str | None:
@@ -110,14 +112,18 @@ class Recorder:
             for name in ("metrics.csv", "events.jsonl", "positions.csv", "links.csv"):
                 _trim_partial_line(self.dir / name)  # a killed monitor may have left half a line
             self.resume_from = _align_tables(self.dir)
-        self._metrics_file = open(metrics, "a", newline="", encoding="utf-8")
-        self._csv = csv.writer(self._metrics_file)
+        # Lines wait here, not in the files' own buffers, which reach the disk whenever they fill: the wide metrics
+        # rows would get there long before the per-tick tables, and a killed monitor would leave rows on disk whose
+        # positions never were. Each flush writes the tables in this order, metrics last, so every row on disk has
+        # its positions and links on disk too (positions of tick t are taken before row t is made).
+        self._files = {name: open(self.dir / name, "a", newline="", encoding="utf-8")
+                       for name in ("positions.csv", "links.csv", "events.jsonl", "metrics.csv")}
+        self._pending: dict[str, list[str]] = {name: [] for name in self._files}
+        self._pending_chars = 0
+        self._csv = csv.writer(_Lines(self._pending["metrics.csv"]), lineterminator="\r\n")
         if fresh:
             self._csv.writerow(COLUMNS)
-        self._events_file = open(self.dir / "events.jsonl", "a", encoding="utf-8")
         self.resumed = not fresh  # a restarted monitor appends to the record (it declares the gap)
-        self._positions_file = open(self.dir / "positions.csv", "a", encoding="utf-8")
-        self._links_file = open(self.dir / "links.csv", "a", encoding="utf-8")
         self._last_flush = time.monotonic()
         self.rows = 0
         self.closed = False
@@ -128,21 +134,26 @@ class Recorder:
         tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=str) + "\n", encoding="utf-8")
         os.replace(tmp, path)  # atomic: a reader never sees half a file
 
-    def row(self, values: dict[str, Any]) -> None:
+    def row(self, values: dict[str, Any], links: np.ndarray | None = None) -> None:
+        """Row ``values["t"]`` of the metrics, with that row's coordination links when the run has them."""
+        if links is not None:
+            pairs = np.argwhere(np.triu(links | links.T, k=1))
+            self._add("links.csv", f"{values['t']}," + " ".join(f"{i}-{j}" for i, j in pairs) + "\n")
         self._csv.writerow([_cell(values.get(c)) for c in COLUMNS])
+        self._pending_chars += len(self._pending["metrics.csv"][-1])
         self.rows += 1
         self._maybe_flush()
 
     def event(self, data: dict[str, Any]) -> None:
-        self._events_file.write(json.dumps(data, sort_keys=True, default=str) + "\n")
+        self._add("events.jsonl", json.dumps(data, sort_keys=True, default=str) + "\n")
         self._maybe_flush()
 
     def positions(self, t: int, x, y, heading, carrying) -> None:
-        self._positions_file.write(",".join(map(str, (t, *x, *y, *heading, *(int(c) for c in carrying)))) + "\n")
+        self._add("positions.csv", ",".join(map(str, (t, *x, *y, *heading, *(int(c) for c in carrying)))) + "\n")
 
-    def links(self, t: int, A: np.ndarray) -> None:
-        pairs = np.argwhere(np.triu(A | A.T, k=1))
-        self._links_file.write(f"{t}," + " ".join(f"{i}-{j}" for i, j in pairs) + "\n")
+    def _add(self, name: str, line: str) -> None:
+        self._pending[name].append(line)
+        self._pending_chars += len(line)
 
     def snapshot(self, t: int, W: np.ndarray, A: np.ndarray) -> Path:
         path = self.dir / "snapshots" / f"t{t:07d}.npz"
@@ -156,11 +167,14 @@ class Recorder:
 
     def _maybe_flush(self, force: bool = False) -> None:
         now = time.monotonic()
-        if force or now - self._last_flush >= FLUSH_SECONDS:
-            self._metrics_file.flush()
-            self._events_file.flush()
-            self._positions_file.flush()
-            self._links_file.flush()
+        if force or now - self._last_flush >= FLUSH_SECONDS or self._pending_chars >= FLUSH_CHARS:
+            for name, f in self._files.items():  # metrics last (see __init__)
+                lines = self._pending[name]
+                if lines:
+                    f.write("".join(lines))
+                    lines.clear()
+                f.flush()
+            self._pending_chars = 0
             self._last_flush = now
 
     def flush(self) -> None:
@@ -170,11 +184,22 @@ class Recorder:
         if self.closed:
             return
         self.closed = True
-        self.flush()
-        self._metrics_file.close()
-        self._events_file.close()
-        self._positions_file.close()
-        self._links_file.close()
+        try:
+            self.flush()
+        finally:
+            for f in self._files.values():
+                f.close()
+
+
+class _Lines:
+    """The file-like end of the metrics csv.writer: it hands each formatted row to the recorder's pending lines."""
+
+    def __init__(self, lines: list[str]):
+        self._lines = lines
+
+    def write(self, text: str) -> int:
+        self._lines.append(text)
+        return len(text)
 
 
 #: config fields that may differ between a run's monitor and its restarted successor (where it connects)

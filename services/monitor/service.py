@@ -481,8 +481,7 @@ class MonitorService:
         if self.keep_rows:
             self.result.rows.append(values)
         if self.recorder is not None:
-            self.recorder.row(values)
-            self.recorder.links(row.t, A)
+            self.recorder.row(values, links=A)
         self._queue_metrics(values)
         if (row.t + 1) % PROGRESS_EVERY == 0:
             self._progress(row.t + 1)
