@@ -168,14 +168,20 @@ class Recorder:
     def _maybe_flush(self, force: bool = False) -> None:
         now = time.monotonic()
         if force or now - self._last_flush >= FLUSH_SECONDS or self._pending_chars >= FLUSH_CHARS:
+            failure: OSError | None = None
             for name, f in self._files.items():  # metrics last (see __init__)
                 lines = self._pending[name]
-                if lines:
-                    f.write("".join(lines))
-                    lines.clear()
-                f.flush()
+                try:
+                    if lines:
+                        f.write("".join(lines))
+                    f.flush()
+                except OSError as exc:  # one table that cannot grow does not keep the others from what they hold
+                    failure = failure or exc
+                lines.clear()
             self._pending_chars = 0
             self._last_flush = now
+            if failure is not None:
+                raise failure
 
     def flush(self) -> None:
         self._maybe_flush(force=True)
