@@ -15,6 +15,11 @@ import time
 
 import psutil
 
+#: ``up`` flags for a test whose property does not depend on the fleet (security, exit status, telemetry): three
+#: robots instead of the tiny scale's eight, since every agent process costs ~0.3 CPU-s to start and its share of
+#: every tick. The tests of the default run, of equivalence with the lab and of fleet-wide behaviour keep theirs.
+FEW_ROBOTS = ("--agvs", "2", "--pickers", "1")
+
 
 def descendants(pid: int) -> set[int]:
     try:

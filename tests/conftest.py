@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from _procs import OPERATOR_CLIENT, LiveRun, Observer, SharedRun
+from _procs import FEW_ROBOTS, OPERATOR_CLIENT, LiveRun, Observer, SharedRun
 
 KINDS: dict[str, tuple[str, ...]] = {
     "unit": (
@@ -107,6 +107,16 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.timeout(SLOW_TIMEOUT))
     if unknown:
         raise pytest.UsageError(f"tests/conftest.py: give these test files a kind in KINDS: {sorted(unknown)}")
+    # Workers take groups in this order: the runs that have the machine alone first (both workers start on them, so
+    # they follow each other instead of waiting for a long test the other worker is in the middle of), the long
+    # live groups next, and the many short pure tests last, where they fill in while the other worker ends its last
+    # long group.
+    def order(item) -> int:
+        if item.get_closest_marker("alone") or any(f in item.fixturenames for f in SHARED_RUNS[:2]):
+            return 0
+        return 1 + ("e2e", "services", "fidelity", "unit").index(KIND_OF[Path(str(item.fspath)).stem])
+
+    items.sort(key=order)
 
 
 @pytest.fixture
@@ -226,12 +236,13 @@ ENDLESS_PERIOD = 0.1  # seconds per tick: a run that waits for a test to finish 
 
 @pytest.fixture
 def endless_run(live_run):
-    """``endless_run()``: a secure ``morph-sim up --scale tiny`` listening on a loopback port that runs until someone
+    """``endless_run()``: a secure ``morph-sim up --scale tiny`` of three robots listening on a loopback port that runs until someone
     stops it (``--steps 100000``), paced at :data:`ENDLESS_PERIOD` so it idles between ticks while the test works (a
     lockstep run would take both cores the whole time). Killed at the end of the test if it still runs."""
 
     def start() -> LiveRun:
-        return live_run("endless", "--steps", "100000", "--mode", "paced", "--period", str(ENDLESS_PERIOD))
+        return live_run("endless", "--steps", "100000", "--mode", "paced", "--period", str(ENDLESS_PERIOD),
+                        *FEW_ROBOTS)
 
     return start
 

@@ -14,8 +14,6 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
-
 from schemas import AgentState, Event
 from schemas.keys import RunKeys
 from services.bus.zenoh_bus import endpoint, free_port
@@ -25,8 +23,6 @@ from _procs import alive, descendants, kill_all
 
 UP_TIMEOUT = 150
 
-# full-speed lockstep runs whose restarts race the record: the other pytest worker waits meanwhile
-pytestmark = pytest.mark.alone
 VICTIM = 6  # a picker at tiny (5 AGVs + 3 pickers)
 STEPS = 290  # kills at ticks 100 and 200; the last leaves the restarted agent 5 s to start, restore and rejoin
 

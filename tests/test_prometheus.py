@@ -13,6 +13,8 @@ from services.monitor.prometheus import PrometheusExporter
 from services.monitor.service import MonitorService
 from services.runconfig import RunConfig
 
+from _procs import FEW_ROBOTS
+
 
 def _scrape(port: int) -> str:
     with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as resp:
@@ -93,7 +95,7 @@ def test_up_serves_prometheus_through_the_run_and_a_grace_after_it(tmp_path):
     port = free_port()
     argv = [sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", "tiny", "--steps", "150",
             "--run-id", "prom", "--output-dir", str(tmp_path), "--prometheus-port", str(port),
-            "--prometheus-grace", "6"]
+            "--prometheus-grace", "6", *FEW_ROBOTS]
     # a busy port is named in one line before anything starts
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", port))

@@ -133,8 +133,9 @@ def test_the_operator_stops_a_secure_run_and_nobody_else_can(endless_run):
                                   "--credentials", str(record / "credentials" / "agent-0.json5")],
                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        anon = subprocess.run([*CLI, "stop", "--run", "other-run", "--endpoint", ep], capture_output=True,
-                              text=True, timeout=WAIT, env=env)
+        # (a session the endpoint refuses is told apart from a slow one only by the connect timeout: 2 s here)
+        anon = subprocess.run([*CLI, "stop", "--run", "other-run", "--endpoint", ep, "--connect-timeout", "2"],
+                              capture_output=True, text=True, timeout=WAIT, env=env)
         out, err = robot_cmd.communicate(timeout=WAIT)
         robot = subprocess.CompletedProcess(robot_cmd.args, robot_cmd.returncode, out, err)
     finally:

@@ -14,7 +14,7 @@ from pathlib import Path
 from services.bus.zenoh_bus import endpoint, free_port
 from services.monitor.recorder import read_metrics
 
-from _procs import alive, descendants, kill_all, wait_for_port
+from _procs import FEW_ROBOTS, alive, descendants, kill_all, wait_for_port
 
 
 def _up(tmp_path: Path, run: str, *extra: str, **popen) -> subprocess.Popen:
@@ -61,7 +61,7 @@ def test_a_record_that_cannot_be_written_stops_the_run_with_one_line(tmp_path):
     def small_disk() -> None:
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
 
-    proc = _up(tmp_path, "full", "--steps", "20000", preexec_fn=small_disk)
+    proc = _up(tmp_path, "full", "--steps", "20000", *FEW_ROBOTS, preexec_fn=small_disk)
     out, err = _finish(proc, 180)
     assert proc.returncode == 1, (out, err)
     assert "Traceback" not in err
@@ -94,7 +94,7 @@ def test_a_stop_from_outside_ends_up_with_status_3_naming_it(tmp_path):
     # paced (20 ticks/s): the run goes on while the stop command starts, connects and is answered, for no more ticks
     # than that takes
     proc = _up(tmp_path, "outside", "--steps", "1000000", "--mode", "paced", "--period", "0.05",
-               "--listen", endpoint(port))
+               "--listen", endpoint(port), *FEW_ROBOTS)
     wait_for_port(port, proc, time.monotonic() + 60, 0.05)
     metrics = tmp_path / "outside" / "metrics.csv"
     deadline = time.monotonic() + 60
