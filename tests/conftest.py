@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -54,17 +55,49 @@ SLOW_TIMEOUT = 1800  # seconds: an experiment-scale test may take many minutes o
 
 
 @contextlib.contextmanager
-def machine_share(tmp_path_factory, *, alone: bool):
+def machine_share(*, alone: bool):
     """Between pytest workers (pyproject's ``-n 2``): a test holds the machine shared with the other worker, or
     ``alone`` while it measures wall-clock behaviour (every stream every second, a real-time period) that the other
     worker's CPU would decide instead of the code. A lock file in the workers' common temporary directory."""
-    if not os.environ.get("PYTEST_XDIST_WORKER"):
+    path = _machine_lock()
+    if path is None:
         yield
         return
-    with open(tmp_path_factory.getbasetemp().parent / "machine.lock", "a") as lock:
+    with open(path, "a") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
         try:
             yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def _machine_lock() -> Path | None:
+    """The lock file the workers of this test session share (None outside pytest-xdist)."""
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+    if not os.environ.get("PYTEST_XDIST_WORKER") or not run:
+        return None
+    return Path(tempfile.gettempdir()) / f"morph-sim-tests-{run}.lock"
+
+
+def pytest_unconfigure(config):
+    # a worker that is done with it removes it; one still at work keeps its lock on the open file (and would be
+    # alone with a new one)
+    path = _machine_lock()
+    if path is not None:
+        path.unlink(missing_ok=True)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_collection(session):
+    """A worker collects (imports every test module: seconds of CPU) holding the machine shared, so that a test
+    marked ``alone`` on the other worker waits for that too."""
+    path = _machine_lock()
+    if path is None:
+        return (yield)
+    with open(path, "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_SH)
+        try:
+            return (yield)
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
 
@@ -76,7 +109,7 @@ def _share_the_machine(request, tmp_path_factory):
     if "shared_default_up" in request.fixturenames or "recorded_run" in request.fixturenames:
         yield
         return
-    with machine_share(tmp_path_factory, alone=request.node.get_closest_marker("alone") is not None):
+    with machine_share(alone=request.node.get_closest_marker("alone") is not None):
         yield
 
 
@@ -222,7 +255,7 @@ def shared_default_up(request, tmp_path_factory):
         Observer("late-watch", [*cli, "watch", "--endpoint", run.endpoint, "--duration", "3", "--output-dir",
                                 str(run.output_dir)], after_rows=LATE_JOIN_ROWS, env={**os.environ, "COLUMNS": "120"}),
     ], timeout=240)
-    with machine_share(tmp_path_factory, alone=True):  # its streams are judged second by second
+    with machine_share(alone=True):  # its streams are judged second by second
         shared.start()
         shared.join()
     yield shared
@@ -264,7 +297,7 @@ def recorded_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("recorded")
     steps, seed = 200, 42
     # alone: the recorder's start races the run's first ticks, which the other worker's CPU would decide
-    with machine_share(tmp_path_factory, alone=True):
+    with machine_share(alone=True):
         up, record, code = _record_a_run(out, steps, seed)
     yield RecordedRun(up, code, record, out / "recorded.mbr", steps, seed)
     up.kill()

@@ -18,9 +18,10 @@ pytestmark = pytest.mark.alone
 
 VICTIM = 3
 KILL_AFTER_ROWS = 150  # mid-run at full speed, after agent 1's cold restart at tick 100
-# the sim runs up to 200 ticks ahead of the record, and on without the victim while it restarts: the restarted
-# process needs a few seconds to start, restore and rejoin, hundreds of ticks at full speed
-STEPS = 900
+# the sim runs up to 200 ticks ahead of the record, and on without the victim while it restarts (~265 ticks/s
+# then): the restarted process needs a few seconds to start, restore and rejoin. With 900 ticks it once had 2.1 s
+# left, and came too late; 1400 leave it about 4 s.
+STEPS = 1400
 
 
 def _agent_pid(up_pid: int, agent: int) -> int | None:
