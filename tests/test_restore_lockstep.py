@@ -17,10 +17,10 @@ import pytest
 pytestmark = pytest.mark.alone
 
 VICTIM = 3
-KILL_AFTER_ROWS = 150  # mid-run at full speed, after agent 1's cold restart at tick 100
+KILL_AFTER_ROWS = 110  # mid-run at full speed, after agent 1's cold restart at tick 100
 # the sim runs up to 200 ticks ahead of the record, and on without the victim while it restarts (~265 ticks/s
-# then): the restarted process needs a few seconds to start, restore and rejoin. With 900 ticks it once had 2.1 s
-# left, and came too late; 1400 leave it about 4 s.
+# then): the restarted process needs a few seconds to start, restore and rejoin. Killed after row 150 of 900 it
+# once had 2.1 s left, and came too late; after row 110 of 1400 it has about 4 s.
 STEPS = 1400
 
 
