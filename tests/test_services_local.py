@@ -210,6 +210,43 @@ async def test_a_paced_sim_that_stalled_starts_its_schedule_again_instead_of_run
     assert run.monitor.finished["pace"] == pace
 
 
+@pytest.mark.parametrize("back_after", [0.3, None], ids=["restarted", "gone"])
+async def test_a_lockstep_sim_waits_for_a_monitor_that_left_until_it_is_back_or_a_phase_timeout(tmp_path, back_after):
+    """The monitor's liveliness token goes at tick 20 (a killed monitor; its supervisor restarts it). The sim starts
+    no tick while it is away: a run at full speed would otherwise end before the restarted monitor is back and close
+    the endpoint on it, and the record would not even declare what it lost. One that stays away is waited for one
+    phase timeout; then the run goes on without it."""
+    import time
+
+    from services.bus.base import Declared
+
+    config = cfg(tmp_path, policy="full", steps=40, phase_timeout=1.0)
+    key, buses, starts = RunKeys(config.run_id).alive("monitor"), {}, {}
+
+    async def leave_and_return(bus) -> None:
+        token = next(e for e in bus._entities if isinstance(e, Declared) and e.key_expr == key)
+        await token.close()
+        if back_after is not None:
+            await asyncio.sleep(back_after)
+            await bus.declare_token(key)
+
+    def at_tick(t: int, _deliveries: int) -> None:
+        starts[t] = time.monotonic()
+        if t == 20:
+            asyncio.get_running_loop().create_task(leave_and_return(buses["monitor"]))
+
+    run = await run_local(config, record=False, progress=at_tick,
+                          on_bus=lambda name, bus: buses.__setitem__(name, bus))
+    assert run.sim.steps == config.steps and run.sim.stopped_early is None
+    waited = max(starts[t] - starts[t - 1] for t in range(21, 26))
+    others = max(starts[t] - starts[t - 1] for t in range(2, 20))
+    if back_after is None:
+        assert waited >= config.phase_timeout, (waited, others)
+    else:
+        assert back_after <= waited < config.phase_timeout, (waited, others)
+    assert others < 0.25, others  # before it left, no tick waited for it
+
+
 # -- configuration -------------------------------------------------------------------------------------------------
 def test_runconfig_env_flags_and_argv_agree():
     c = RunConfig(run_id="r1", scale="small", policy="proximity", radius=3, seed=5, steps=77, mode="paced")

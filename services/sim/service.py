@@ -267,6 +267,7 @@ class SimService:
         self._running = False  # between tick 0 and the end: only then does a leaving agent count as absent
         self._monitor_rows: int | None = None  # rows the monitor reported written (None: not heard since it joined)
         self._monitor_progress = asyncio.Event()
+        self._monitor_gone_at: float | None = None  # when the monitor left mid-run (lockstep waits for its return)
 
     # -- presence ----------------------------------------------------------------------------------------------------
     def present(self) -> set[int]:
@@ -287,10 +288,15 @@ class SimService:
             return
         if event.alive:
             self.alive.add(who)
+            if who == MONITOR:
+                self._monitor_gone_at = None
+                self._monitor_progress.set()
         else:
             self.alive.discard(who)
             if who == MONITOR:
-                self._monitor_rows = None  # a restarted monitor starts at the live tick: nothing to wait for
+                self._monitor_rows = None  # a restarted monitor starts at the live tick: no rows to wait for
+                if self._running and self._stop is None:
+                    self._monitor_gone_at = time.monotonic()
                 self._monitor_progress.set()
             self.ready.discard(who)
             self._absent(who, "liveliness token gone")
@@ -606,9 +612,13 @@ class SimService:
                 self._absent(who, f"no answer in phase {ph.phase} of tick {ph.t} within {self.config.phase_timeout} s")
 
     async def _keep_monitor_window(self, t: int) -> None:
-        """Before tick ``t``: wait while the monitor's record is more than MONITOR_WINDOW ticks behind. A monitor that
-        makes no progress for a phase timeout is not waited for any more (until it reports again): the record then
-        says what it lost, and the run goes on."""
+        """Before tick ``t``: wait while the monitor's record is more than MONITOR_WINDOW ticks behind, and while a
+        monitor that left mid-run is away (a supervisor restarts it; a run that went on at full speed could end
+        before it is back, and close the endpoint on it: the record would then not even say what it lost). A monitor
+        that makes no progress, or stays away, for a phase timeout is not waited for any more (until it reports or
+        returns): the record then says what it lost, and the run goes on."""
+        if self._monitor_gone_at is not None:
+            await self._wait_for_monitor_return()
         rows = self._monitor_rows
         if rows is None or t - rows <= MONITOR_WINDOW:
             return
@@ -623,6 +633,22 @@ class SimService:
             self._monitor_progress.clear()
             try:
                 await asyncio.wait_for(self._monitor_progress.wait(), 0.5)
+            except asyncio.TimeoutError:
+                pass
+        self.result.phase_seconds["monitor_wait"] = (
+            self.result.phase_seconds.get("monitor_wait", 0.0) + time.monotonic() - started)
+
+    async def _wait_for_monitor_return(self) -> None:
+        started = time.monotonic()
+        while self._stop is None and self._monitor_gone_at is not None:
+            if time.monotonic() - self._monitor_gone_at > self.config.phase_timeout:
+                log.warning("sim: the monitor left %.0f s ago and is not back; the run goes on without it",
+                            self.config.phase_timeout)
+                self._monitor_gone_at = None
+                break
+            self._monitor_progress.clear()
+            try:
+                await asyncio.wait_for(self._monitor_progress.wait(), 0.25)
             except asyncio.TimeoutError:
                 pass
         self.result.phase_seconds["monitor_wait"] = (
