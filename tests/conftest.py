@@ -124,6 +124,7 @@ def pytest_configure(config):
     config.addinivalue_line("markers", "alone: runs while the other pytest worker waits (wall-clock behaviour)")
 
 
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups off the markers (its hook adds them to the ids)
 def pytest_collection_modifyitems(config, items):
     unknown = set()
     for item in items:

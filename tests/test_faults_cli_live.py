@@ -103,8 +103,12 @@ async def test_faults_cli_verdicts_and_a_crash_carried_out_at_its_tick(tmp_path)
         assert not reply["ok"] and reply["error"].startswith("crash.at_tick: tick 3 has passed (the run is at tick ")
 
         code, lines, err = too_many
-        assert code == 1 and len(lines) == 1, (code, lines, err)
-        assert json.loads(lines[0])["error"].startswith("scope.agents: agent 99 is not in this run (robot ids 0..7")
+        # every process refuses it alike; the faults they list as active may differ by the loss window being set
+        # meanwhile, and each such list is a line of its own
+        refusals = [json.loads(line) for line in lines]
+        assert code == 1 and 1 <= len(refusals) <= 2, (code, lines, err)
+        assert all(not r["ok"] and r["error"].startswith("scope.agents: agent 99 is not in this run (robot ids 0..7")
+                   for r in refusals), refusals
 
         code, lines, err = set_l1
         assert code == 0 and json.loads(lines[0])["ok"], (code, lines, err)

@@ -3,8 +3,11 @@ the repository does not have (design brief, research notes), no paths outside it
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 # (written with character classes so that a plain search of the repository for these names finds no false hit here)
@@ -35,3 +38,12 @@ def test_code_and_docs_cite_nothing_a_reader_does_not_have():
 def test_the_check_sees_the_docs_and_the_code():
     seen = {rel for rel, _ in _texts()}
     assert {"README.md", "docs/decisions.md", "services/sim/service.py", "pyproject.toml"} <= seen
+
+
+def test_on_loadgroup_workers_every_test_carries_its_group(request):
+    """tests/conftest.py groups the tests by file (and the users of a shared live run together) for pytest-xdist's
+    ``--dist loadgroup``, which marks the group in the test's id. A pytest or xdist release that drops it does so
+    silently: a file's tests and a shared live run would be spread over both workers (seen with pytest 9.2)."""
+    if not os.environ.get("PYTEST_XDIST_WORKER") or not request.config.getoption("loadgroup", False):
+        pytest.skip("not on a --dist loadgroup worker")
+    assert request.node.nodeid.endswith("@test_repo_text"), request.node.nodeid
