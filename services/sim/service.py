@@ -268,6 +268,7 @@ class SimService:
         self._monitor_rows: int | None = None  # rows the monitor reported written (None: not heard since it joined)
         self._monitor_progress = asyncio.Event()
         self._monitor_gone_at: float | None = None  # when the monitor left mid-run (lockstep waits for its return)
+        self._monitor_waits = 0  # waits for the monitor before the tick being started
 
     # -- presence ----------------------------------------------------------------------------------------------------
     def present(self) -> set[int]:
@@ -617,28 +618,6 @@ class SimService:
         before it is back, and close the endpoint on it: the record would then not even say what it lost). A monitor
         that makes no progress, or stays away, for a phase timeout is not waited for any more (until it reports or
         returns): the record then says what it lost, and the run goes on."""
-        if self._monitor_gone_at is not None:
-            await self._wait_for_monitor_return()
-        rows = self._monitor_rows
-        if rows is None or t - rows <= MONITOR_WINDOW:
-            return
-        started = progressed = time.monotonic()
-        while self._stop is None and self._monitor_rows is not None and t - self._monitor_rows > MONITOR_WINDOW:
-            if self._monitor_rows > rows:
-                rows, progressed = self._monitor_rows, time.monotonic()
-            elif time.monotonic() - progressed > self.config.phase_timeout:
-                log.warning("sim: the monitor's record is stuck at row %d (tick %d); not waiting for it", rows, t)
-                self._monitor_rows = None
-                break
-            self._monitor_progress.clear()
-            try:
-                await asyncio.wait_for(self._monitor_progress.wait(), 0.5)
-            except asyncio.TimeoutError:
-                pass
-        self.result.phase_seconds["monitor_wait"] = (
-            self.result.phase_seconds.get("monitor_wait", 0.0) + time.monotonic() - started)
-
-    async def _wait_for_monitor_return(self) -> None:
         started = time.monotonic()
         while self._stop is None and self._monitor_gone_at is not None:
             if time.monotonic() - self._monitor_gone_at > self.config.phase_timeout:
@@ -646,13 +625,31 @@ class SimService:
                             self.config.phase_timeout)
                 self._monitor_gone_at = None
                 break
-            self._monitor_progress.clear()
-            try:
-                await asyncio.wait_for(self._monitor_progress.wait(), 0.25)
-            except asyncio.TimeoutError:
-                pass
-        self.result.phase_seconds["monitor_wait"] = (
-            self.result.phase_seconds.get("monitor_wait", 0.0) + time.monotonic() - started)
+            await self._monitor_news(0.25)
+        rows = self._monitor_rows
+        if rows is not None and t - rows > MONITOR_WINDOW:
+            progressed = time.monotonic()
+            while self._stop is None and self._monitor_rows is not None and t - self._monitor_rows > MONITOR_WINDOW:
+                if self._monitor_rows > rows:
+                    rows, progressed = self._monitor_rows, time.monotonic()
+                elif time.monotonic() - progressed > self.config.phase_timeout:
+                    log.warning("sim: the monitor's record is stuck at row %d (tick %d); not waiting for it", rows, t)
+                    self._monitor_rows = None
+                    break
+                await self._monitor_news(0.5)
+        if self._monitor_waits:
+            self._monitor_waits = 0
+            self.result.phase_seconds["monitor_wait"] = (
+                self.result.phase_seconds.get("monitor_wait", 0.0) + time.monotonic() - started)
+
+    async def _monitor_news(self, timeout: float) -> None:
+        """Wait up to ``timeout`` seconds for the monitor to report rows, leave or come back."""
+        self._monitor_waits += 1
+        self._monitor_progress.clear()
+        try:
+            await asyncio.wait_for(self._monitor_progress.wait(), timeout)
+        except asyncio.TimeoutError:
+            pass
 
     async def _loop(self) -> None:
         self._running = True
