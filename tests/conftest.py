@@ -91,30 +91,25 @@ def pytest_unconfigure(config):
 def pytest_collection(session):
     """A worker collects (imports every test module: seconds of CPU) holding the machine shared, so that a test
     marked ``alone`` on the other worker waits for that too."""
-    path = _machine_lock()
-    if path is None:
+    with machine_share(alone=False):
         return (yield)
-    with open(path, "a") as lock:
-        fcntl.flock(lock, fcntl.LOCK_SH)
-        try:
-            return (yield)
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
 
 
 @pytest.fixture(autouse=True)
-def _share_the_machine(request, tmp_path_factory):
+def _share_the_machine(request):
     """Each test shares the machine with the other worker, or has it alone if marked ``alone``. (The tests of
     ``shared_default_up`` and ``recorded_run`` read a run that had the machine alone while it ran, see there.)"""
-    if "shared_default_up" in request.fixturenames or "recorded_run" in request.fixturenames:
+    if any(f in request.fixturenames for f in ALONE_RUNS):
         yield
         return
     with machine_share(alone=request.node.get_closest_marker("alone") is not None):
         yield
 
 
-#: The session fixtures that run one `morph-sim up` for tests in several files.
+#: The session fixtures that run one `morph-sim up` for tests in several files, and those of them whose run has the
+#: machine alone while it runs (its tests then only read it).
 SHARED_RUNS = ("shared_default_up", "recorded_run", "shared_live_run")
+ALONE_RUNS = ("shared_default_up", "recorded_run")
 
 
 def pytest_configure(config):
@@ -146,7 +141,7 @@ def pytest_collection_modifyitems(config, items):
     # live groups next, and the many short pure tests last, where they fill in while the other worker ends its last
     # long group.
     def order(item) -> int:
-        if item.get_closest_marker("alone") or any(f in item.fixturenames for f in SHARED_RUNS[:2]):
+        if item.get_closest_marker("alone") or any(f in item.fixturenames for f in ALONE_RUNS):
             return 0
         return 1 + ("e2e", "services", "fidelity", "unit").index(KIND_OF[Path(str(item.fspath)).stem])
 

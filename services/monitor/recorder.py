@@ -26,7 +26,7 @@ import time
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -120,7 +120,7 @@ class Recorder:
                        for name in ("positions.csv", "links.csv", "events.jsonl", "metrics.csv")}
         self._pending: dict[str, list[str]] = {name: [] for name in self._files}
         self._pending_chars = 0
-        self._csv = csv.writer(_Lines(self._pending["metrics.csv"]), lineterminator="\r\n")
+        self._csv = csv.writer(_Lines(lambda line: self._add("metrics.csv", line)), lineterminator="\r\n")
         if fresh:
             self._csv.writerow(COLUMNS)
         self.resumed = not fresh  # a restarted monitor appends to the record (it declares the gap)
@@ -140,7 +140,6 @@ class Recorder:
             pairs = np.argwhere(np.triu(links | links.T, k=1))
             self._add("links.csv", f"{values['t']}," + " ".join(f"{i}-{j}" for i, j in pairs) + "\n")
         self._csv.writerow([_cell(values.get(c)) for c in COLUMNS])
-        self._pending_chars += len(self._pending["metrics.csv"][-1])
         self.rows += 1
         self._maybe_flush()
 
@@ -200,12 +199,8 @@ class Recorder:
 class _Lines:
     """The file-like end of the metrics csv.writer: it hands each formatted row to the recorder's pending lines."""
 
-    def __init__(self, lines: list[str]):
-        self._lines = lines
-
-    def write(self, text: str) -> int:
-        self._lines.append(text)
-        return len(text)
+    def __init__(self, add: Callable[[str], None]):
+        self.write = add
 
 
 #: config fields that may differ between a run's monitor and its restarted successor (where it connects)

@@ -268,7 +268,6 @@ class SimService:
         self._monitor_rows: int | None = None  # rows the monitor reported written (None: not heard since it joined)
         self._monitor_progress = asyncio.Event()
         self._monitor_gone_at: float | None = None  # when the monitor left mid-run (lockstep waits for its return)
-        self._monitor_waits = 0  # waits for the monitor before the tick being started
 
     # -- presence ----------------------------------------------------------------------------------------------------
     def present(self) -> set[int]:
@@ -618,7 +617,7 @@ class SimService:
         before it is back, and close the endpoint on it: the record would then not even say what it lost). A monitor
         that makes no progress, or stays away, for a phase timeout is not waited for any more (until it reports or
         returns): the record then says what it lost, and the run goes on."""
-        started = time.monotonic()
+        started, waited = time.monotonic(), False
         while self._stop is None and self._monitor_gone_at is not None:
             if time.monotonic() - self._monitor_gone_at > self.config.phase_timeout:
                 log.warning("sim: the monitor left %.0f s ago and is not back; the run goes on without it",
@@ -626,6 +625,7 @@ class SimService:
                 self._monitor_gone_at = None
                 break
             await self._monitor_news(0.25)
+            waited = True
         rows = self._monitor_rows
         if rows is not None and t - rows > MONITOR_WINDOW:
             progressed = time.monotonic()
@@ -637,14 +637,13 @@ class SimService:
                     self._monitor_rows = None
                     break
                 await self._monitor_news(0.5)
-        if self._monitor_waits:
-            self._monitor_waits = 0
+                waited = True
+        if waited:
             self.result.phase_seconds["monitor_wait"] = (
                 self.result.phase_seconds.get("monitor_wait", 0.0) + time.monotonic() - started)
 
     async def _monitor_news(self, timeout: float) -> None:
         """Wait up to ``timeout`` seconds for the monitor to report rows, leave or come back."""
-        self._monitor_waits += 1
         self._monitor_progress.clear()
         try:
             await asyncio.wait_for(self._monitor_progress.wait(), timeout)
