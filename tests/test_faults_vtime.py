@@ -160,3 +160,22 @@ async def test_wall_time_mode_sleeps_for_real() -> None:
     assert layer.meter.report()["agent/*/commit"].latency["max"] >= 0.045
     await sender.close()
     await receiver.close()
+
+
+async def test_a_sessions_own_publications_are_delivered_but_not_metered_as_a_link() -> None:
+    net = LocalNetwork()
+    vt = VirtualTime(dt=1.0)
+    meter = LinkMeter(K.prefix)
+    sim = net.session("sim")
+    install(sim, FaultLayer("vt", base_seed=0, vtime=vt, meter=meter))
+    agent = net.session("3")
+    agent.set_clock(vt.now)
+    got: list[str] = []
+    await sim.subscribe(K.commits, lambda s: got.append(s.sender))
+    await agent.publish(K.commit(3), b"x")
+    await sim.publish(K.commit(4), b"y")  # a key anyone may subscribe to, here published by the receiver itself
+    await drain()
+    assert sorted(got) == ["3", "sim"]
+    assert meter.report()["agent/*/commit"].delivered == 1
+    for bus in (sim, agent):
+        await bus.close()

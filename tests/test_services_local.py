@@ -228,7 +228,11 @@ async def test_a_lockstep_sim_waits_for_a_monitor_that_left_until_it_is_back_or_
         await token.close()
         if back_after is not None:
             await asyncio.sleep(back_after)
-            await bus.declare_token(key)
+            back = await bus.declare_token(key)
+            # the returned monitor leaves at the end of the run, as the restarted process would (otherwise the sim
+            # waits its whole leave timeout for the token at the end)
+            await bus.subscribe(RunKeys(config.run_id).stop, lambda _: asyncio.get_running_loop().create_task(
+                back.close()))
 
     def at_tick(t: int, _deliveries: int) -> None:
         starts[t] = time.monotonic()

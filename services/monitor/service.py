@@ -247,8 +247,10 @@ class MonitorService:
                                   clock="wall" if wall else "sim"):
             self._reject(sample.key, f"sequence number {sample.seq} of {sample.sender!r} jumps too far ahead")
             return
-        if sample.sender:
-            # the link meter's latency in the same clock as the stamp (see above)
+        if sample.sender and sample.sender != self.bus.identity:
+            # the link meter's latency in the same clock as the stamp (see above); the monitor's own metric streams
+            # come back to it through its subscription to the whole run, over no link: not metered (one key class
+            # per stream would multiply the link statistics it computes every k ticks)
             sent = sample.sent_at
             self.link_meter.record(sample.key, sample.sender, sample.seq, sent,
                                    time.time() if wall else max(self._last_tick, 0) * self.config.dt)

@@ -137,6 +137,8 @@ class OutcomeTally:
             return
         self._tick[who] = t
         prev = self._latest.get(who, {})
+        if counts == prev:
+            return  # the common report: nothing changed since this endpoint's last one
         restarted = any(counts.get(name, 0) < v for name, v in prev.items())
         for name, v in counts.items():
             self._sum[name] += v if restarted else v - prev.get(name, 0)
