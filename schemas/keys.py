@@ -34,7 +34,7 @@ not supported by this project (both buses reject it).
 from __future__ import annotations
 
 import re
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 ROOT = "morph"
 #: the fleet broadcast and the on-board state, relative to ``morph/<run>/`` (fault scopes, the lab's network)
@@ -183,7 +183,8 @@ def parse_agent_id(chunk: str) -> int | str:
 
 
 class RunKeys:
-    """Key expressions of one run. ``RunKeys("r1").tick == "morph/r1/sim/tick"``."""
+    """Key expressions of one run. ``RunKeys("r1").tick == "morph/r1/sim/tick"``. (The keys without arguments are
+    built once: handlers on the hot path name them for every message.)"""
 
     def __init__(self, run: str):
         self.run = validate_run_id(run)
@@ -193,16 +194,16 @@ class RunKeys:
         return "/".join((self.prefix, *chunks))
 
     # -- whole run ---------------------------------------------------------------------------------------------
-    @property
+    @cached_property
     def everything(self) -> str:
         return self._k("**")
 
     # -- sim clock ---------------------------------------------------------------------------------------------
-    @property
+    @cached_property
     def tick(self) -> str:
         return self._k("sim", "tick")
 
-    @property
+    @cached_property
     def fleet(self) -> str:
         """The fleet broadcast: the whole fleet's state as the robots receive it over the network."""
         return self._k("sim", "fleet")
@@ -211,7 +212,7 @@ class RunKeys:
         """One robot's own state as its on-board sensing gives it (never through the network)."""
         return self._k("sim", "@onboard", _agent_chunk(robot))
 
-    @property
+    @cached_property
     def resolve(self) -> str:
         return self._k("sim", "resolve")
 
@@ -223,7 +224,7 @@ class RunKeys:
     def ack(self, agent: int | str) -> str:
         return self._k("agent", _agent_chunk(agent), "ack")
 
-    @property
+    @cached_property
     def acks(self) -> str:
         return self._k("agent", "*", "ack")
 
@@ -231,7 +232,7 @@ class RunKeys:
         """An agent's "I will not answer this phase" (its Tick or Resolve was lost or held in virtual time)."""
         return self._k("agent", _agent_chunk(agent), "skip")
 
-    @property
+    @cached_property
     def skips(self) -> str:
         return self._k("agent", "*", "skip")
 
@@ -241,7 +242,7 @@ class RunKeys:
     def requests_to(self, picker: int) -> str:
         return self._k("agent", "*", "request", _agent_chunk(picker))
 
-    @property
+    @cached_property
     def requests(self) -> str:
         return self._k("agent", "*", "request", "*")
 
@@ -251,21 +252,21 @@ class RunKeys:
     def replies_to(self, agv: int) -> str:
         return self._k("agent", "*", "reply", _agent_chunk(agv))
 
-    @property
+    @cached_property
     def replies(self) -> str:
         return self._k("agent", "*", "reply", "*")
 
     def commit(self, picker: int) -> str:
         return self._k("agent", _agent_chunk(picker), "commit")
 
-    @property
+    @cached_property
     def commits(self) -> str:
         return self._k("agent", "*", "commit")
 
     def agent_state(self, agent: int | str) -> str:
         return self._k("agent", _agent_chunk(agent), "state")
 
-    @property
+    @cached_property
     def agent_states(self) -> str:
         return self._k("agent", "*", "state")
 
@@ -277,7 +278,7 @@ class RunKeys:
     def metric(self, name: str) -> str:
         return self._k("metrics", *(check_chunk(c, "metric name chunk") for c in name.split("/")))
 
-    @property
+    @cached_property
     def metrics(self) -> str:
         return self._k("metrics", "**")
 
@@ -285,34 +286,34 @@ class RunKeys:
         """A key of the monitor's latest-state queryable, e.g. ``latest("agent", "3")``."""
         return self._k("state", *(check_chunk(c, "state key chunk") for c in chunks))
 
-    @property
+    @cached_property
     def latest_all(self) -> str:
         return self._k("state", "**")
 
     # -- control, events, registry, liveliness -------------------------------------------------------------------
-    @property
+    @cached_property
     def faults(self) -> str:
         return self._k("ctl", "faults")
 
-    @property
+    @cached_property
     def stop(self) -> str:
         return self._k("ctl", "stop")
 
     def event(self, source: int | str) -> str:
         return self._k("events", _agent_chunk(source))
 
-    @property
+    @cached_property
     def events(self) -> str:
         return self._k("events", "*")
 
-    @property
+    @cached_property
     def registry(self) -> str:
         return self._k("registry")
 
     def alive(self, agent: int | str) -> str:
         return self._k("alive", _agent_chunk(agent))
 
-    @property
+    @cached_property
     def alive_all(self) -> str:
         return self._k("alive", "*")
 
