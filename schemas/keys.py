@@ -189,6 +189,7 @@ class RunKeys:
     def __init__(self, run: str):
         self.run = validate_run_id(run)
         self.prefix = f"{ROOT}/{run}"
+        self._senders: dict[str, int | str | None] = {}  # key -> sender_of(key): every message asks it, twice
 
     def _k(self, *chunks: str) -> str:
         return "/".join((self.prefix, *chunks))
@@ -327,6 +328,15 @@ class RunKeys:
 
     def sender_of(self, key: str) -> int | str | None:
         """The agent that published ``key`` (``agent/<id>/…``), the service for ``sim/…``, else None."""
+        senders = self._senders
+        if key in senders:
+            return senders[key]
+        if len(senders) >= 4096:  # keys nobody planned (a fuzzer's): the table stays bounded
+            senders.clear()
+        who = senders[key] = self._sender_of(key)  # a key not of this run raises and is not kept
+        return who
+
+    def _sender_of(self, key: str) -> int | str | None:
         rel = self.relative(key)
         if len(rel) >= 2 and rel[0] == "agent":
             return parse_agent_id(rel[1])

@@ -171,3 +171,15 @@ def test_key_parsing() -> None:
 def test_bad_agent_ids_are_rejected(bad: object) -> None:
     with pytest.raises(ValueError, match="agent id"):
         RunKeys("r1").ack(bad)  # type: ignore[arg-type]
+
+
+def test_sender_of_answers_the_same_every_time_refuses_other_runs_every_time_and_stays_bounded():
+    k = RunKeys("r1")
+    for _ in range(2):  # the second answer comes from the table
+        assert k.sender_of(k.ack(3)) == 3 and k.sender_of(k.tick) == "sim" and k.sender_of(k.event(7)) == 7
+        assert k.sender_of(k.metric("deliveries")) is None
+        with pytest.raises(ValueError):
+            k.sender_of("morph/r2/agent/3/ack")
+    for i in range(5000):  # a fuzzer's keys
+        assert k.sender_of(f"morph/r1/agent/{i}/x{i}") == i
+    assert len(k._senders) <= 4096
