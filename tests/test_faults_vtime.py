@@ -165,7 +165,7 @@ async def test_wall_time_mode_sleeps_for_real() -> None:
 async def test_a_sessions_own_publications_are_delivered_but_not_metered_as_a_link() -> None:
     net = LocalNetwork()
     vt = VirtualTime(dt=1.0)
-    meter = LinkMeter(K.prefix)
+    meter = LinkMeter(K.prefix, "sim")
     sim = net.session("sim")
     install(sim, FaultLayer("vt", base_seed=0, vtime=vt, meter=meter))
     agent = net.session("3")

@@ -380,9 +380,7 @@ class FaultLayer:
         fate = self.fate(sample.key, sender, rcv, at, msg=(sender, sample.seq), size=len(sample.payload))
         if self.on_fate is not None:
             self.on_fate(sample, fate)
-        if self.meter is not None and sample.sender != receiver:
-            # a session's own publication handed back to it (the monitor takes everything, its metric streams too)
-            # crossed no link: metering it would only grow the link statistics by one key class per stream
+        if self.meter is not None:
             deliver = self._metered(deliver, receiver)
         for copy, delay in enumerate(fate):
             if delay <= 0.0:

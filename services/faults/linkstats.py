@@ -101,10 +101,15 @@ class KeyReport:
 
 
 class LinkMeter:
-    """Accumulates what one receiver observed. ``record`` per delivery, ``report`` / ``metrics`` whenever."""
+    """Accumulates what one receiver observed. ``record`` per delivery, ``report`` / ``metrics`` whenever.
 
-    def __init__(self, run_prefix: str = ""):
+    ``receiver``: the identity of the session it meters. Its own publications handed back to it (the monitor
+    subscribes to the whole run, its own metric streams too) crossed no link and are not counted: they would only add
+    a key class per stream."""
+
+    def __init__(self, run_prefix: str = "", receiver: str = ""):
         self._prefix = run_prefix.rstrip("/") + "/" if run_prefix else ""
+        self._receiver = receiver
         self._streams: dict[tuple[str, str], _Stream] = {}
         self._latency: dict[str, _Latency] = {}
         self._classes: dict[str, str] = {}  # key -> key class (a run has a bounded set of keys)
@@ -118,6 +123,8 @@ class LinkMeter:
 
     def record(self, key: str, sender: str, seq: int, sent_at: float, received_at: float, *,
                late: bool = False) -> None:
+        if self._receiver and sender == self._receiver:
+            return
         stream = self._streams.get((key, sender))
         if stream is None:
             stream = self._streams[(key, sender)] = _Stream()

@@ -125,7 +125,7 @@ class FaultRuntime:
     def attach(self, bus: Bus, *, meter: bool = True, receiver: int | str | None = None) -> FaultLayer:
         """Install a fault layer (with a link meter unless ``meter=False``) on ``bus`` (several buses in one process
         share the clock). ``receiver``: the agent id the layer's links end at, if not the bus identity."""
-        link_meter = LinkMeter(f"morph/{self.run}") if meter else None
+        link_meter = LinkMeter(f"morph/{self.run}", bus.identity) if meter else None
         if link_meter is not None:
             self.meters[bus.identity] = link_meter
         layer = FaultLayer(self.run, base_seed=self.seed, vtime=self.vtime, meter=link_meter,

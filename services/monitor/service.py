@@ -147,7 +147,7 @@ class MonitorService:
         # own headers, published as link/* metrics every k (state_every) ticks
         from services.faults.linkstats import LinkMeter
 
-        self.link_meter = LinkMeter(f"morph/{config.run_id}")
+        self.link_meter = LinkMeter(f"morph/{config.run_id}", bus.identity)
         from services.monitor.faultwindows import FaultWindows
 
         self.fault_windows = FaultWindows()  # faults in force, from the events (Prometheus morph_faults_active)
@@ -247,10 +247,8 @@ class MonitorService:
                                   clock="wall" if wall else "sim"):
             self._reject(sample.key, f"sequence number {sample.seq} of {sample.sender!r} jumps too far ahead")
             return
-        if sample.sender and sample.sender != self.bus.identity:
-            # the link meter's latency in the same clock as the stamp (see above); the monitor's own metric streams
-            # come back to it through its subscription to the whole run, over no link: not metered (one key class
-            # per stream would multiply the link statistics it computes every k ticks)
+        if sample.sender:
+            # the link meter's latency in the same clock as the stamp (see above)
             sent = sample.sent_at
             self.link_meter.record(sample.key, sample.sender, sample.seq, sent,
                                    time.time() if wall else max(self._last_tick, 0) * self.config.dt)
