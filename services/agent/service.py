@@ -82,6 +82,7 @@ class AgentService:
         self.id = agent_id
         self.keys = RunKeys(config.run_id)
         self._onboard_key = self.keys.onboard(agent_id)
+        self._ack_key, self._state_key = self.keys.ack(agent_id), self.keys.agent_state(agent_id)  # every tick
         self.is_agv = agent_id < config.n_agvs
         self.role = "agv" if self.is_agv else "picker"
         fleet = Fleet(config.n_agvs, config.n_pickers, config.scale)
@@ -448,12 +449,12 @@ class AgentService:
                             view_age=None if age == float("inf") else float(age), outcomes=counts)
         if final:
             # Before the ack, on the same link: the last state must reach the monitor before the run ends.
-            self.bus.put(self.keys.agent_state(self.id), self.state_message(t))
+            self.bus.put(self._state_key, self.state_message(t))
             publish_state = False
-        self.bus.put(self.keys.ack(self.id), ack)  # the ack first: it is on the sim's critical path
+        self.bus.put(self._ack_key, ack)  # the ack first: it is on the sim's critical path
         if publish_state:
             # still before this agent's ack of t+1, hence before tick t+2, when the monitor closes row t
-            self.bus.put(self.keys.agent_state(self.id), self.state_message(t))
+            self.bus.put(self._state_key, self.state_message(t))
 
     def state_message(self, t: int) -> AgentState:
         b = self.brains
@@ -616,7 +617,7 @@ class AgentService:
             self.bus.put(k.reply(self.id, reply.agv), HelpReply(
                 t=t, picker=self.id, agv=reply.agv, accepted=reply.accepted, request_seq=reply.request_seq,
                 seq=self._next_seq()))
-        self.bus.put(k.ack(self.id), Ack(t=t, agent=self.id, phase=Phase.RESOLVE, seq=self._next_seq(),
+        self.bus.put(self._ack_key, Ack(t=t, agent=self.id, phase=Phase.RESOLVE, seq=self._next_seq(),
                                          committed_to=None if commit is None else commit.agv, more=more,
                                          replied_to=[r.agv for r in replies]))
 

@@ -168,7 +168,7 @@ class Subscription(Generic[T]):
         if self._handler is not None and not self._is_async:
             try:
                 result = self._handler(item)
-                if inspect.isawaitable(result):  # a sync function returning an awaitable: still handle it
+                if result is not None and inspect.isawaitable(result):  # a sync function returning an awaitable
                     self._bus._spawn(result, self.key_expr)
             except Exception:
                 self._bus._handler_failed(self.key_expr)
@@ -452,9 +452,10 @@ class Bus(ABC):
     def _stamp(self, key: str, payload: Message | bytes) -> Sample:
         """A sample of this bus on ``key``, with its header (publisher, next sequence number of the key, clock)."""
         self._check_open()
-        validate_key(key)
         counter = self._seq.get(key)
-        if counter is None:  # setdefault is atomic: inline handlers on another thread may publish too
+        if counter is None:  # a key not published on before: checked once (setdefault is atomic: inline handlers on
+            # another thread may publish too)
+            validate_key(key)
             counter = self._seq.setdefault(key, itertools.count())
         self.counters.published += 1
         return Sample(key, to_payload(payload), self.identity, next(counter), self._clock())

@@ -140,6 +140,7 @@ class FaultLayer:
         self.clock = clock or (vtime.now if vtime is not None else time.monotonic)
         self.schedule = schedule
         self.meter = meter  # measures what this receiver actually got (linkstats.py)
+        self._metered_fns: dict[tuple[Callable[[Sample], None], str], Callable[[Sample], None]] = {}
         # called with (sample, fate) the moment a sample physically arrives, before it is dropped or held: a lockstep
         # receiver counts arrivals here, so it never waits for a message the fault layer already decided to lose
         self.on_fate: Callable[[Sample, list[float]], None] | None = None
@@ -256,7 +257,8 @@ class FaultLayer:
 
         ``at`` (virtual time): the message's send time; the faults active then decide, healed ones included.
         ``msg`` (its identity, e.g. (sender, seq); the key is added) and ``size`` (bytes) feed the network model."""
-        self._expire()
+        if self._faults:
+            self._expire()
         self.stats.seen += 1
         if not self._faults and (at is None or not self._history) and self.network is None:
             return [0.0]
@@ -383,8 +385,9 @@ class FaultLayer:
         if self.meter is not None:
             deliver = self._metered(deliver, receiver)
         for copy, delay in enumerate(fate):
-            if delay <= 0.0:
-                deliver(sample if at is None else sample._replace(due=at))  # no latency: within its own phase
+            if delay <= 0.0:  # no latency: within its own phase
+                deliver(sample if at is None else Sample(sample.key, sample.payload, sample.sender, sample.seq,
+                                                         sample.sent_at, at))
             elif vt is not None:
                 # due at send time + latency, released at the first boundary at or after it; the tie order is the
                 # message's identity, not its arrival order (deterministic across processes). The receiver orders
@@ -400,6 +403,13 @@ class FaultLayer:
                 loop.call_soon_threadsafe(loop.call_later, delay, deliver, sample)
 
     def _metered(self, deliver: Callable[[Sample], None], receiver: str) -> Callable[[Sample], None]:
+        """``deliver`` with this layer's meter in front (one per subscription and receiver, made once)."""
+        fn = self._metered_fns.get((deliver, receiver))
+        if fn is None:
+            fn = self._metered_fns[(deliver, receiver)] = self._metering(deliver)
+        return fn
+
+    def _metering(self, deliver: Callable[[Sample], None]) -> Callable[[Sample], None]:
         meter, vt = self.meter, self.vtime
         assert meter is not None
 

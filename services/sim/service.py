@@ -240,6 +240,7 @@ class SimService:
         bus.reject_hook = self._reject  # oversized messages refused on arrival count here
         self.keys = RunKeys(config.run_id)
         self.n = config.n_agents
+        self._onboard_keys = [self.keys.onboard(robot) for robot in range(self.n)]  # named every tick
         self.wait_for_monitor = wait_for_monitor
         self.on_tick = on_tick
         self.ctl = make_controller(config)
@@ -546,7 +547,7 @@ class SimService:
         replied, n_agvs = self._replied, self.config.n_agvs
         # each robot takes its on-board state and the broadcast together (over Zenoh in one message: bus.put_together)
         bus.put_together((k.fleet, tick), [
-            (k.onboard(robot), encode_fields(OnBoard, **onboard_fields(
+            (self._onboard_keys[robot], encode_fields(OnBoard, **onboard_fields(
                 body, robot, robot in free, replied[robot] if robot < n_agvs else 0)))
             for robot in range(self.n)])
 
