@@ -127,7 +127,8 @@ class ReferenceState:
         """One ``MORPH.step`` of the reference code applied to every replica.
 
         positions: (n, 2) normalised (x/cols, y/rows); jaccard: (n, n) co-assignment of this step;
-        delivery: deliveries in this step; pred: the predictive hint or None.
+        delivery: deliveries in this step; pred: the predictive hint or None. Only the structural update reads
+        ``positions`` and ``pred``: on the other steps (:meth:`structural_due` false) they may be None.
         """
         p = self.params
         self.t += 1
@@ -186,9 +187,16 @@ class ReferenceState:
         age += 1.0
         age *= A > 0
 
-    def _structural(self, positions: np.ndarray, pred: np.ndarray | None, theta_adj: float) -> None:
+    def structural_due(self) -> bool:
+        """Whether the next :meth:`step` runs the structural update (every k-th step), the only reader of the
+        positions and the hint: an agent builds them only for that step."""
+        return (self.t + 1) % self.params.k == 0
+
+    def _structural(self, positions: np.ndarray | None, pred: np.ndarray | None, theta_adj: float) -> None:
         p = self.params
         n = self.n
+        if positions is None:
+            raise ValueError("the structural update needs the positions (structural_due() was true)")
         mi = position_mi(positions)
         if pred is not None and p.pred_boost > 0.0:
             mi = _clip(mi + p.pred_boost * pred, 0.0, 1.0)

@@ -389,9 +389,11 @@ class MorphBrains(Coordinator):
         p = self.params
         if obs.has_previous:
             if self.preset == "reference":
-                rows, cols = obs.grid_shape
-                positions = obs.cells / np.array([cols, rows], dtype=float)
-                pred = reference_hint(obs) if p.use_pred_hint else None
+                positions = pred = None
+                if self.state.structural_due():  # the only step that reads them (two of three are not)
+                    rows, cols = obs.grid_shape
+                    positions = obs.cells / np.array([cols, rows], dtype=float)
+                    pred = reference_hint(obs) if p.use_pred_hint else None
                 self.state.step(positions, obs.coassignment(previous=True), obs.deliveries, pred)
             else:
                 hint = open_request_hint(obs) if p.use_pred_hint else np.zeros((obs.n, obs.n))
