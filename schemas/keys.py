@@ -190,6 +190,7 @@ class RunKeys:
         self.run = validate_run_id(run)
         self.prefix = f"{ROOT}/{run}"
         self._senders: dict[str, int | str | None] = {}  # key -> sender_of(key): every message asks it, twice
+        self._metric_keys: dict[str, str] = {}  # stream name -> its key
 
     def _k(self, *chunks: str) -> str:
         return "/".join((self.prefix, *chunks))
@@ -277,7 +278,13 @@ class RunKeys:
 
     # -- monitor -----------------------------------------------------------------------------------------------
     def metric(self, name: str) -> str:
-        return self._k("metrics", *(check_chunk(c, "metric name chunk") for c in name.split("/")))
+        key = self._metric_keys.get(name)
+        if key is None:  # the monitor publishes a few dozen streams, each many times
+            if len(self._metric_keys) >= 4096:
+                self._metric_keys.clear()
+            key = self._k("metrics", *(check_chunk(c, "metric name chunk") for c in name.split("/")))
+            self._metric_keys[name] = key  # a bad name raises above and is not kept
+        return key
 
     @cached_property
     def metrics(self) -> str:

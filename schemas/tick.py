@@ -360,6 +360,18 @@ def decode_tick(data: bytes | bytearray | memoryview) -> TickArrays:
     return arrays_from_tick(decode(data, Tick))
 
 
+def tick_number(data: bytes | bytearray | memoryview) -> int:
+    """The tick number of a ``tick`` payload without validating the rest of it (for a reader that needs only the
+    number); raises DecodeError naming the field."""
+    kind, body = unpack_envelope(data)
+    if kind != Tick.KIND:
+        raise DecodeError(KIND_FIELD, f"expected a {Tick.KIND!r} message, got {kind[:64]!r}", kind=kind)
+    t = body.get("t")
+    if type(t) is not int or t < 0:
+        raise DecodeError("t", f"expected an integer >= 0, got {type(t).__name__}", kind=Tick.KIND)
+    return t
+
+
 def encode_tick_body(body: dict[str, Any]) -> bytes:
     """The wire bytes of a tick whose field map the sim built itself from its own arrays (no model round trip).
 

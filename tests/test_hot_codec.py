@@ -26,6 +26,7 @@ from schemas.tick import (
     observation_from_tick,
     tick_fields,
     tick_from_observation,
+    tick_number,
 )
 from services.runconfig import RunConfig
 from services.sim.service import make_controller, world_fields
@@ -166,6 +167,19 @@ def test_malformed_ticks_are_rejected_naming_the_same_field_as_the_model():
     for payload in (b"", b"\x81", msgpack.packb([1, 2]), msgpack.packb({"k": "ack", "v": 1, "t": 1, "agent": 0}),
                     msgpack.packb({**body, "k": "tick", "v": 0})):
         _both(payload)
+
+
+def test_the_tick_number_is_read_without_the_rest_and_refuses_what_is_not_a_tick_number():
+    obs, fields = TICKS[3]
+    assert tick_number(encode_tick_body(fields)) == obs.t == decode_tick(encode_tick_body(fields)).t
+    body = {**fields, "v": 1, "k": "tick"}
+    for bad, field in ((dict(t=-1), "t"), (dict(t=2.0), "t"), (dict(t=True), "t"), (dict(t=None), "t"),
+                       (dict(k="ack"), "k")):
+        with pytest.raises(DecodeError) as err:
+            tick_number(msgpack.packb({**body, **bad}, use_bin_type=True))
+        assert err.value.field == field
+    with pytest.raises(DecodeError):
+        tick_number(b"\x81")
 
 
 @pytest.mark.parametrize(("cls", "fields"), [

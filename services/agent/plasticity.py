@@ -64,11 +64,17 @@ def _clip(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return np.minimum(np.maximum(x, lo, out=x), hi, out=x)
 
 
+_DIAGONALS: dict[int, tuple] = {}
+
+
 def _zero_diagonal(x: np.ndarray) -> None:
     """``x[..., i, i] = 0`` for every i of a (..., n, n) array."""
     n = x.shape[-1]
-    idx = np.arange(n)
-    x[..., idx, idx] = 0.0
+    diagonal = _DIAGONALS.get(n)
+    if diagonal is None:  # one index per fleet size, built once: every agent zeroes two diagonals every tick
+        idx = np.arange(n)
+        diagonal = _DIAGONALS[n] = (Ellipsis, idx, idx)
+    x[diagonal] = 0.0
 
 
 # --------------------------------------------------------------------------------------------------

@@ -31,7 +31,7 @@ import numpy as np
 from schemas import Ack, AgentState, Commit, Event, HelpReply, HelpRequest, OnBoard, Phase, Refusal, Resolve, Stop
 from schemas.codec import encode_fields, unpack_envelope
 from schemas.keys import RunKeys
-from schemas.tick import decode_tick, observation_from_arrays
+from schemas.tick import decode_tick, observation_from_arrays, tick_number
 from services.agent.policies import Fleet, MorphBrains
 from services.bus.base import Bus, Sample
 from services.protocol import dispatch as protocol
@@ -300,10 +300,10 @@ class AgentService:
     def _tick_of(self, sample: Sample) -> int | None:
         """The tick number of a fleet broadcast, without validating the rest (its handler does that)."""
         try:
-            t = unpack_envelope(sample.payload)[1].get("t")
+            t = tick_number(sample.payload)
         except ValueError:
             return None
-        if type(t) is not int or not 0 <= t <= self.config.steps or (
+        if t > self.config.steps or (
                 self.last_t >= 0 and t > self.last_t + self._ticks.max_gap):
             return None
         return t

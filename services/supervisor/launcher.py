@@ -372,7 +372,7 @@ class Supervisor:
     async def _watch(self, bus) -> int:
         from schemas import MetricSample, Stop
         from schemas.keys import RunKeys
-        from schemas.tick import decode_tick
+        from schemas.tick import tick_number
 
         keys = RunKeys(self.config.run_id)
 
@@ -397,7 +397,7 @@ class Supervisor:
             try:
                 if sample.sender != "sim":
                     return
-                t = decode_tick(sample.payload).t  # validated, without building the model (0.6-0.9 ms a tick)
+                t = tick_number(sample.payload)  # only the number (the monitor and the agents validate the rest)
                 if not ticks.admit(t):
                     return
             except ValueError:

@@ -8,6 +8,7 @@ into the service's own stop, and always closes the session within a bounded time
 from __future__ import annotations
 
 import asyncio
+import gc
 import logging
 import signal
 import sys
@@ -154,6 +155,10 @@ async def serve(identity: str, make: Callable[[Any], Any], run: Callable[[Any], 
     loop = asyncio.get_running_loop()
     try:
         service = make(bus)
+        # Everything imported and built so far lives as long as the process: out of the collector's sight, each
+        # collection during the run scans only what the run allocates (the process is this one service). No
+        # collection first: it would cost every process tens of milliseconds to free a few startup leftovers.
+        gc.freeze()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, stop, service, signal.Signals(sig).name)
         return await run(service)
