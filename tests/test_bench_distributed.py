@@ -12,7 +12,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from morph_sim.bench.distributed import CpuMeter, code_cwd, code_env, code_of
+from morph_sim.bench.distributed import CpuMeter, code_cwd, code_env, code_of, summarize
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -62,6 +62,31 @@ def _copy_of_head(tmp_path: Path) -> Path:
     return copy
 
 
+def _round(revision: str, ticks_per_s: float, total: float | None, **roles: float) -> dict:
+    cpu = {} if total is None else {**roles, "total": total}
+    return {"revision": revision, "distributed_ticks_per_s": ticks_per_s, "ratio": ticks_per_s / 1000.0,
+            "cpu_ms_per_tick": cpu}
+
+
+def test_the_before_after_summary_gives_medians_their_ratio_each_round_s_ratio_and_each_role():
+    runs = {"before": [_round("b", 90.0, 20.0, agv=1.0, sim=4.0), _round("b", 60.0, 30.0, agv=1.5, sim=6.0),
+                       _round("b", 100.0, 18.0, agv=0.9, sim=3.6)],
+            "after": [_round("a", 81.0, 22.0, agv=1.1, sim=4.4), _round("a", 57.0, 31.5, agv=1.6, sim=6.3),
+                      _round("a", 100.0, 18.0, agv=0.9, sim=3.6)]}
+    s = summarize(runs)
+    assert s["before"]["ticks_per_s"] == 90.0 and s["after"]["ticks_per_s"] == 81.0
+    assert s["after_over_before"]["ticks_per_s"] == pytest.approx(0.9)
+    assert s["after_over_before"]["cpu_ms_per_tick"] == pytest.approx(22.0 / 20.0)
+    # the machine slowed down in round 2 for both sides alike: round by round the ratios stay near each other
+    assert s["pairs"]["ticks_per_s"] == pytest.approx([0.9, 0.95, 1.0])
+    assert s["pairs"]["cpu_ms_per_tick"] == pytest.approx([1.1, 1.05, 1.0])
+    assert s["by_role"] == {"agv": {"before": 1.0, "after": 1.1}, "sim": {"before": 4.0, "after": 4.4}}
+    # a round without CPU figures (the accounting saw no window) leaves the CPU pairs and roles out, not zero
+    bare = summarize({"before": [_round("b", 90.0, None)], "after": [_round("a", 81.0, None)]})
+    assert bare["pairs"] == {"ticks_per_s": [pytest.approx(0.9)], "cpu_ms_per_tick": []}
+    assert bare["after_over_before"]["cpu_ms_per_tick"] is None and bare["by_role"] == {}
+
+
 def test_a_measurement_of_another_checkout_runs_that_checkout_s_code(tmp_path):
     copy = _copy_of_head(tmp_path)
     assert code_of(code_env(copy.resolve()), code_cwd(copy.resolve())) == copy.resolve()
@@ -84,6 +109,7 @@ def test_before_after_measures_both_checkouts_in_one_invocation(tmp_path):
     for label in ("before", "after"):
         assert out["summary"][label]["ticks_per_s"] > 0 and out["summary"][label]["cpu_ms_per_tick"] > 0
     assert out["summary"]["after_over_before"]["ticks_per_s"] > 0
+    assert len(out["summary"]["pairs"]["ticks_per_s"]) == 1 and {"agv", "picker", "sim"} <= set(out["summary"]["by_role"])
 
 
 def test_bench_startup_measures_every_role_of_one_up_run():

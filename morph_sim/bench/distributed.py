@@ -260,19 +260,7 @@ def before_after(args: argparse.Namespace) -> int:
             if not args.json:
                 print(f"round {i + 1}/{args.rounds} " + _line(label, r), flush=True)
 
-    def median(label: str, key: str) -> float | None:
-        values = [r[key] if key != "cpu" else r.get("cpu_ms_per_tick", {}).get("total") for r in runs[label]]
-        values = [v for v in values if v is not None]
-        return statistics.median(values) if values else None
-
-    summary = {label: {"revision": runs[label][0]["revision"], "ticks_per_s": median(label, "distributed_ticks_per_s"),
-                       "cpu_ms_per_tick": median(label, "cpu"), "ratio_to_barrier": median(label, "ratio")}
-               for label in runs}
-    b, a = summary["before"], summary["after"]
-    summary["after_over_before"] = {
-        "ticks_per_s": a["ticks_per_s"] / b["ticks_per_s"] if b["ticks_per_s"] else None,
-        "cpu_ms_per_tick": (a["cpu_ms_per_tick"] / b["cpu_ms_per_tick"]
-                            if a["cpu_ms_per_tick"] and b["cpu_ms_per_tick"] else None)}
+    summary = summarize(runs)
     if args.json:
         print(json.dumps({"summary": summary, "runs": runs}))
         return 0
@@ -285,7 +273,56 @@ def before_after(args: argparse.Namespace) -> int:
     ratio = summary["after_over_before"]
     print(f"  after / before: {ratio['ticks_per_s']:.2f}× ticks/s"
           + (f", {ratio['cpu_ms_per_tick']:.2f}× CPU per tick" if ratio["cpu_ms_per_tick"] else ""))
+    pairs = summary["pairs"]
+    if len(pairs["ticks_per_s"]) > 1:
+        def spread(values: list[float]) -> str:
+            return (" ".join(f"{v:.2f}" for v in values)
+                    + f"× (median {statistics.median(values):.2f}×)")
+        print("  round by round (each pair measured back to back): " + spread(pairs["ticks_per_s"]) + " ticks/s"
+              + (", " + spread(pairs["cpu_ms_per_tick"]) + " CPU per tick" if pairs["cpu_ms_per_tick"] else ""))
+    if summary["by_role"]:
+        print("  CPU ms per tick by role, medians: " + ", ".join(
+            f"{role} {m['before']:.2f} → {m['after']:.2f}" for role, m in summary["by_role"].items()))
     return 0
+
+
+def summarize(runs: dict[str, list[dict]]) -> dict:
+    """The before/after summary of alternating rounds: each side's medians and their ratio, the ratio round by
+    round (a pair ran back to back, so a machine whose speed drifts over minutes moves both of it), and each role's
+    median CPU per tick."""
+    import statistics
+
+    def cpu(r: dict, role: str = "total") -> float | None:
+        return r.get("cpu_ms_per_tick", {}).get(role)
+
+    def median(values: list[float | None]) -> float | None:
+        kept = [v for v in values if v is not None]
+        return statistics.median(kept) if kept else None
+
+    summary: dict = {
+        label: {"revision": runs[label][0]["revision"],
+                "ticks_per_s": median([r["distributed_ticks_per_s"] for r in runs[label]]),
+                "cpu_ms_per_tick": median([cpu(r) for r in runs[label]]),
+                "ratio_to_barrier": median([r["ratio"] for r in runs[label]])}
+        for label in ("before", "after")}
+    b, a = summary["before"], summary["after"]
+    summary["after_over_before"] = {
+        "ticks_per_s": a["ticks_per_s"] / b["ticks_per_s"] if b["ticks_per_s"] else None,
+        "cpu_ms_per_tick": (a["cpu_ms_per_tick"] / b["cpu_ms_per_tick"]
+                            if a["cpu_ms_per_tick"] and b["cpu_ms_per_tick"] else None)}
+    rounds = list(zip(runs["before"], runs["after"]))
+    summary["pairs"] = {
+        "ticks_per_s": [ra["distributed_ticks_per_s"] / rb["distributed_ticks_per_s"] for rb, ra in rounds
+                        if rb["distributed_ticks_per_s"]],
+        "cpu_ms_per_tick": [cpu(ra) / cpu(rb) for rb, ra in rounds if cpu(ra) and cpu(rb)]}
+    roles = sorted({role for r in runs["before"] + runs["after"] for role in r.get("cpu_ms_per_tick", {})} - {"total"})
+    by_role = {}
+    for role in roles:
+        before, after = median([cpu(r, role) for r in runs["before"]]), median([cpu(r, role) for r in runs["after"]])
+        if before is not None and after is not None:
+            by_role[role] = {"before": before, "after": after}
+    summary["by_role"] = by_role
+    return summary
 
 
 def run(args: argparse.Namespace) -> int:
