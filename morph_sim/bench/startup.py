@@ -45,6 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _role(cmdline: list[str]) -> str | None:
+    if "services.supervisor.forkserver" in cmdline:  # the interpreter the run's processes are forked from
+        return "fork-server"
     for role in ("sim", "agent", "monitor"):
         if role in cmdline:
             return role
@@ -76,8 +78,8 @@ def measure_up(scale: str, steps: int, env: dict[str, str], cwd: str) -> dict:
                         procs = []
                     for p in procs:
                         try:
-                            # a child between fork and exec shows its parent's command line: look again until it
-                            # has its own
+                            # a child just forked (by exec or from the fork server) shows its parent's command
+                            # line: look again until it has its own
                             if roles.get(p.pid) not in ("supervisor", "sim", "agent", "monitor"):
                                 roles[p.pid] = "supervisor" if p.pid == up.pid else (_role(p.cmdline()) or "other")
                             cpu = p.cpu_times()

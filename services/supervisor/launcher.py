@@ -25,7 +25,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from services.runconfig import RunConfig
-from services.supervisor.graph import ProcessSpec, process_graph
+from services.supervisor.forkserver import ForkedProcess, ForkServer
+from services.supervisor.graph import CHILD_ENV, ProcessSpec, process_graph
 
 log = logging.getLogger("morph_sim.supervisor")
 
@@ -78,7 +79,7 @@ class RunStalled(StartError):
 class Child:
     spec: ProcessSpec
     log_path: Path
-    proc: subprocess.Popen | None = None
+    proc: subprocess.Popen | ForkedProcess | None = None
     restarts: int = 0
     exit_codes: list[int] = field(default_factory=list)
     pids: list[int] = field(default_factory=list)  # every pid this child ever had (tests check they are gone)
@@ -99,16 +100,22 @@ class Child:
         self.failures = [x for x in self.failures if now - x < RESTART_WINDOW]
         return len(self.failures) < MAX_RESTARTS
 
-    def start(self, extra: tuple[str, ...] = ()) -> None:
-        """``extra`` flags go after the spec's (argparse: the last one wins), e.g. ``--cold-restart``."""
+    def start(self, extra: tuple[str, ...] = (), server: ForkServer | None = None) -> None:
+        """``extra`` flags go after the spec's (argparse: the last one wins), e.g. ``--cold-restart``. With
+        ``server`` the process is forked from the run's pre-imported interpreter, else it is a fresh one (exec)."""
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        argv = self.spec.command() + list(extra)
+        env = {**self.spec.environment(), **self.extra_env}
         with open(self.log_path, "ab") as out:
-            out.write(f"--- start {' '.join(self.spec.argv + extra)} at {time.time():.3f}\n".encode())
+            out.write(f"--- start {' '.join(self.spec.argv + extra)} at {time.time():.3f}"
+                      f"{' (fork)' if server is not None else ''}\n".encode())
             out.flush()
-            self.proc = subprocess.Popen(
-                self.spec.command() + list(extra), env={**self.spec.environment(), **self.extra_env},
-                stdin=subprocess.DEVNULL, stdout=out,
-                stderr=subprocess.STDOUT, start_new_session=True, preexec_fn=_die_with_parent, close_fds=True)
+            if server is None:
+                self.proc = subprocess.Popen(
+                    argv, env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
+                    start_new_session=True, preexec_fn=_die_with_parent, close_fds=True)
+        if server is not None:
+            self.proc = server.spawn(argv, env, self.log_path)
         self.pids.append(self.proc.pid)
 
     def log_tail(self, lines: int = 15) -> str:
@@ -219,11 +226,30 @@ class Supervisor:
         self._bus = None
         self._keys = None
         self._tasks: set[asyncio.Task] = set()
+        # the pre-imported interpreter every process of the run is forked from (restarts excepted)
+        self.server: ForkServer | None = None
 
     # -- bookkeeping -------------------------------------------------------------------------------------------------
     @property
     def all_pids(self) -> list[int]:
-        return [pid for child in self.children.values() for pid in child.pids]
+        server = [] if self.server is None else [self.server.pid]
+        return server + [pid for child in self.children.values() for pid in child.pids]
+
+    def _start_fork_server(self) -> ForkServer:
+        """The run's processes start by fork from one interpreter that imported them once (fresh interpreters
+        spend ~0.5 CPU-s each on imports). Its environment holds BLAS to one thread, as every child's does, so it
+        stays single-threaded and safe to fork."""
+        log = self.config.record_dir / "logs" / "fork-server.log"
+        log.parent.mkdir(parents=True, exist_ok=True)
+        env = dict(os.environ)
+        if env.get("ZENOH_RUNTIME") == "":
+            del env["ZENOH_RUNTIME"]
+        env.update(CHILD_ENV)
+        try:
+            return ForkServer(env, log, ready_timeout=self.ready_timeout, preexec_fn=_die_with_parent)
+        except RuntimeError as exc:
+            tail = "\n".join(log.read_text(errors="replace").splitlines()[-15:]) if log.exists() else ""
+            raise StartError(f"{exc}:\n{tail}") from None
 
     def _agent_pid(self, agent: int) -> int | None:
         child = self.children.get(f"agent-{agent}")
@@ -303,13 +329,14 @@ class Supervisor:
             raise StartError(f"nothing listens on the Zenoh endpoint {self.endpoint} (--endpoint): start the router "
                              "first, or leave --endpoint out to host the endpoint in the sim")
         sim = self.children["sim"]
-        sim.start()
+        self.server = self._start_fork_server()
+        sim.start(server=self.server)
         self._event("start", f"sim pid {sim.pid} ({'connects to' if self.external else 'listens on'} {self.endpoint})")
         # The sim must have opened its endpoint before anyone connects; a short wait for the port is enough.
         await self._wait_endpoint(sim)
         for name, child in self.children.items():
             if name != "sim":
-                child.start()
+                child.start(server=self.server)
         self._event("start", f"{len(self.children) - 1} agent and monitor processes")
         try:
             bus = await self._open_bus()
@@ -463,6 +490,8 @@ class Supervisor:
                     if not planned:
                         child.failures.append(time.monotonic())
                     child.restarts += 1
+                    # A restart is a fresh interpreter (exec), as a rebooted robot's program is: its seconds of
+                    # start-up let the monitor take in its predecessor's last states, which it restores from.
                     child.start(("--cold-restart",) if cold else ())
                     self._event("restart", f"{child.spec.name} exited with {code}; restarted as pid {child.pid}")
                     await self._publish_event(bus, keys, "agent.restart", agent=child.spec.agent, exit_code=code,
@@ -575,3 +604,5 @@ class Supervisor:
                     child.proc.wait(timeout=0.5)
                 except subprocess.TimeoutExpired:
                     pass
+        if self.server is not None:
+            self.server.close()
