@@ -124,3 +124,16 @@ def test_bench_startup_measures_every_role_of_one_up_run():
     bad = subprocess.run([sys.executable, "-m", "morph_sim.cli", "bench", "startup", "--rounds", "0"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and bad.stderr.strip().endswith("--rounds: 0 must be at least 1")
+
+
+def test_insecure_measures_an_open_endpoint_and_is_passed_only_to_code_that_has_it(tmp_path):
+    from morph_sim.bench.distributed import _knows_insecure
+
+    done = subprocess.run([sys.executable, "-m", "morph_sim.cli", "bench", "distributed", "--insecure", "--scale", "tiny",
+                           "--agvs", "2", "--pickers", "1", "--steps", "40", "--barrier-ticks", "100", "--json",
+                           "--output-dir", str(tmp_path)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert json.loads(done.stdout.strip().splitlines()[-1])["distributed_ticks"] == 40
+    (record,) = [p for p in tmp_path.iterdir() if p.is_dir()]
+    assert (record / "metrics.csv").is_file() and not (record / "credentials").exists()  # no credentials made
+    assert _knows_insecure(code_env(None), code_cwd(None))

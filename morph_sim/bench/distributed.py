@@ -49,6 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="before/after: measure the code of this git checkout and the installed one "
                              "alternately, --rounds times each, and print both with their ratio")
     parser.add_argument("--rounds", type=int, default=1, help="with --against: measurements of each (default 1)")
+    parser.add_argument("--insecure", action="store_true",
+                        help="an open endpoint (no credentials, no access control), to measure the run without "
+                             "security's cost; with --against, a checkout older than security runs as it is")
 
 
 CPU_SAMPLE_S = 0.05  # seconds between CPU samples of the run's processes
@@ -123,13 +126,13 @@ def load_average() -> str:
         return "n/a"
 
 
-def distributed_rate(config) -> dict:
+def distributed_rate(config, insecure: bool = False) -> dict:
     """Run ``config`` with the supervisor; the sim's tick-loop rate from the record's run.finished event, and the
     CPU per tick of every process (:class:`CpuMeter`)."""
     from services.supervisor.launcher import Supervisor
 
     started = time.monotonic()
-    supervisor = Supervisor(config)
+    supervisor = Supervisor(config, insecure=insecure)
     meter = CpuMeter(supervisor, config.n_agvs)
 
     async def supervise() -> int:
@@ -215,6 +218,17 @@ def code_of(env: dict[str, str], cwd: str, packages: tuple[str, ...] = ("morph_s
     return roots.pop() if len(roots) == 1 else None
 
 
+def _knows_insecure(env: dict[str, str], cwd: str) -> bool:
+    """Whether the code that ``env`` imports has ``bench distributed --insecure`` (a checkout from before the
+    endpoint was secured has nothing to turn off)."""
+    import subprocess
+    import sys
+
+    shown = subprocess.run([sys.executable, "-m", "morph_sim.cli", "bench", "distributed", "--help"],
+                           capture_output=True, text=True, env=env, cwd=cwd, timeout=120)
+    return "--insecure" in shown.stdout
+
+
 def measure_code(args: argparse.Namespace, root: Path | None) -> dict:
     """One measurement in a fresh process: the code of checkout ``root`` (first on the import path of the bench and
     of every process of its run), or the installed code (None). Checks which code ran."""
@@ -230,6 +244,8 @@ def measure_code(args: argparse.Namespace, root: Path | None) -> dict:
             "--barrier-ticks", str(args.barrier_ticks), "--seed", str(args.seed),
             *(["--agvs", str(args.agvs)] if args.agvs is not None else []),
             *(["--pickers", str(args.pickers)] if args.pickers is not None else [])]
+    if args.insecure and _knows_insecure(env, cwd):
+        argv.append("--insecure")
     done = subprocess.run(argv, capture_output=True, text=True, env=env, cwd=cwd, timeout=3600)
     lines = done.stdout.strip().splitlines()
     if done.returncode != 0 or not lines:
@@ -347,7 +363,7 @@ def measure(args: argparse.Namespace) -> int:
             run_id=f"bench-{args.scale}-{args.policy}", scale=args.scale, policy=args.policy, preset=args.preset,
             agvs=args.agvs, pickers=args.pickers, steps=args.steps, seed=args.seed, output_dir=out,
             state_every=max(10, args.steps // 8), snapshot_every=max(10, args.steps // 8) * 4))
-        dist = distributed_rate(config)
+        dist = distributed_rate(config, insecure=args.insecure)
     n = config.n_agents
     barrier = run_barrier(n, args.barrier_ticks, 100, mode="raw")
     ratio = dist["ticks_per_s"] / barrier.ticks_per_s if barrier.ticks_per_s else float("nan")
