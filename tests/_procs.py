@@ -21,6 +21,13 @@ import psutil
 FEW_ROBOTS = ("--agvs", "2", "--pickers", "1")
 
 
+def terminal_signals() -> None:
+    """``preexec_fn`` of a process a test interrupts with SIGINT: SIGINT at its default, as a user's terminal starts
+    a command. pytest-xdist workers ignore SIGINT, an ignored signal stays ignored across exec, and Python then
+    never raises KeyboardInterrupt: the command would run on as if never interrupted."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def descendants(pid: int) -> set[int]:
     try:
         return {p.pid for p in psutil.Process(pid).children(recursive=True)}

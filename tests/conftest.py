@@ -98,7 +98,7 @@ def pytest_collection(session):
 @pytest.fixture(autouse=True)
 def _share_the_machine(request):
     """Each test shares the machine with the other worker, or has it alone if marked ``alone``. (The tests of
-    ``shared_default_up`` and ``recorded_run`` read a run that had the machine alone while it ran, see there.)"""
+    ``shared_default_up`` read a run that had the machine alone while it ran, see there.)"""
     if any(f in request.fixturenames for f in ALONE_RUNS):
         yield
         return
@@ -109,7 +109,7 @@ def _share_the_machine(request):
 #: The session fixtures that run one `morph-sim up` for tests in several files, and those of them whose run has the
 #: machine alone while it runs (its tests then only read it).
 SHARED_RUNS = ("shared_default_up", "recorded_run", "shared_live_run")
-ALONE_RUNS = ("shared_default_up", "recorded_run")
+ALONE_RUNS = ("shared_default_up",)
 
 
 def pytest_configure(config):
@@ -290,25 +290,27 @@ def endless_run(live_run):
 
 
 class RecordedRun:
-    """A finished ``morph-sim up`` and the ``morph-sim record`` process that followed it (see ``recorded_run``)."""
+    """A finished ``morph-sim up --bus-record`` and the ``morph-sim record`` process that joined it (see
+    ``recorded_run``)."""
 
-    def __init__(self, up: LiveRun, code: int, record, recording, steps: int, seed: int):
-        self.up, self.code, self.record, self.recording = up, code, record, recording
+    def __init__(self, up: LiveRun, code: int, record, recording, joined, steps: int, seed: int):
+        self.up, self.code, self.record = up, code, record
+        self.recording, self.joined = recording, joined  # up's own bus recording; the one `record` wrote
         self.steps, self.seed = steps, seed
 
 
 @pytest.fixture(scope="session")
 def recorded_run(tmp_path_factory):
-    """A secure ``morph-sim up`` (tiny, MORPH with the reference preset, seed 42, 200 ticks, on-board states every
-    10 ticks and W snapshots every 50) that ``morph-sim record`` followed from its start over its endpoint, both
-    run to their end: the record equals the LocalBus run (tests/test_equivalence.py) and replays to the record
+    """A secure ``morph-sim up --bus-record`` (tiny, MORPH with the reference preset, seed 42, 200 ticks, on-board
+    states every 10 ticks and W snapshots every 50), which ``morph-sim record`` joined over its endpoint while it
+    ran, both run to their end: the record equals the LocalBus run (tests/test_equivalence.py), up's bus recording
+    replays to the record and the client's recording holds what was sent after it joined
     (tests/test_record_replay.py)."""
     out = tmp_path_factory.mktemp("recorded")
     steps, seed = 200, 42
-    # alone: the recorder's start races the run's first ticks, which the other worker's CPU would decide
-    with machine_share(alone=True):
+    with machine_share(alone=False):  # (a session fixture starts before a test's own share of the machine)
         up, record, code = _record_a_run(out, steps, seed)
-    yield RecordedRun(up, code, record, out / "recorded.mbr", steps, seed)
+    yield RecordedRun(up, code, record, out / "recorded.mbr", out / "joined.mbr", steps, seed)
     up.kill()
 
 
@@ -317,13 +319,14 @@ def _record_a_run(out, steps: int, seed: int):
     import sys
 
     up = LiveRun(out, "recorded", "--policy", "morph", "--preset", "reference", "--seed", str(seed), "--steps",
-                 str(steps), "--state-every", "10", "--snapshot-every", "50").start()
+                 str(steps), "--state-every", "10", "--snapshot-every", "50", "--bus-record",
+                 str(out / "recorded.mbr")).start()
     try:
         up.wait_for_endpoint()
         # no run flags: the recorder learns the run's configuration from the run; the operator's credentials are
         # found in the run directory (--output-dir) that `up` wrote them to
         record = subprocess.run([sys.executable, "-m", "morph_sim.cli", "record", "--run-id", up.run_id,
-                                 "--endpoint", up.endpoint, "--out", str(out / "recorded.mbr"), "--timeout", "120",
+                                 "--endpoint", up.endpoint, "--out", str(out / "joined.mbr"), "--timeout", "120",
                                  "--output-dir", str(out)], capture_output=True, text=True, timeout=180)
         code = up.wait(timeout=120)
     except BaseException:

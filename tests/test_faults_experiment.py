@@ -104,13 +104,13 @@ def test_cli_progress_and_resume_after_interrupt_give_the_same_tables(tmp_path) 
     import sys
     import time
 
-    from _procs import kill_tree
+    from _procs import kill_tree, terminal_signals
 
     argv = ["--quick", "--seeds", "1,2,3", "--steps", "200", "--jobs", "1", "--out", str(tmp_path)]
     straight = _cli([*argv, "--run-id", "a"])
     assert straight.returncode == 0 and "faults" in straight.stderr and "24/24" in straight.stderr  # progress
     proc = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "experiment", "faults", *argv, "--run-id", "b"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=terminal_signals)
     try:
         log = tmp_path / "b" / "episodes.jsonl"
         deadline = time.monotonic() + 120

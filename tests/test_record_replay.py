@@ -9,6 +9,7 @@ import sys
 import msgpack
 import pytest
 
+from schemas.tick import tick_number
 from services.bus.local import LocalNetwork
 from services.monitor.recorder import read_metrics
 from services.monitor.replay import BusRecorder, read_record, replay
@@ -49,21 +50,35 @@ def test_a_truncated_record_replays_up_to_its_last_whole_frame(tmp_path):
         read_record(tmp_path / "bad.mbr")
 
 
-def test_record_and_replay_commands_against_a_live_up_run(tmp_path, recorded_run):
-    """``morph-sim record`` followed the shared run from its start (tests/conftest.py); ``morph-sim replay`` of what
-    it wrote recomputes the live run's record."""
+def test_up_bus_record_replays_to_the_record_and_a_joining_recorder_holds_what_was_sent_after_it_joined(
+        tmp_path, recorded_run):
+    """``up --bus-record`` records the run from its first tick (the monitor writes it, and the sim starts no tick
+    before the monitor is there): ``morph-sim replay`` of it recomputes the live run's record, byte for byte.
+    ``morph-sim record`` joined the same run over its endpoint while it ran: every message it wrote was sent in the
+    run, and it followed the run to its end."""
     up, rec = recorded_run.up, recorded_run.record
-    assert rec.returncode == 0, rec.stderr[-2000:]
-    assert rec.stderr.startswith(f"recording run {up.run_id} (tiny, {recorded_run.steps} steps)"), rec.stderr
     assert recorded_run.code == 0, up.stderr()[-3000:]
     rep = subprocess.run([sys.executable, "-m", "morph_sim.cli", "replay", str(recorded_run.recording),
                           "--output-dir", str(tmp_path / "replayed")], capture_output=True, text=True, timeout=300)
     assert rep.returncode == 0, rep.stderr[-2000:]
     replayed, live = read_metrics(tmp_path / "replayed" / up.run_id), read_metrics(up.record)
     assert len(replayed) == len(live) == recorded_run.steps
-    # Over Zenoh the recorder and the monitor are two subscribers; the monitor holds a row until every agent's ack
-    # and link report is in (a grace of a few ticks), so every column, links included, must agree.
+    # the monitor holds a row until every agent's ack and link report is in, so every column must agree
     cols = ("t", "sim_time", "deliveries", "deliveries_total", "requests", "commits", "acks", "links", "lambda2", "eta")
     assert [[r[c] for c in cols] for r in replayed] == [[r[c] for c in cols] for r in live]
     for name in ("metrics.csv", "links.csv", "positions.csv"):  # byte for byte
         assert (tmp_path / "replayed" / up.run_id / name).read_bytes() == (up.record / name).read_bytes(), name
+
+    assert rec.returncode == 0, rec.stderr[-2000:]
+    assert rec.stderr.startswith(f"recording run {up.run_id} (tiny, {recorded_run.steps} steps)"), rec.stderr
+    header, joined = read_record(recorded_run.joined)
+    assert header["run_id"] == up.run_id and header["config"]["steps"] == recorded_run.steps
+    _, whole = read_record(recorded_run.recording)
+    sent = {(s.key, s.sender, s.seq) for s in whole}
+    # (the client also took the monitor's own publications, its metric streams and events, which the monitor's
+    # recording leaves out: a replay makes them again)
+    frames = [(s.key, s.sender, s.seq) for s in joined if s.sender != "monitor"]
+    assert frames and set(frames) <= sent  # nothing the run did not send; duplicates neither
+    assert len(set(frames)) == len(frames)
+    ticks = [s for s in read_record(recorded_run.joined)[1] if s.key.endswith("/sim/tick")]
+    assert ticks and max(tick_number(s.payload) for s in ticks) == recorded_run.steps  # to the run's final tick

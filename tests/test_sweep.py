@@ -15,7 +15,7 @@ import pytest
 
 from morph_sim.lab.sweep import SweepPlan, run_sweep
 
-from _procs import kill_tree
+from _procs import kill_tree, terminal_signals
 
 # The acceptance sweep: 3 policies × 3 loss levels × 2 scales × 5 seeds = 90 episodes. The default suite runs it with
 # short episodes and two seeds; the slow versions run it whole at the studies' length.
@@ -46,7 +46,7 @@ def _lines(path: Path) -> int:
 
 def _interrupt_at_half(args: list[str], log: Path, sig: int, total: int) -> subprocess.CompletedProcess:
     proc = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "sweep", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, preexec_fn=terminal_signals)
     try:
         deadline = time.monotonic() + 240
         while _lines(log) < total // 2:

@@ -25,6 +25,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prometheus-host", default="127.0.0.1", help="address of /metrics (default 127.0.0.1)")
     parser.add_argument("--prometheus-grace", type=float, default=15.0,
                         help="seconds /metrics keeps serving the final values after the run (default 15)")
+    parser.add_argument("--bus-record", default=None, metavar="FILE",
+                        help="also record the run's messages from its first tick to FILE (the monitor writes what "
+                             "it receives, all but its own metric streams and events; `morph-sim replay FILE` recomputes the "
+                             "record; `morph-sim record` joins a run already going)")
     parser.add_argument("--insecure", action="store_true",
                         help="open endpoint: no credentials, no access control (anyone who reaches the endpoint "
                              "can publish anything); default: per-run credentials in <record>/credentials")
@@ -107,6 +111,12 @@ def monitor_flags(args: argparse.Namespace) -> tuple[tuple[str, ...], float]:
     if args.prometheus_grace < 0:
         raise ValueError(f"prometheus_grace: must be >= 0, got {args.prometheus_grace}")
     flags: list[str] = ["--max-rate", repr(float(args.max_rate))]
+    if args.bus_record:
+        import pathlib
+
+        if pathlib.Path(args.bus_record).is_dir():
+            raise ValueError(f"bus_record: {args.bus_record!r} is a directory, not a file")
+        flags += ["--bus-record", str(pathlib.Path(args.bus_record).resolve())]
     port = args.prometheus_port
     if port is None and os.environ.get("MORPH_PROMETHEUS_PORT"):
         try:

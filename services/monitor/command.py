@@ -30,6 +30,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prometheus-grace", type=float, default=15.0,
                         help="seconds /metrics keeps serving the final values after the run (default 15: one "
                              "scrape interval, so that a short run is not missed)")
+    parser.add_argument("--bus-record", default=None, metavar="FILE",
+                        help="also write every message of the run this monitor receives (all but its own metric "
+                             "streams and events) to FILE: a bus recording for `morph-sim replay`, appended by a restarted "
+                             "monitor")
     add_config_arguments(parser, skip=("listen",))
     from services.envconfig import apply_env_defaults
 
@@ -50,8 +54,21 @@ def run(args: argparse.Namespace) -> int:
     setup_logging(args.log_level, "monitor")
     port = None if args.prometheus_port in (None, "") else int(args.prometheus_port)
 
+    taps = []
+
     def make(bus):
-        svc = MonitorService(config, bus, max_rate=float(args.max_rate), keep_rows=False)
+        tap = None
+        if args.bus_record:
+            from pathlib import Path
+
+            from services.monitor.replay import BusRecorder
+
+            try:
+                taps.append(BusRecorder(bus, config, Path(args.bus_record)))
+            except OSError as exc:
+                raise ValueError(f"bus_record: cannot write {args.bus_record}: {exc.strerror or exc}") from None
+            tap = taps[0].on_sample
+        svc = MonitorService(config, bus, max_rate=float(args.max_rate), keep_rows=False, tap=tap)
         if config.fault_time == "virtual":
             # The monitor is the run's measuring instrument: no fault layer (it records what was sent and what the
             # sim decided, docs/decisions.md), but it stamps sim time like every process of a virtual-time run:
@@ -80,6 +97,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"morph-sim monitor: error: cannot write the run record {where}: {exc.strerror or exc}",
               file=sys.stderr)
         exit_now(RECORD_FAILED)
+    finally:
+        for recording in taps:  # what it holds reaches the disk (the process leaves without interpreter teardown)
+            recording.close()
     if result.failure is not None:
         print(f"morph-sim monitor: error: {result.failure}", file=sys.stderr)
         exit_now(RECORD_FAILED)

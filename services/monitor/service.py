@@ -23,6 +23,7 @@ import asyncio
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -108,8 +109,11 @@ class MonitorService:
     """Monitor of the run of ``config`` over ``bus``; ``await run()`` until the run stops."""
 
     def __init__(self, config: RunConfig, bus: Bus, *, record: bool = True, max_rate: float = 10.0,
-                 keep_rows: bool = True):
+                 keep_rows: bool = True, tap: Callable[[Sample], None] | None = None):
+        """``tap``: sees every sample the monitor receives, in arrival order, before it is handled (a bus
+        recording of the whole run: the sim starts no tick before the monitor is there)."""
         self.config = config
+        self.tap = tap
         self._rejects = Rejects(log, "monitor")
         self.bus = bus
         bus.reject_hook = self._reject  # oversized messages refused on arrival count here
@@ -220,6 +224,8 @@ class MonitorService:
         if self._done:
             return
         try:
+            if self.tap is not None:
+                self.tap(sample)
             self._handle(sample)
         except OSError as exc:
             self._record_failed(exc)
