@@ -93,6 +93,24 @@ def test_not_a_morph_sim_command_is_refused(server, tmp_path):
         server.spawn([sys.executable, "-c", "print(1)"], _env(), tmp_path / "x.log")
 
 
+def test_the_supervisor_hears_each_end_as_it_happens(tmp_path):
+    import threading
+
+    ended = threading.Semaphore(0)
+    srv = ForkServer(_env(), tmp_path / "fork-server.log", ready_timeout=60, on_exit=ended.release)
+    try:
+        port = _closed_port()
+        procs = [srv.spawn(_connecting_agent(port), _env(), tmp_path / f"a{i}.log") for i in range(2)]
+        procs[0].send_signal(signal.SIGKILL)
+        assert ended.acquire(timeout=10)  # told without being asked
+        assert procs[0].poll() == -signal.SIGKILL and procs[1].poll() is None
+        procs[1].send_signal(signal.SIGKILL)
+        assert ended.acquire(timeout=10) and procs[1].poll() == -signal.SIGKILL
+    finally:
+        srv.close()
+    assert ended.acquire(timeout=10)  # and of the server's own end
+
+
 def test_children_end_with_a_killed_server_and_the_server_ends_with_its_channel(tmp_path):
     srv = ForkServer(_env(), tmp_path / "fork-server.log", ready_timeout=60)
     proc = srv.spawn(_connecting_agent(_closed_port()), _env(), tmp_path / "a.log")

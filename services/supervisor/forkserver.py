@@ -234,10 +234,13 @@ class ForkServer:
     #: got SIGTERM from its parent's death)
     LOST = -signal.SIGTERM
 
-    def __init__(self, env: dict[str, str], log_path, *, ready_timeout: float = 60.0, preexec_fn=None):
+    def __init__(self, env: dict[str, str], log_path, *, ready_timeout: float = 60.0, preexec_fn=None,
+                 on_exit=None):
+        """``on_exit()`` is called (on the reader thread) whenever a child has ended, and when the server has."""
         import subprocess
         import threading
 
+        self.on_exit = on_exit
         self._lock = threading.Condition()
         self._exits: dict[int, int] = {}
         self._answers: dict[int, dict] = {}
@@ -273,9 +276,13 @@ class ForkServer:
                 else:
                     self._answers[message["id"]] = message
                 self._lock.notify_all()
+            if "exit" in message and self.on_exit is not None:
+                self.on_exit()
         with self._lock:  # the server is gone (closed by us, or killed): so are its children
             self._closed = True
             self._lock.notify_all()
+        if self.on_exit is not None:
+            self.on_exit()
 
     def spawn(self, argv: list[str], env: dict[str, str], log_path, timeout: float = 10.0) -> ForkedProcess:
         """Fork ``argv`` (``python -m morph_sim.cli …``) with ``env``, its output appended to ``log_path``."""

@@ -41,6 +41,7 @@ _PR_SET_PDEATHSIG = 1
 MONITOR_END_TIMEOUT = 30.0  # seconds the monitor may take after the sim's end to finish the record
 STOPPED_FROM_OUTSIDE = 3  # exit status of `up` when someone else's stop ended the run before its steps
 RECORD_FAILED = 74  # a monitor's exit status when the record cannot be written (services/monitor/command.py)
+SHOW_EVERY = 0.25  # seconds between live lines; also the longest the watch loop sleeps without news
 
 
 def _die_with_parent() -> None:  # runs in the child between fork and exec
@@ -100,9 +101,11 @@ class Child:
         self.failures = [x for x in self.failures if now - x < RESTART_WINDOW]
         return len(self.failures) < MAX_RESTARTS
 
-    def start(self, extra: tuple[str, ...] = (), server: ForkServer | None = None) -> None:
+    def start(self, extra: tuple[str, ...] = (), server: ForkServer | None = None,
+              on_exit: Callable[[], None] | None = None) -> None:
         """``extra`` flags go after the spec's (argparse: the last one wins), e.g. ``--cold-restart``. With
-        ``server`` the process is forked from the run's pre-imported interpreter, else it is a fresh one (exec)."""
+        ``server`` the process is forked from the run's pre-imported interpreter (whose reports say when it ends),
+        else it is a fresh one (exec) and ``on_exit()`` is called from a waiting thread when it ends."""
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         argv = self.spec.command() + list(extra)
         env = {**self.spec.environment(), **self.extra_env}
@@ -116,6 +119,12 @@ class Child:
                     start_new_session=True, preexec_fn=_die_with_parent, close_fds=True)
         if server is not None:
             self.proc = server.spawn(argv, env, self.log_path)
+        elif on_exit is not None:
+            import threading
+
+            proc = self.proc
+            threading.Thread(target=lambda: (proc.wait(), on_exit()), name=f"wait-{self.spec.name}",
+                             daemon=True).start()
         self.pids.append(self.proc.pid)
 
     def log_tail(self, lines: int = 15) -> str:
@@ -228,6 +237,10 @@ class Supervisor:
         self._tasks: set[asyncio.Task] = set()
         # the pre-imported interpreter every process of the run is forked from (restarts excepted)
         self.server: ForkServer | None = None
+        # The watch loops wait on this (set when a child ends or a stop is asked for) and otherwise wake only for
+        # their periodic duties (the live line, the start, stall and end-of-record deadlines).
+        self._wake: asyncio.Event | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
 
     # -- bookkeeping -------------------------------------------------------------------------------------------------
     @property
@@ -246,7 +259,8 @@ class Supervisor:
             del env["ZENOH_RUNTIME"]
         env.update(CHILD_ENV)
         try:
-            return ForkServer(env, log, ready_timeout=self.ready_timeout, preexec_fn=_die_with_parent)
+            return ForkServer(env, log, ready_timeout=self.ready_timeout, preexec_fn=_die_with_parent,
+                              on_exit=self._notify)
         except RuntimeError as exc:
             tail = "\n".join(log.read_text(errors="replace").splitlines()[-15:]) if log.exists() else ""
             raise StartError(f"{exc}:\n{tail}") from None
@@ -288,11 +302,35 @@ class Supervisor:
     def request_stop(self, reason: str) -> None:
         if self.stop_requested is None:
             self.stop_requested = reason
+        self._notify()
+
+    def _notify(self) -> None:
+        """Wake the watch loop now (from any thread): a child ended, or a stop was asked for."""
+        loop, wake = self._loop, self._wake
+        if loop is None or wake is None:
+            return
+        try:
+            loop.call_soon_threadsafe(wake.set)
+        except RuntimeError:  # the loop has closed: nobody is waiting
+            pass
+
+    async def _nap(self, timeout: float) -> None:
+        """Until :meth:`_notify` or ``timeout`` seconds, whichever comes first."""
+        wake = self._wake
+        if wake is None:
+            await asyncio.sleep(timeout)
+            return
+        try:
+            await asyncio.wait_for(wake.wait(), max(timeout, 0.0))
+        except asyncio.TimeoutError:
+            pass
+        wake.clear()
 
     # -- main ----------------------------------------------------------------------------------------------------------
     async def run(self) -> int:
         """0 when the run completed, 130/143 when interrupted; raises StartError if a process cannot start."""
         loop = asyncio.get_running_loop()
+        self._loop, self._wake = loop, asyncio.Event()
         for sig in (signal.SIGINT, signal.SIGTERM):
             try:
                 loop.add_signal_handler(sig, self.request_stop, signal.Signals(sig).name)
@@ -492,7 +530,7 @@ class Supervisor:
                     child.restarts += 1
                     # A restart is a fresh interpreter (exec), as a rebooted robot's program is: its seconds of
                     # start-up let the monitor take in its predecessor's last states, which it restores from.
-                    child.start(("--cold-restart",) if cold else ())
+                    child.start(("--cold-restart",) if cold else (), on_exit=self._notify)
                     self._event("restart", f"{child.spec.name} exited with {code}; restarted as pid {child.pid}")
                     await self._publish_event(bus, keys, "agent.restart", agent=child.spec.agent, exit_code=code,
                                               old_pid=old_pid, pid=child.pid, restarts=child.restarts,
@@ -512,10 +550,10 @@ class Supervisor:
                 raise StartError(f"the run did not start within {self.ready_timeout:.0f} s; sim log:\n"
                                  f"{sim.log_tail()}")
             now = time.monotonic()
-            if now - last_shown >= 0.25:
+            if now - last_shown >= SHOW_EVERY:
                 last_shown = now
                 self._show()
-            await asyncio.sleep(0.05)
+            await self._nap(max(0.01, last_shown + SHOW_EVERY - time.monotonic()))
 
     async def _end_of_run(self) -> int:
         """The sim has ended the run: wait for the monitor to finish the record, then check the record against the
@@ -531,7 +569,7 @@ class Supervisor:
             if self.stop_requested:  # Ctrl-C while the monitor finishes (or serves its grace): stop now
                 self._event("stop", self.stop_requested)
                 return 143 if self.stop_requested == "SIGTERM" else 130
-            await asyncio.sleep(0.05)
+            await self._nap(min(SHOW_EVERY, deadline - time.monotonic()))
         for monitor in monitors:
             if monitor.alive():
                 raise RunFailed(f"the monitor did not finish the run record within {MONITOR_END_TIMEOUT:.0f} s of "
@@ -585,7 +623,7 @@ class Supervisor:
     async def _wait_exit(self, children: list[Child], timeout: float) -> None:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline and any(c.alive() for c in children):
-            await asyncio.sleep(0.05)
+            await self._nap(min(SHOW_EVERY, deadline - time.monotonic()))
 
     async def shutdown(self) -> None:
         """Every child gone within SHUTDOWN_BOUND: a moment to exit on its own, SIGTERM, then SIGKILL."""
