@@ -26,9 +26,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prometheus-grace", type=float, default=15.0,
                         help="seconds /metrics keeps serving the final values after the run (default 15)")
     parser.add_argument("--bus-record", default=None, metavar="FILE",
-                        help="also record the run's messages from its first tick to FILE (the monitor writes what "
-                             "it receives, all but its own metric streams and events; `morph-sim replay FILE` recomputes the "
-                             "record; `morph-sim record` joins a run already going)")
+                        help="also record the run's messages from its first tick to FILE (the monitor writes "
+                             "what it receives, all but its own metric streams and events; `morph-sim replay FILE` "
+                             "recomputes the record; `morph-sim record` joins a run already going)")
     parser.add_argument("--insecure", action="store_true",
                         help="open endpoint: no credentials, no access control (anyone who reaches the endpoint "
                              "can publish anything); default: per-run credentials in <record>/credentials")

@@ -32,8 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "scrape interval, so that a short run is not missed)")
     parser.add_argument("--bus-record", default=None, metavar="FILE",
                         help="also write every message of the run this monitor receives (all but its own metric "
-                             "streams and events) to FILE: a bus recording for `morph-sim replay`, appended by a restarted "
-                             "monitor")
+                             "streams and events) to FILE: a bus recording for `morph-sim replay`, appended by a "
+                             "restarted monitor")
     add_config_arguments(parser, skip=("listen",))
     from services.envconfig import apply_env_defaults
 

@@ -244,8 +244,8 @@ class ForkServer:
         self._lock = threading.Condition()
         self._exits: dict[int, int] = {}
         self._answers: dict[int, dict] = {}
-        self._children: set[int] = set()
         self._next = 0
+        self._ready = False
         self._closed = False
         self.log_path = log_path
         with open(log_path, "ab") as log:
@@ -263,11 +263,14 @@ class ForkServer:
                 raise RuntimeError(f"the fork server ended with status {self.proc.wait()} before it was ready "
                                    f"(its log: {log_path})")
 
-    _ready = False
-
     def _read(self) -> None:
         for line in self.proc.stdout:
-            message = json.loads(line)
+            try:
+                message = json.loads(line)
+            except ValueError:  # not the server's (something it imported printed): not a report
+                continue
+            if not isinstance(message, dict):
+                continue
             with self._lock:
                 if "ready" in message:
                     self._ready = True
@@ -301,7 +304,6 @@ class ForkServer:
             raise RuntimeError("the fork server ended while starting a process")
         if "error" in answer:
             raise RuntimeError(f"the fork server refused: {answer['error']}")
-        self._children.add(answer["pid"])
         return ForkedProcess(self, answer["pid"])
 
     @staticmethod

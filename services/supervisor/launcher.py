@@ -118,7 +118,10 @@ class Child:
                     argv, env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
                     start_new_session=True, preexec_fn=_die_with_parent, close_fds=True)
         if server is not None:
-            self.proc = server.spawn(argv, env, self.log_path)
+            try:
+                self.proc = server.spawn(argv, env, self.log_path)
+            except RuntimeError as exc:
+                raise StartError(f"{self.spec.name}: {exc}") from None
         elif on_exit is not None:
             import threading
 
