@@ -290,46 +290,28 @@ def endless_run(live_run):
 
 
 class RecordedRun:
-    """A finished ``morph-sim up --bus-record`` and the ``morph-sim record`` process that joined it (see
-    ``recorded_run``)."""
+    """A finished ``morph-sim up --bus-record`` (see ``recorded_run``)."""
 
-    def __init__(self, up: LiveRun, code: int, record, recording, joined, steps: int, seed: int):
-        self.up, self.code, self.record = up, code, record
-        self.recording, self.joined = recording, joined  # up's own bus recording; the one `record` wrote
+    def __init__(self, up: LiveRun, code: int, recording, steps: int, seed: int):
+        self.up, self.code, self.recording = up, code, recording
         self.steps, self.seed = steps, seed
 
 
 @pytest.fixture(scope="session")
 def recorded_run(tmp_path_factory):
     """A secure ``morph-sim up --bus-record`` (tiny, MORPH with the reference preset, seed 42, 200 ticks, on-board
-    states every 10 ticks and W snapshots every 50), which ``morph-sim record`` joined over its endpoint while it
-    ran, both run to their end: the record equals the LocalBus run (tests/test_equivalence.py), up's bus recording
-    replays to the record and the client's recording holds what was sent after it joined
-    (tests/test_record_replay.py)."""
+    states every 10 ticks and W snapshots every 50), run to its end: the record equals the LocalBus run
+    (tests/test_equivalence.py) and the bus recording replays to the record (tests/test_record_replay.py)."""
     out = tmp_path_factory.mktemp("recorded")
     steps, seed = 200, 42
     with machine_share(alone=False):  # (a session fixture starts before a test's own share of the machine)
-        up, record, code = _record_a_run(out, steps, seed)
-    yield RecordedRun(up, code, record, out / "recorded.mbr", out / "joined.mbr", steps, seed)
+        up = LiveRun(out, "recorded", "--policy", "morph", "--preset", "reference", "--seed", str(seed), "--steps",
+                     str(steps), "--state-every", "10", "--snapshot-every", "50", "--bus-record",
+                     str(out / "recorded.mbr")).start()
+        try:
+            code = up.wait(timeout=120)
+        except BaseException:
+            up.kill()
+            raise
+    yield RecordedRun(up, code, out / "recorded.mbr", steps, seed)
     up.kill()
-
-
-def _record_a_run(out, steps: int, seed: int):
-    import subprocess
-    import sys
-
-    up = LiveRun(out, "recorded", "--policy", "morph", "--preset", "reference", "--seed", str(seed), "--steps",
-                 str(steps), "--state-every", "10", "--snapshot-every", "50", "--bus-record",
-                 str(out / "recorded.mbr")).start()
-    try:
-        up.wait_for_endpoint()
-        # no run flags: the recorder learns the run's configuration from the run; the operator's credentials are
-        # found in the run directory (--output-dir) that `up` wrote them to
-        record = subprocess.run([sys.executable, "-m", "morph_sim.cli", "record", "--run-id", up.run_id,
-                                 "--endpoint", up.endpoint, "--out", str(out / "joined.mbr"), "--timeout", "120",
-                                 "--output-dir", str(out)], capture_output=True, text=True, timeout=180)
-        code = up.wait(timeout=120)
-    except BaseException:
-        up.kill()
-        raise
-    return up, record, code

@@ -16,6 +16,8 @@ from services.monitor.replay import BusRecorder, read_record, replay
 from services.runconfig import RunConfig
 from services.supervisor.local import run_local
 
+from _procs import FEW_ROBOTS
+
 
 @pytest.mark.parametrize("policy", ["morph", "proximity"])
 async def test_replayed_metrics_equal_the_live_runs(tmp_path, policy):
@@ -50,13 +52,10 @@ def test_a_truncated_record_replays_up_to_its_last_whole_frame(tmp_path):
         read_record(tmp_path / "bad.mbr")
 
 
-def test_up_bus_record_replays_to_the_record_and_a_joining_recorder_holds_what_was_sent_after_it_joined(
-        tmp_path, recorded_run):
+def test_up_bus_record_replays_to_the_record(tmp_path, recorded_run):
     """``up --bus-record`` records the run from its first tick (the monitor writes it, and the sim starts no tick
-    before the monitor is there): ``morph-sim replay`` of it recomputes the live run's record, byte for byte.
-    ``morph-sim record`` joined the same run over its endpoint while it ran: every message it wrote was sent in the
-    run, and it followed the run to its end."""
-    up, rec = recorded_run.up, recorded_run.record
+    before the monitor is there): ``morph-sim replay`` of it recomputes the live run's record, byte for byte."""
+    up = recorded_run.up
     assert recorded_run.code == 0, up.stderr()[-3000:]
     rep = subprocess.run([sys.executable, "-m", "morph_sim.cli", "replay", str(recorded_run.recording),
                           "--output-dir", str(tmp_path / "replayed")], capture_output=True, text=True, timeout=300)
@@ -69,16 +68,30 @@ def test_up_bus_record_replays_to_the_record_and_a_joining_recorder_holds_what_w
     for name in ("metrics.csv", "links.csv", "positions.csv"):  # byte for byte
         assert (tmp_path / "replayed" / up.run_id / name).read_bytes() == (up.record / name).read_bytes(), name
 
+
+def test_record_joins_a_live_run_and_writes_only_what_the_run_sent(tmp_path, live_run):
+    """``morph-sim record`` joins a running run over its endpoint (the operator's credentials found in the run
+    directory, the configuration asked of the monitor): every message it writes was sent in the run (the run's own
+    recording, ``up --bus-record``, holds it), none twice, ticks in order."""
+    whole = tmp_path / "whole.mbr"
+    up = live_run("joined", "--steps", "100000", "--mode", "paced", "--period", "0.05", *FEW_ROBOTS,
+                  "--bus-record", str(whole))
+    rows = up.record / "metrics.csv"
+    up.wait_until(lambda: rows.exists() and rows.read_text().count("\n") > 5, 60, "the run's first rows")
+    rec = subprocess.run([sys.executable, "-m", "morph_sim.cli", "record", "--run-id", up.run_id, "--endpoint",
+                          up.endpoint, "--out", str(tmp_path / "joined.mbr"), "--timeout", "3", "--output-dir",
+                          str(up.output_dir)], capture_output=True, text=True, timeout=120)
+    assert up.stop() is not None  # the run's end closes its recording
     assert rec.returncode == 0, rec.stderr[-2000:]
-    assert rec.stderr.startswith(f"recording run {up.run_id} (tiny, {recorded_run.steps} steps)"), rec.stderr
-    header, joined = read_record(recorded_run.joined)
-    assert header["run_id"] == up.run_id and header["config"]["steps"] == recorded_run.steps
-    _, whole = read_record(recorded_run.recording)
-    sent = {(s.key, s.sender, s.seq) for s in whole}
-    # (the client also took the monitor's own publications, its metric streams and events, which the monitor's
+    assert rec.stderr.startswith(f"recording run {up.run_id} (tiny, 100000 steps)"), rec.stderr
+    assert rec.stdout.strip().splitlines()[-1].startswith("recorded ")
+    header, joined = read_record(tmp_path / "joined.mbr")
+    assert header["run_id"] == up.run_id and header["config"]["steps"] == 100000
+    joined = list(joined)
+    sent = {(s.key, s.sender, s.seq) for s in read_record(whole)[1]}
+    # (the client also takes the monitor's own publications, its metric streams and events, which the monitor's
     # recording leaves out: a replay makes them again)
     frames = [(s.key, s.sender, s.seq) for s in joined if s.sender != "monitor"]
-    assert frames and set(frames) <= sent  # nothing the run did not send; duplicates neither
-    assert len(set(frames)) == len(frames)
-    ticks = [s for s in read_record(recorded_run.joined)[1] if s.key.endswith("/sim/tick")]
-    assert ticks and max(tick_number(s.payload) for s in ticks) == recorded_run.steps  # to the run's final tick
+    assert frames and set(frames) <= sent and len(set(frames)) == len(frames)
+    ticks = [tick_number(s.payload) for s in joined if s.key.endswith("/sim/tick")]
+    assert len(ticks) >= 10 and ticks == sorted(ticks)  # three seconds of a paced run, in order
