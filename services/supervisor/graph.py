@@ -50,11 +50,16 @@ class ProcessSpec:
         return [sys.executable, "-m", "morph_sim.cli", *self.argv[1:]]
 
     def environment(self, base: dict[str, str] | None = None) -> dict[str, str]:
-        env = dict(os.environ if base is None else base)
-        if env.get("ZENOH_RUNTIME") == "":  # an empty value makes zenoh panic (zenoh 1.10.2)
-            del env["ZENOH_RUNTIME"]
-        env.update(self.env)
-        return env
+        return child_environment(self.env, base)
+
+
+def child_environment(extra: dict[str, str], base: dict[str, str] | None = None) -> dict[str, str]:
+    """``base`` (default: this process's environment) with ``extra`` on top: what a process of the run starts with."""
+    env = dict(os.environ if base is None else base)
+    if env.get("ZENOH_RUNTIME") == "":  # an empty value makes zenoh panic (zenoh 1.10.2)
+        del env["ZENOH_RUNTIME"]
+    env.update(extra)
+    return env
 
 
 def process_graph(config: RunConfig, endpoint: str, monitor_args: tuple[str, ...] = ()) -> list[ProcessSpec]:

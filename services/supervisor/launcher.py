@@ -26,7 +26,7 @@ from pathlib import Path
 
 from services.runconfig import RunConfig
 from services.supervisor.forkserver import ForkedProcess, ForkServer
-from services.supervisor.graph import CHILD_ENV, ProcessSpec, process_graph
+from services.supervisor.graph import CHILD_ENV, ProcessSpec, child_environment, process_graph
 
 log = logging.getLogger("morph_sim.supervisor")
 
@@ -257,12 +257,8 @@ class Supervisor:
         stays single-threaded and safe to fork."""
         log = self.config.record_dir / "logs" / "fork-server.log"
         log.parent.mkdir(parents=True, exist_ok=True)
-        env = dict(os.environ)
-        if env.get("ZENOH_RUNTIME") == "":
-            del env["ZENOH_RUNTIME"]
-        env.update(CHILD_ENV)
         try:
-            return ForkServer(env, log, ready_timeout=self.ready_timeout, preexec_fn=_die_with_parent,
+            return ForkServer(child_environment(CHILD_ENV), log, ready_timeout=self.ready_timeout, preexec_fn=_die_with_parent,
                               on_exit=self._notify)
         except RuntimeError as exc:
             tail = "\n".join(log.read_text(errors="replace").splitlines()[-15:]) if log.exists() else ""
