@@ -265,3 +265,16 @@ async def test_a_default_settings_client_receives_every_sample_through_the_endpo
         await at_hub.close()
         await publisher.close()
         await hub.close()
+
+
+def test_a_free_port_lies_below_the_range_outgoing_connections_draw_from_and_can_be_listened_on() -> None:
+    import socket
+
+    from services.bus.zenoh_bus import LISTEN_PORTS_FROM, ephemeral_ports
+
+    low, high = ephemeral_ports()
+    ports = {free_port() for _ in range(20)}
+    assert all(LISTEN_PORTS_FROM <= p < low for p in ports), (sorted(ports), low, high)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", ports.pop()))
+        s.listen()

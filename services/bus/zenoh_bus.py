@@ -84,9 +84,35 @@ def endpoint(port: int, host: str = "127.0.0.1", proto: str = "tcp") -> str:
     return f"{proto}/{host}:{int(port)}"
 
 
+LISTEN_PORTS_FROM = 10000  # the lowest port free_port offers
+
+
+def ephemeral_ports() -> tuple[int, int]:
+    """The kernel's range of ports for the local end of outgoing connections (Linux; the IANA range elsewhere)."""
+    try:
+        with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
+            low, high = (int(x) for x in f.read().split())
+        return low, high
+    except (OSError, ValueError):
+        return 49152, 65535
+
+
 def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port that was free a moment ago (for tests and single-machine runs)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+    """A TCP port that was free a moment ago (for tests and single-machine runs), below the kernel's ephemeral range:
+    a port the kernel picks (bind to 0) comes from that range, which every outgoing connection of this machine also
+    draws from, so between this call and the listen a Zenoh client's connection could take it."""
+    import random
+
+    low, _ = ephemeral_ports()
+    for _ in range(64):
+        port = random.randrange(LISTEN_PORTS_FROM, low) if low > LISTEN_PORTS_FROM + 1 else 0
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind((host, port))
+            except OSError:
+                continue
+            return s.getsockname()[1]
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:  # no luck below the range: let the kernel choose
         s.bind((host, 0))
         return s.getsockname()[1]
 
