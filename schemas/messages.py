@@ -104,6 +104,9 @@ class OnBoard(Message):
     # synchronisation, never protocol content: an AGV takes its decision of step t once this many replies to it
     # have arrived (delivered, held or lost by the network); cumulative, so a missed one hides nothing
     replied: Annotated[int, Field(ge=0, lt=2**63)] = Field(default=0, description="AGV: HelpReplies sent to it so far")
+    # likewise every robot takes it once this many refusals to it have arrived: a refusal frees an AGV to ask again
+    # and ends a picker's commitment, so one still on its way would change what the robot decides
+    refused: Annotated[int, Field(ge=0, lt=2**63)] = Field(default=0, description="Refusals sent to it so far")
 
 
 class Resolve(Message):

@@ -516,16 +516,16 @@ def tick_fields(obs: TickObservation, sim_time: float, extra: dict | None = None
     )
 
 
-def onboard_fields(tick: dict, robot: int, free: bool, replied: int = 0) -> dict:
+def onboard_fields(tick: dict, robot: int, free: bool, replied: int = 0, refused: int = 0) -> dict:
     """One robot's :class:`~schemas.messages.OnBoard` field map, read off the Tick field map the sim built
     (:func:`tick_fields` plus the world fields): what that robot senses of itself. ``free``: a picker without an
-    assignment; ``replied``: the synchronisation count of an AGV."""
+    assignment; ``replied``, ``refused``: the synchronisation counts of its decision point."""
     return dict(
         t=tick["t"], robot=robot, x=tick["x"][robot], y=tick["y"][robot], heading=tick["heading"][robot],
         mission=tick["mission"][robot], target_x=tick["target_x"][robot], target_y=tick["target_y"][robot],
         task=tick["task"][robot], needs_picker=tick["needs_picker"][robot], free=free,
         carrying=tick["carrying"][robot], reward=tick["reward"][robot], handled=tick["handled"][robot],
-        final=tick["final"], replied=replied)
+        final=tick["final"], replied=replied, refused=refused)
 
 
 def tick_from_observation(obs: TickObservation, sim_time: float, extra: dict | None = None) -> Tick:

@@ -144,3 +144,50 @@ def test_lab_run_and_up_agree_under_late_bursty_dispatch_and_a_lossy_fleet_broad
 @pytest.mark.slow
 def test_lab_run_and_up_agree_under_late_bursty_dispatch_and_a_lossy_fleet_broadcast_medium(live_run, tmp_path):
     check_faulted(live_run, tmp_path, "medium", steps=300)
+
+
+class _SlowKeysNetwork:
+    """A LocalNetwork whose transport carries the samples of some keys ``lag`` wall seconds behind the others, as
+    Zenoh may: each subscription of a session has its own callback thread, so a sample on one key can reach its
+    handler after a later one on another key of the same sender."""
+
+    def __new__(cls, slow: str, lag: float):
+        from schemas.keys import matches
+        from services.bus.local import LocalBus, LocalNetwork
+
+        class SlowBus(LocalBus):
+            def _send(self, sample, droppable):
+                if not matches(slow, sample.key):
+                    return super()._send(sample, droppable)
+                loop = asyncio.get_running_loop()
+                for bus, sub in [(b, s) for b, s in self.network.subscribers if matches(s.key_expr, sample.key)]:
+                    loop.call_later(lag, bus._ingress, sub, sample)
+
+        class SlowNetwork(LocalNetwork):
+            def session(self, identity):
+                return SlowBus(self, identity)
+
+        return SlowNetwork()
+
+
+def test_a_refusal_that_reaches_its_robot_after_later_ticks_changes_nothing(tmp_path):
+    """The sim's refusals carried 0.2 s behind everything else: every robot's decision point waits for the
+    refusals its on-board state announces, so the run is the lab's, outcome counters included (without the wait, a
+    picker whose refusal came in after the tick it was due by counted its commitment as expired)."""
+    from morph_sim.lab.runner import EpisodeSpec, run_episode
+
+    specs, steps = faulted_specs(), 60
+    sched = tmp_path / "faults.toml"
+    sched.write_text(schedule_toml(specs))
+    lab = run_episode(EpisodeSpec(scale="tiny", condition="morph", preset="reference", seed=7, steps=steps,
+                                  fiedler_every=1, faults=specs))
+    config = RunConfig(run_id="slow", scale="tiny", policy="morph", preset="reference", steps=steps, seed=7,
+                       phase_timeout=20.0, fault_schedule=sched, output_dir=tmp_path / "local")
+    run = asyncio.run(run_local(config, network=_SlowKeysNetwork("morph/slow/sim/refusal/*", 0.2)))
+    assert lab.summary["protocol_refused_stale"] > 0  # refusals were sent, and went the slow way
+    protocol = run.sim.protocol
+    for name in ("requests", "declined", "expired", "commitment_expired", "late_applied", "refused_stale"):
+        assert protocol[name] == lab.summary[f"protocol_{name}"], name
+    rows = run.monitor.rows
+    assert [r["deliveries_total"] for r in rows] == list(lab.ticks["deliveries"])
+    assert [r["dispatch_commitment_expired"] for r in rows][-1] == lab.summary["protocol_commitment_expired"]

@@ -119,6 +119,12 @@ class AgentService:
         self._reply_base = (0, 0)  # (step of the outstanding request, replies announced to this AGV before it)
         self._holding = False  # picker: the request arriving right now is about to be held by the fault layer
         self._replies_seen: set[tuple[str, int]] = set()
+        # refusals to this robot that physically arrived, per boundary tick they were sent at, after the base: (the
+        # tick of the last decision point that had them all, the sim's count then); None before the first one
+        self._refusal_key = self.keys.refusal(agent_id)
+        self._refusal_arrivals: dict[int, int] = {}
+        self._refusal_base: tuple[int, int] | None = None
+        self._refusals_seen: set[tuple[str, int]] = set()
 
     def _reject(self, what: str, why: object) -> None:
         self._rejects.count(what, why)
@@ -273,6 +279,16 @@ class AgentService:
             except ValueError:
                 return  # the handler rejects it if it is ever delivered
             self.faults.skip(self.bus, self.id, t, phase)
+        elif missed and key == self._refusal_key:
+            if sample.sender != "sim":
+                return
+            try:
+                msg = sample.decode(Refusal)
+            except ValueError:
+                return
+            if self.id in (msg.agv, msg.picker):
+                with self._lock:
+                    self._count_refusal(sample, msg.t)
         elif missed and self.is_agv and "/reply/" in key:
             try:
                 msg = sample.decode(HelpReply)
@@ -381,9 +397,12 @@ class AgentService:
         if ob is None or self._fleet_arrived < ob.t:
             return
         final = ob.final or ob.t >= self.config.steps
-        if self.is_agv and not final and self.config.mode == "lockstep" and self.endpoint.outstanding is not None \
+        lockstep = self.config.mode == "lockstep"
+        if self.is_agv and not final and lockstep and self.endpoint.outstanding is not None \
                 and self._replies_owed(ob.replied) > 0:
             return  # (paced: a real-time robot acts on what it has; an answer on its way counts when it arrives)
+        if lockstep and self._refusals_owed(ob) > 0:
+            return
         self._onboard = None
         self._act(ob, final)
 
@@ -393,6 +412,32 @@ class AgentService:
         since, base = self._reply_base
         arrived = sum(n for t, n in self._reply_arrivals.items() if t >= since)
         return announced - base - arrived
+
+    def _refusals_owed(self, ob: OnBoard) -> int:
+        """Refusals the sim sent to this robot by tick ``ob.t`` (each at a step boundary, before that tick's on-board
+        state) that have not physically arrived yet; with ``_lock`` held. Those sent before this process's first
+        on-board state are not waited for: a restarted robot's predecessor had them. Once none is owed, what arrived
+        up to ``ob.t`` becomes the base."""
+        base = self._refusal_base
+        if base is None:
+            base = (ob.t, ob.refused)
+        since, count = base
+        arrived = sum(n for t, n in self._refusal_arrivals.items() if since < t <= ob.t)
+        owed = ob.refused - count - arrived
+        if owed <= 0:
+            self._refusal_base = (ob.t, ob.refused)
+            self._refusal_arrivals = {t: n for t, n in self._refusal_arrivals.items() if t > ob.t}
+        return owed
+
+    def _count_refusal(self, sample: Sample, t: int) -> None:
+        """A refusal to this robot, sent at the boundary that starts tick ``t``, physically arrived (once per copy
+        sent, whatever the network did to it); with ``_lock`` held. Resumes a decision point waiting for it."""
+        key = (sample.sender, sample.seq)
+        if key in self._refusals_seen:
+            return
+        self._refusals_seen.add(key)
+        self._refusal_arrivals[t] = self._refusal_arrivals.get(t, 0) + 1
+        self._try_act()
 
     def _count_reply(self, sample: Sample, t: int) -> None:
         """A reply to this AGV, decided at step ``t``, physically arrived (once per copy sent, whatever the network
@@ -507,6 +552,7 @@ class AgentService:
                 self.endpoint.receive(refusal, self.outcomes)
             else:
                 self.endpoint.receive(refusal, self._due(sample, msg.t * self.config.dt), self.outcomes)
+            self._count_refusal(sample, msg.t)  # after it took effect: a decision point waiting for it goes now
 
     def _due(self, sample: Sample, sent: float) -> float:
         """A protocol message's delivery time, sim seconds: the fault layer's (send time + latency, continuous), or

@@ -264,6 +264,7 @@ class SimService:
         self._desk_lock = threading.Lock()
         self._more: set[int] = set()  # pickers that asked for the next decision point (requests still to come)
         self._replied = [0] * config.n_agvs  # replies sent to each AGV so far (each Tick tells the AGVs)
+        self._refused = [0] * self.n  # refusals sent to each robot so far (its on-board state tells it)
         self._probe_round = 0
         self._running = False  # between tick 0 and the end: only then does a leaving agent count as absent
         self._monitor_rows: int | None = None  # rows the monitor reported written (None: not heard since it joined)
@@ -471,6 +472,8 @@ class SimService:
             refusal = Refusal(t=obs.t + 1, picker=r.picker, agv=r.agv, commit_seq=r.commit_seq)
             await self.bus.publish(self.keys.refusal(r.agv), refusal)
             await self.bus.publish(self.keys.refusal(r.picker), refusal)
+            self._refused[r.agv] += 1
+            self._refused[r.picker] += 1
         return applied
 
     # -- main ----------------------------------------------------------------------------------------------------------
@@ -544,11 +547,11 @@ class SimService:
         tick = encode_tick_body(body)
         bus.put(k.tick, tick)
         free = set(body["free_pickers"])
-        replied, n_agvs = self._replied, self.config.n_agvs
+        replied, refused, n_agvs = self._replied, self._refused, self.config.n_agvs
         # each robot takes its on-board state and the broadcast together (over Zenoh in one message: bus.put_together)
         bus.put_together((k.fleet, tick), [
             (self._onboard_keys[robot], encode_fields(OnBoard, **onboard_fields(
-                body, robot, robot in free, replied[robot] if robot < n_agvs else 0)))
+                body, robot, robot in free, replied[robot] if robot < n_agvs else 0, refused[robot])))
             for robot in range(self.n)])
 
     async def _event(self, kind: str, **details) -> None:
