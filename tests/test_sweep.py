@@ -15,7 +15,7 @@ import pytest
 
 from morph_sim.lab.sweep import SweepPlan, run_sweep
 
-from _procs import kill_tree, terminal_signals
+from _procs import alive, descendants, kill_tree, terminal_signals
 
 # The acceptance sweep: 3 policies × 3 loss levels × 2 scales × 5 seeds = 90 episodes. The default suite runs it with
 # short episodes and two seeds; the slow versions run it whole at the studies' length.
@@ -53,8 +53,14 @@ def _interrupt_at_half(args: list[str], log: Path, sig: int, total: int) -> subp
             assert proc.poll() is None, proc.communicate()
             assert time.monotonic() < deadline, "the sweep did not reach half"
             time.sleep(0.01)
+        workers = descendants(proc.pid)
         proc.send_signal(sig)
         out, err = proc.communicate(timeout=60)
+        if sig == signal.SIGINT:  # the workers ignore SIGINT: the sweep stops them, none is left running
+            deadline = time.monotonic() + 10
+            while alive(workers) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert not alive(workers), f"workers of the interrupted sweep still run: {alive(workers)}"
         return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
     finally:
         kill_tree(proc)

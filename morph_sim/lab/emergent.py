@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from morph_sim.lab.executors import episode_pool
 from morph_sim.lab.runner import EpisodeSpec, check_nonempty, run_episode
-from morph_sim.lab.suite import _git_revision, _jsonable, _versions, episode_pool
+from morph_sim.lab.suite import _git_revision, _jsonable, _versions
 from services.monitor import catalogue, metrics
 
 SNAPSHOT_TICKS = (0, 100, 200, 400, 600, 800, 1500)

@@ -4,8 +4,9 @@ An executor maps a picklable, module-level function over a list of picklable tas
 finish (any order; callers key results by task). Both executors run the same function on the same tasks, so a
 result does not depend on where it was computed: every episode seeds its own streams from its task.
 
-* :class:`LocalExecutor` — ``jobs`` forked worker processes (``jobs=1``: in this process, no pool). Workers ignore
-  SIGINT so Ctrl-C reaches only the parent, which terminates the pool; nothing keeps running after an interrupt.
+* :class:`LocalExecutor` — ``jobs`` worker processes of :func:`episode_pool`, the one pool of this machine's
+  processes every study uses (``jobs=1``: in this process, no pool). Workers ignore SIGINT so Ctrl-C reaches only
+  the parent, which stops them; nothing keeps running after an interrupt.
 * :class:`DaskExecutor` — a ``dask.distributed`` client on a scheduler address (``tcp://HOST:8786``) or an existing
   client/cluster; needs the optional extra ``pip install 'morph-sim[cluster]'``. The workers need morph-sim
   installed at the same version (see docs/sweep.md, two-machine recipe).
@@ -17,6 +18,8 @@ import multiprocessing as mp
 import signal
 import sys
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Executor as PoolExecutor, Future, ProcessPoolExecutor, as_completed
+from contextlib import contextmanager
 from typing import Any, Protocol
 
 EXECUTORS = ("local", "dask")
@@ -29,9 +32,57 @@ class Executor(Protocol):
     def close(self) -> None: ...
 
 
+#: seconds a stopped worker gets to end before the parent goes on
+STOP_WAIT = 5.0
+
+
 def _ignore_sigint() -> None:
     # Ctrl-C goes to the whole process group; only the parent decides what an interrupt means.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+class _InProcess(PoolExecutor):
+    """``jobs == 1``: each episode runs in this process when submitted (no worker process to start or feed)."""
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        future: Future = Future()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except BaseException as exc:  # delivered by future.result(), as a pool would
+            future.set_exception(exc)
+        return future
+
+
+@contextmanager
+def episode_pool(jobs: int) -> Iterator[PoolExecutor]:
+    """This machine's worker processes for episodes: forked (nothing is imported again per worker) and deaf to
+    SIGINT. When the parent leaves the block on an error or an interrupt, queued episodes are dropped and running
+    ones stopped, so nothing outlives the command; on a normal exit it waits for every episode submitted."""
+    if jobs < 1:
+        raise ValueError(f"jobs: must be at least 1, got {jobs}")
+    if jobs == 1:
+        yield _InProcess()
+        return
+    pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("fork" if sys.platform != "win32" else "spawn"),
+                               initializer=_ignore_sigint)
+    try:
+        yield pool
+    except BaseException:
+        _stop(pool)
+        raise
+    pool.shutdown(wait=True)
+
+
+def _stop(pool: ProcessPoolExecutor) -> None:
+    """Drop the queued episodes and end the workers (they ignore SIGINT, so only the parent can stop them).
+    ProcessPoolExecutor gains a method for this in Python 3.14; before it, the pool's own process table."""
+    workers = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for worker in workers:
+        if worker.is_alive():
+            worker.terminate()
+    for worker in workers:
+        worker.join(STOP_WAIT)
 
 
 class LocalExecutor:
@@ -39,31 +90,26 @@ class LocalExecutor:
         if jobs < 1:
             raise ValueError(f"jobs: must be at least 1, got {jobs}")
         self.jobs = jobs
-        self._pool = None
+        self._running: Iterator[Any] | None = None
 
     def map_unordered(self, fn, tasks):
-        tasks = list(tasks)
+        self._running = self._results(fn, list(tasks))
+        return self._running
+
+    def _results(self, fn, tasks):
         if self.jobs == 1 or len(tasks) <= 1:
             for task in tasks:
                 yield fn(task)
             return
-        ctx = mp.get_context("fork" if sys.platform != "win32" else "spawn")
-        self._pool = ctx.Pool(processes=min(self.jobs, len(tasks)), initializer=_ignore_sigint)
-        try:
-            yield from self._pool.imap_unordered(fn, tasks)
-            self._pool.close()
-        except BaseException:
-            self._pool.terminate()
-            raise
-        finally:
-            self._pool.join()
-            self._pool = None
+        with episode_pool(min(self.jobs, len(tasks))) as pool:
+            for future in as_completed([pool.submit(fn, task) for task in tasks]):
+                yield future.result()
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.terminate()
-            self._pool.join()
-            self._pool = None
+        """Stop what :meth:`map_unordered` still runs (a caller that left its loop early)."""
+        if self._running is not None:
+            self._running.close()  # GeneratorExit in the pool's block: its workers are stopped
+            self._running = None
 
 
 class DaskExecutor:

@@ -22,6 +22,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from morph_sim.lab.executors import episode_pool
 from morph_sim.lab.runner import (
     REFERENCE_SEEDS,
     EpisodeResult,
@@ -30,7 +31,7 @@ from morph_sim.lab.runner import (
     check_nonempty,
     run_episode,
 )
-from morph_sim.lab.suite import _git_revision, _jsonable, _num, _versions, episode_pool
+from morph_sim.lab.suite import _git_revision, _jsonable, _num, _versions
 from services.monitor import metrics
 
 #: shift condition key -> (label, lab condition, MORPH preset)

@@ -11,15 +11,12 @@ from __future__ import annotations
 
 import csv
 import json
-import multiprocessing as mp
 import os
 import platform
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
-from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
-from contextlib import contextmanager
+from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -28,6 +25,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from morph_sim.lab.executors import episode_pool
 from morph_sim.lab.runner import (
     CONDITIONS,
     REFERENCE_SEEDS,
@@ -101,31 +99,6 @@ class SuiteResult:
 
 def _work(spec: EpisodeSpec) -> EpisodeResult:
     return run_episode(spec)
-
-
-class _InProcess(Executor):
-    """``jobs == 1``: each episode runs in this process when submitted (no worker process to start or feed)."""
-
-    def submit(self, fn, /, *args, **kwargs) -> Future:
-        future: Future = Future()
-        try:
-            future.set_result(fn(*args, **kwargs))
-        except BaseException as exc:  # delivered by future.result(), as a pool would
-            future.set_exception(exc)
-        return future
-
-
-@contextmanager
-def episode_pool(jobs: int) -> Iterator[Executor]:
-    """Worker processes for episodes (forked: no re-import per worker); on an error the queued episodes are dropped."""
-    pool = (ProcessPoolExecutor(jobs, mp_context=mp.get_context("fork" if sys.platform != "win32" else "spawn"))
-            if jobs > 1 else _InProcess())
-    try:
-        yield pool
-    except BaseException:
-        pool.shutdown(wait=False, cancel_futures=True)
-        raise
-    pool.shutdown(wait=True)
 
 
 class _Scheduler:
