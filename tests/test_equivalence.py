@@ -146,28 +146,42 @@ def test_lab_run_and_up_agree_under_late_bursty_dispatch_and_a_lossy_fleet_broad
     check_faulted(live_run, tmp_path, "medium", steps=300)
 
 
-class _SlowKeysNetwork:
-    """A LocalNetwork whose transport carries the samples of some keys ``lag`` wall seconds behind the others, as
-    Zenoh may: each subscription of a session has its own callback thread, so a sample on one key can reach its
-    handler after a later one on another key of the same sender."""
 
-    def __new__(cls, slow: str, lag: float):
-        from schemas.keys import matches
-        from services.bus.local import LocalBus, LocalNetwork
+# ---------------------------------------------------------------------------------------------------------------
+# Arrival order. Over Zenoh each subscription of a session has its own callback thread, so a sample on one key can
+# reach its handler after a later one on another key of the same sender; the in-process bus always delivers in send
+# order. A decision point must not depend on it: these runs carry some keys behind the rest and must not change.
+# ---------------------------------------------------------------------------------------------------------------
+def lagging_network(pattern: str, lag: float):
+    """A LocalNetwork whose transport carries the samples of keys matching ``pattern`` ``lag`` wall seconds behind
+    every other sample."""
+    from schemas.keys import matches
+    from services.bus.local import LocalBus, LocalNetwork
 
-        class SlowBus(LocalBus):
-            def _send(self, sample, droppable):
-                if not matches(slow, sample.key):
-                    return super()._send(sample, droppable)
-                loop = asyncio.get_running_loop()
-                for bus, sub in [(b, s) for b, s in self.network.subscribers if matches(s.key_expr, sample.key)]:
-                    loop.call_later(lag, bus._ingress, sub, sample)
+    class LaggingBus(LocalBus):
+        def _send(self, sample, droppable):
+            if not matches(pattern, sample.key):
+                return super()._send(sample, droppable)
+            loop = asyncio.get_running_loop()
+            for bus, sub in [(b, s) for b, s in self.network.subscribers if matches(s.key_expr, sample.key)]:
+                loop.call_later(lag, bus._ingress, sub, sample)
 
-        class SlowNetwork(LocalNetwork):
-            def session(self, identity):
-                return SlowBus(self, identity)
+    class LaggingNetwork(LocalNetwork):
+        def session(self, identity):
+            return LaggingBus(self, identity)
 
-        return SlowNetwork()
+    return LaggingNetwork()
+
+
+def _run_twice(tmp_path: Path, specs, pattern: str, lag: float, **config) -> tuple:
+    """The same run in send order and with ``pattern``'s keys lagging: (plain, lagging) LocalRuns and records."""
+    sched = tmp_path / "faults.toml"
+    sched.write_text(schedule_toml(specs))
+    out = []
+    for name, network in (("plain", None), ("lagging", lagging_network(f"morph/{config['run_id']}/{pattern}", lag))):
+        cfg = RunConfig(**config, phase_timeout=20.0, fault_schedule=sched, output_dir=tmp_path / name)
+        out.append((asyncio.run(run_local(cfg, network=network)), (cfg.record_dir / "metrics.csv").read_bytes()))
+    return out
 
 
 def test_a_refusal_that_reaches_its_robot_after_later_ticks_changes_nothing(tmp_path):
@@ -177,13 +191,13 @@ def test_a_refusal_that_reaches_its_robot_after_later_ticks_changes_nothing(tmp_
     from morph_sim.lab.runner import EpisodeSpec, run_episode
 
     specs, steps = faulted_specs(), 60
-    sched = tmp_path / "faults.toml"
-    sched.write_text(schedule_toml(specs))
     lab = run_episode(EpisodeSpec(scale="tiny", condition="morph", preset="reference", seed=7, steps=steps,
                                   fiedler_every=1, faults=specs))
+    sched = tmp_path / "faults.toml"
+    sched.write_text(schedule_toml(specs))
     config = RunConfig(run_id="slow", scale="tiny", policy="morph", preset="reference", steps=steps, seed=7,
                        phase_timeout=20.0, fault_schedule=sched, output_dir=tmp_path / "local")
-    run = asyncio.run(run_local(config, network=_SlowKeysNetwork("morph/slow/sim/refusal/*", 0.2)))
+    run = asyncio.run(run_local(config, network=lagging_network("morph/slow/sim/refusal/*", 0.2)))
     assert lab.summary["protocol_refused_stale"] > 0  # refusals were sent, and went the slow way
     protocol = run.sim.protocol
     for name in ("requests", "declined", "expired", "commitment_expired", "late_applied", "refused_stale"):
@@ -191,3 +205,32 @@ def test_a_refusal_that_reaches_its_robot_after_later_ticks_changes_nothing(tmp_
     rows = run.monitor.rows
     assert [r["deliveries_total"] for r in rows] == list(lab.ticks["deliveries"])
     assert [r["dispatch_commitment_expired"] for r in rows][-1] == lab.summary["protocol_commitment_expired"]
+
+
+def test_a_picker_that_lost_its_on_board_state_waits_for_its_refusals_at_the_resolve(tmp_path):
+    """A picker whose on-board state is lost skips its tick but still decides at that tick's Resolve: there too it
+    waits for the refusals the lost state announced (without, the refusal of the boundary came in after its decision,
+    it declined where the run in send order committed, and the runs parted at row 57)."""
+    from schemas.faults import FaultSpec, Loss, Scope
+
+    specs = [s for s in faulted_specs() if "refusal" not in s.scope.key_expr]
+    specs.append(FaultSpec(id="lost-onboard", seed=12, scope=Scope(key_expr="sim/@onboard/*"), loss=Loss(percent=30)))
+    (plain, plain_csv), (lagging, lagging_csv) = _run_twice(
+        tmp_path, specs, "sim/refusal/*", 0.2, run_id="sk", scale="tiny", policy="full", preset="reference", steps=70,
+        seed=3)
+    assert plain.sim.protocol["refused_stale"] > 0 and plain.sim.absences == lagging.sim.absences
+    assert lagging_csv == plain_csv
+
+
+def test_duplicated_requests_count_at_the_pickers_decision_point_whenever_they_arrive(tmp_path):
+    """Copies of requests with no latency, the pickers' on-board states 20 ms behind: a copy reaches a picker before
+    or after its tick, and is counted at its decision point either way (counted on arrival, the duplicates column
+    moved a row earlier in nine rows of sixty)."""
+    from schemas.faults import Duplicate, FaultSpec, Scope
+
+    specs = [FaultSpec(id="dup", seed=5, scope=Scope(key_expr="agent/*/request/*"), duplicate=Duplicate(percent=60))]
+    (plain, plain_csv), (lagging, lagging_csv) = _run_twice(
+        tmp_path, specs, "sim/@onboard/*", 0.02, run_id="dup", scale="tiny", policy="full", preset="reference",
+        steps=60, seed=3)
+    assert plain.sim.protocol["duplicates"] > 0
+    assert lagging_csv == plain_csv

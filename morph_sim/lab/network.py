@@ -317,7 +317,7 @@ class LabDispatch:
         self._deliver(s_pick)
         self.sent_commits = []
         for picker, endpoint in ep.pickers.items():
-            if not endpoint.inbox and endpoint.pending is None:
+            if not endpoint.inbox and endpoint.pending is None and not endpoint.copies:
                 continue
             view = obs if self.views is None else self.views[picker].view
             order = view.request_order if view is not None else ()

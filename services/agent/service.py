@@ -124,6 +124,9 @@ class AgentService:
         self._refusal_key = self.keys.refusal(agent_id)
         self._refusal_arrivals: dict[int, int] = {}
         self._refusal_base: tuple[int, int] | None = None
+        # (tick, refusals sent to this robot by then) of the newest on-board state that arrived, acted on or not: a
+        # picker that skipped its tick still decides at that tick's Resolve, with the refusals it announced
+        self._announced: tuple[int, int] | None = None
         self._refusals_seen: set[tuple[str, int]] = set()
 
     def _reject(self, what: str, why: object) -> None:
@@ -268,9 +271,12 @@ class AgentService:
                 return
             try:
                 if onboard:
-                    t, phase = sample.decode(OnBoard).t, Phase.TICK
+                    ob = sample.decode(OnBoard)
+                    t, phase = ob.t, Phase.TICK
                     if t <= self.last_t:
                         return
+                    with self._lock:
+                        self._announce(ob)
                 else:
                     msg = sample.decode(Resolve)
                     if not msg.expected(self.id):
@@ -385,6 +391,7 @@ class AgentService:
         self.last_t = msg.t
         self.counters.ticks += 1
         with self._lock:
+            self._announce(msg)
             self._onboard = msg
             self._try_act()
 
@@ -401,7 +408,7 @@ class AgentService:
         if self.is_agv and not final and lockstep and self.endpoint.outstanding is not None \
                 and self._replies_owed(ob.replied) > 0:
             return  # (paced: a real-time robot acts on what it has; an answer on its way counts when it arrives)
-        if lockstep and self._refusals_owed(ob) > 0:
+        if lockstep and self._refusals_owed() > 0:
             return
         self._onboard = None
         self._act(ob, final)
@@ -413,20 +420,25 @@ class AgentService:
         arrived = sum(n for t, n in self._reply_arrivals.items() if t >= since)
         return announced - base - arrived
 
-    def _refusals_owed(self, ob: OnBoard) -> int:
-        """Refusals the sim sent to this robot by tick ``ob.t`` (each at a step boundary, before that tick's on-board
-        state) that have not physically arrived yet; with ``_lock`` held. Those sent before this process's first
-        on-board state are not waited for: a restarted robot's predecessor had them. Once none is owed, what arrived
-        up to ``ob.t`` becomes the base."""
-        base = self._refusal_base
-        if base is None:
-            base = (ob.t, ob.refused)
-        since, count = base
-        arrived = sum(n for t, n in self._refusal_arrivals.items() if since < t <= ob.t)
-        owed = ob.refused - count - arrived
+    def _announce(self, ob: OnBoard) -> None:
+        """An on-board state arrived (delivered, or skipped by the fault layer); with ``_lock`` held."""
+        if self._announced is None or ob.t > self._announced[0]:
+            self._announced = (ob.t, ob.refused)
+
+    def _refusals_owed(self) -> int:
+        """Refusals the sim sent to this robot by the tick of its newest on-board state (each at a step boundary,
+        before that tick's on-board state) that have not physically arrived yet; with ``_lock`` held. Those sent
+        before this process's first on-board state are not waited for: a restarted robot's predecessor had them.
+        Once none is owed, what arrived up to that tick becomes the base."""
+        if self._announced is None:
+            return 0
+        upto, announced = self._announced
+        since, count = self._refusal_base if self._refusal_base is not None else self._announced
+        arrived = sum(n for t, n in self._refusal_arrivals.items() if since < t <= upto)
+        owed = announced - count - arrived
         if owed <= 0:
-            self._refusal_base = (ob.t, ob.refused)
-            self._refusal_arrivals = {t: n for t, n in self._refusal_arrivals.items() if t > ob.t}
+            self._refusal_base = self._announced
+            self._refusal_arrivals = {t: n for t, n in self._refusal_arrivals.items() if t > upto}
         return owed
 
     def _count_refusal(self, sample: Sample, t: int) -> None:
@@ -438,6 +450,7 @@ class AgentService:
         self._refusals_seen.add(key)
         self._refusal_arrivals[t] = self._refusal_arrivals.get(t, 0) + 1
         self._try_act()
+        self._try_decide()
 
     def _count_reply(self, sample: Sample, t: int) -> None:
         """A reply to this AGV, decided at step ``t``, physically arrived (once per copy sent, whatever the network
@@ -619,6 +632,8 @@ class AgentService:
         if self._pending is None:
             return
         t, expected = self._pending
+        if self.config.mode == "lockstep" and self._refusals_owed() > 0:
+            return  # a refusal announced by this tick's on-board state is on its way: it may end the commitment
         got = self._inbox.get(t, {})
         # with faults: decide once every expected request has *arrived* — delivered by the resolve boundary (in got),
         # or dropped / held past it (in _arrived, virtual time: the same set whatever the wall order of arrivals)

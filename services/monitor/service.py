@@ -65,6 +65,11 @@ NET_STREAMS = tuple(m.name.split("/", 1)[1] for m in catalogue.CATALOGUE if m.so
 PROTOCOL_KINDS = ("sim", "ack", "request", "reply", "commit")  # what the monitor's own network model can see
 
 
+def _by_id(values: dict[int, float]) -> list[float]:
+    """Per-agent values in agent-id order, whatever order their acks came in."""
+    return [values[a] for a in sorted(values)]
+
+
 @dataclass
 class Row:
     t: int
@@ -74,11 +79,12 @@ class Row:
     commits: int = 0
     ackers: set[int] = field(default_factory=set)
     links: dict[int, list[int]] = field(default_factory=dict)
-    etas: list[float] = field(default_factory=list)
+    # per agent, summed in id order: a float sum in arrival order would differ between two runs of the same seed
+    etas: dict[int, float] = field(default_factory=dict)
     # dispatch outcomes by the end of step t: each robot's counts (its ack of t+1), the sim's (its tick t+1)
     outcomes: dict[int, dict[str, int]] = field(default_factory=dict)
     sim_outcomes: dict[str, int] | None = None
-    view_ages: list[float] = field(default_factory=list)
+    view_ages: dict[int, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -356,7 +362,7 @@ class MonitorService:
                 row.ackers.add(ack.agent)
                 row.requests += len(ack.requests_sent)
                 if ack.view_age is not None:
-                    row.view_ages.append(ack.view_age)
+                    row.view_ages[ack.agent] = ack.view_age
                 if ack.requests_sent:
                     self.stats.requested(ack.t, ack.agent)
         if ack.outcomes is not None and 0 < ack.t <= self.config.steps:
@@ -377,7 +383,7 @@ class MonitorService:
             return
         row.links[agent] = [j for j in links if 0 <= j < self.n]
         if eta is not None and self._link_shift:
-            row.etas.append(float(eta))
+            row.etas[agent] = float(eta)
 
     def _on_commit(self, commit: Commit, chunk: str) -> None:
         self._check_sender(chunk, commit.picker)
@@ -476,11 +482,11 @@ class MonitorService:
         values = {
             "t": row.t, "sim_time": row.sim_time, "deliveries": row.deliveries, "deliveries_total": self._total,
             "requests": row.requests, "commits": row.commits, "links": link_count,
-            "lambda2": lambda2, "eta": float(np.mean(row.etas)) if row.etas else None,
+            "lambda2": lambda2, "eta": float(np.mean(_by_id(row.etas))) if row.etas else None,
             "acks": len(row.ackers), **catalogue.w_block_values(block),
             **self._outcome_values(row),
         }
-        values["view_age_mean"], values["view_age_max"] = view_age_stats(row.view_ages)
+        values["view_age_mean"], values["view_age_max"] = view_age_stats(_by_id(row.view_ages))
         self.result.deliveries_total = self._total
         self._last_values = values
         self._links_sum += values["links"]
@@ -636,4 +642,3 @@ class MonitorService:
             key = self.keys.latest("agent", str(agent))
             if intersects(key, query.key_expr):
                 query.reply(key, state)
-

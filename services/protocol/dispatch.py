@@ -269,13 +269,16 @@ class PickerEndpoint:
         self.pending: Commitment | None = None
         self.refusals: list[tuple[float, Refusal]] = []  # (delivery time, refusal) not yet taken into account
         self._seen: set[tuple[int, int]] = set()  # (agv, seq) of every request delivered
+        # delivery times of copies of requests already seen, counted at the first decision point at or after them:
+        # when a copy reaches a robot's process is a matter of threads, its decision points are not
+        self.copies: list[float] = []
         self._seq = 0
 
     def receive(self, msg: Request | Refusal, due: float, outcomes: Outcomes) -> None:
         if isinstance(msg, Request):
             key = (msg.agv, msg.seq)
             if key in self._seen:
-                outcomes.duplicates += 1
+                self.copies.append(due)
                 return
             self._seen.add(key)
             self.inbox.append((due, msg))
@@ -286,7 +289,12 @@ class PickerEndpoint:
         """At the picker's decision point ``now``: a commitment in flight ends when its refusal was delivered by
         then, when the on-board state says the picker has a mission (it took effect), or expires unanswered after
         ``timeout``. Called at every decision point of a picker with a commitment in flight, whether or not
-        requests wait (idempotent at one ``now``)."""
+        requests wait (idempotent at one ``now``). Copies of requests delivered by then are counted here."""
+        if self.copies:
+            counted = [d for d in self.copies if d <= now + EPS]
+            if counted:
+                outcomes.duplicates += len(counted)
+                self.copies = [d for d in self.copies if d > now + EPS]
         if self.refusals:
             due = [r for d, r in self.refusals if d <= now + EPS]
             self.refusals = [(d, r) for d, r in self.refusals if d > now + EPS]
