@@ -105,7 +105,8 @@ def test_faults_set_at_tick_on_a_live_up_run_equals_the_scheduled_localbus_run(t
     up.wait_for_rows(2, timeout=60)  # the run is under way
     spec = json.dumps(SPEC.model_dump(mode="json", exclude_none=True))
     cli = subprocess.run([sys.executable, "-m", "morph_sim.cli", "faults", "set", "--run", "live", "--endpoint",
-                          up.endpoint, "--spec", spec, "--at-tick", str(at), "--each"],
+                          up.endpoint, "--output-dir", str(up.output_dir),  # the operator's credentials of the run
+                          "--spec", spec, "--at-tick", str(at), "--each"],
                          capture_output=True, text=True, timeout=60)
     replies = [json.loads(line) for line in cli.stdout.splitlines()]
     assert cli.returncode == 0 and len(replies) >= 9 and all(r["ok"] for r in replies), (cli.stdout, cli.stderr)
