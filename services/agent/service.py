@@ -442,25 +442,23 @@ class AgentService:
         return owed
 
     def _count_refusal(self, sample: Sample, t: int) -> None:
-        """A refusal to this robot, sent at the boundary that starts tick ``t``, physically arrived (once per copy
-        sent, whatever the network did to it); with ``_lock`` held. Resumes a decision point waiting for it."""
-        key = (sample.sender, sample.seq)
-        if key in self._refusals_seen:
-            return
-        self._refusals_seen.add(key)
-        self._refusal_arrivals[t] = self._refusal_arrivals.get(t, 0) + 1
-        self._try_act()
-        self._try_decide()
+        """A refusal to this robot, sent at the boundary that starts tick ``t``, physically arrived."""
+        self._note_arrival(sample, t, self._refusals_seen, self._refusal_arrivals)
 
     def _count_reply(self, sample: Sample, t: int) -> None:
-        """A reply to this AGV, decided at step ``t``, physically arrived (once per copy sent, whatever the network
-        did to it); with ``_lock`` held. Resumes a decision point whose replies are all in."""
+        """A reply to this AGV, decided at step ``t``, physically arrived."""
+        self._note_arrival(sample, t, self._replies_seen, self._reply_arrivals)
+
+    def _note_arrival(self, sample: Sample, t: int, seen: set[tuple[str, int]], arrivals: dict[int, int]) -> None:
+        """Count one arrival of ``sample`` (once per copy sent, whatever the network did to it) under its step ``t``;
+        with ``_lock`` held. Resumes a decision point waiting for it."""
         key = (sample.sender, sample.seq)
-        if key in self._replies_seen:
+        if key in seen:
             return
-        self._replies_seen.add(key)
-        self._reply_arrivals[t] = self._reply_arrivals.get(t, 0) + 1
+        seen.add(key)
+        arrivals[t] = arrivals.get(t, 0) + 1
         self._try_act()
+        self._try_decide()
 
     def _act(self, ob: OnBoard, final: bool) -> None:
         """This robot's decision point of step t (with ``_lock`` held): learn from a new fleet view, then, as an
