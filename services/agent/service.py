@@ -119,15 +119,15 @@ class AgentService:
         self._reply_base = (0, 0)  # (step of the outstanding request, replies announced to this AGV before it)
         self._holding = False  # picker: the request arriving right now is about to be held by the fault layer
         self._replies_seen: set[tuple[str, int]] = set()
-        # refusals to this robot that physically arrived, per boundary tick they were sent at, after the base: (the
-        # tick of the last decision point that had them all, the sim's count then); None before the first one
         self._refusal_key = self.keys.refusal(agent_id)
+        # refusals to this robot that physically arrived, per boundary tick they were sent at, since the base: (the
+        # tick of the last decision point that had them all, the sim's count then); None before the first one
         self._refusal_arrivals: dict[int, int] = {}
         self._refusal_base: tuple[int, int] | None = None
+        self._refusals_seen: set[tuple[str, int]] = set()
         # (tick, refusals sent to this robot by then) of the newest on-board state that arrived, acted on or not: a
         # picker that skipped its tick still decides at that tick's Resolve, with the refusals it announced
         self._announced: tuple[int, int] | None = None
-        self._refusals_seen: set[tuple[str, int]] = set()
 
     def _reject(self, what: str, why: object) -> None:
         self._rejects.count(what, why)
