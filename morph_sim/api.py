@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
-from services.monitor import catalogue
+from services.metrics import catalogue
 from services.runconfig import RunConfig
 
 DATA_HINT = "pip install 'morph-sim[data]'"
@@ -364,7 +364,7 @@ def run(base: RunConfig | Mapping[str, Any] | None = None, **fields: Any) -> Rec
 
     >>> rec = run(policy="full", scale="tiny", steps=100, seed=1, output_dir="runs")
     """
-    from services.supervisor.local import run_local
+    from morph_sim.local import run_local
 
     cfg = config(base, **fields)
     _in_fresh_loop(lambda: run_local(cfg, record=True))

@@ -3,7 +3,7 @@
 A profile describes the radio side of the fleet: where the access points are, how a robot roams between them
 (hysteresis, hand-over outage), where the racks fade the signal (dead zones), the per-leg latency and loss, and the
 bandwidth of each robot's radio and of each access point (netem ``rate`` / ``limit``). The model that applies it is
-:mod:`services.faults.network`; named profiles live in ``morph_sim/presets/network/<name>.toml``.
+:mod:`services.faults.network`; named profiles live in ``services/faults/profiles/<name>.toml`` (loaded by :func:`services.faults.network.load_profile`).
 
 Units: times in seconds of sim time, probabilities in percent (as in ``tc netem``), distances in grid cells,
 rates in bytes per second, queue limits in messages (netem ``limit`` counts packets).
@@ -12,10 +12,6 @@ rates in bytes per second, queue limits in messages (netem ``limit`` counts pack
 from __future__ import annotations
 
 import re
-import tomllib
-from functools import lru_cache
-from importlib import resources
-from pathlib import Path
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -108,36 +104,3 @@ def parse_profile(data: dict, where: str = "network profile") -> NetworkProfile:
         return NetworkProfile.model_validate(data)
     except ValidationError as exc:
         raise _explain(exc, where) from None
-
-
-def _profile_dir():
-    return resources.files("morph_sim.presets").joinpath("network")
-
-
-@lru_cache(maxsize=1)
-def profile_names() -> tuple[str, ...]:
-    """The named profiles shipped in morph_sim/presets/network/."""
-    return tuple(sorted(p.name[:-5] for p in _profile_dir().iterdir() if p.name.endswith(".toml")))
-
-
-@lru_cache(maxsize=32)
-def load_profile(name_or_path: str) -> NetworkProfile:
-    """A named profile (``wifi-legacy-roaming``) or a TOML file path; ValueError naming the profile and field."""
-    if name_or_path.endswith(".toml"):
-        path = Path(name_or_path)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ValueError(f"network: cannot read {path}: {exc.strerror}") from None
-        where = f"network {path}"
-    else:
-        if name_or_path not in profile_names():
-            raise ValueError(f"network: unknown profile {name_or_path!r}; choose one of "
-                             f"{', '.join(profile_names())} or give a .toml file")
-        text = _profile_dir().joinpath(name_or_path + ".toml").read_text(encoding="utf-8")
-        where = f"network profile {name_or_path}"
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{where}: not valid TOML: {exc}") from None
-    return parse_profile(data, where)

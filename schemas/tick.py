@@ -27,7 +27,7 @@ The observation
 builds the Tick from it (:func:`tick_fields`), an agent rebuilds it from the decoded arrays
 (:func:`observation_from_arrays`). An agent's brain learns only from a sequence of :class:`TickObservation` objects and decides dispatch
 requests from the latest one; it never reads the warehouse or another agent's memory. The sim's
-controller (``services.sim.world.cta``) produces one observation per tick, and the distributed
+controller (``services.world.cta``) produces one observation per tick, and the distributed
 services carry exactly these fields.
 
 Timing (docs/services.md): the observation for tick ``t`` is taken *after* the controller has assigned items

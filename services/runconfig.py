@@ -23,7 +23,7 @@ from typing import Any, Literal, get_args
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from schemas.keys import validate_run_id
-from services.agent.policies import POLICY_NAMES
+from services.policies.coordinators import POLICY_NAMES
 
 ENV_PREFIX = "MORPH_"
 PRESETS = ("reference", "paper")
@@ -88,7 +88,7 @@ class RunConfig(BaseModel):
     @field_validator("scale")
     @classmethod
     def _scale(cls, value: str) -> str:
-        from services.sim.world.layout import named_sizes
+        from services.world.layout import named_sizes
 
         if value not in named_sizes():
             raise ValueError(f"unknown size {value!r}; choose one of {', '.join(named_sizes())}")
@@ -99,7 +99,7 @@ class RunConfig(BaseModel):
     def _network(cls, value: str | None) -> str | None:
         if value is None or value == "":
             return None
-        from schemas.network import load_profile
+        from services.faults.network import load_profile
 
         try:
             profile = load_profile(value)
@@ -134,7 +134,7 @@ class RunConfig(BaseModel):
     @model_validator(mode="after")
     def _ablation(self) -> RunConfig:
         if self.ablation is not None and self.policy == "morph":
-            from services.agent.presets import ABLATIONS
+            from services.policies.presets import ABLATIONS
 
             if self.ablation != "full" and self.ablation not in ABLATIONS:
                 raise ValueError(f"ablation: unknown {self.ablation!r} (known: {', '.join(ABLATIONS)})")
@@ -146,7 +146,7 @@ class RunConfig(BaseModel):
         # cannot hold before the sim refuses it.
         if self.agvs is None and self.pickers is None:
             return self
-        from services.sim.world.warehouse import WarehouseConfig
+        from services.world.warehouse import WarehouseConfig
 
         try:
             WarehouseConfig.named(self.scale, self.n_agvs, self.n_pickers)
@@ -161,13 +161,13 @@ class RunConfig(BaseModel):
     # cached: services read these on every message
     @cached_property
     def n_agvs(self) -> int:
-        from services.sim.world.layout import named_sizes
+        from services.world.layout import named_sizes
 
         return self.agvs if self.agvs is not None else named_sizes()[self.scale][1]
 
     @cached_property
     def n_pickers(self) -> int:
-        from services.sim.world.layout import named_sizes
+        from services.world.layout import named_sizes
 
         return self.pickers if self.pickers is not None else named_sizes()[self.scale][2]
 
@@ -180,7 +180,7 @@ class RunConfig(BaseModel):
         return Path(self.output_dir) / self.run_id
 
     def policy_options(self) -> dict[str, Any]:
-        """Keyword options of :func:`services.agent.policies.make_policy`."""
+        """Keyword options of :func:`services.policies.coordinators.make_policy`."""
         if self.policy == "constant":
             return {"p": self.p}
         if self.policy == "proximity":
@@ -190,7 +190,7 @@ class RunConfig(BaseModel):
         return {}
 
     def make_policy(self):
-        from services.agent.policies import make_policy
+        from services.policies.coordinators import make_policy
 
         return make_policy(self.policy, **self.policy_options())
 
@@ -255,11 +255,11 @@ class RunConfig(BaseModel):
 def field_choices(name: str) -> tuple[str, ...] | None:
     """The values a RunConfig field takes, when it is a closed set (a Literal, or the named warehouse sizes)."""
     if name == "scale":
-        from services.sim.world.layout import named_sizes
+        from services.world.layout import named_sizes
 
         return tuple(named_sizes())
     if name == "ablation":
-        from services.agent.presets import ABLATIONS
+        from services.policies.presets import ABLATIONS
 
         return ("full", *ABLATIONS)
     args = get_args(RunConfig.model_fields[name].annotation)

@@ -15,6 +15,8 @@ import time
 
 import psutil
 
+from services.supervisor.graph import role_of
+
 #: ``up`` flags for a test whose property does not depend on the fleet (security, exit status, telemetry): three
 #: robots instead of the tiny scale's eight, since every agent process costs ~0.3 CPU-s to start and its share of
 #: every tick. The tests of the default run, of equivalence with the lab and of fleet-wide behaviour keep theirs.
@@ -225,12 +227,12 @@ async def until(condition, timeout: float = 3.0, what: str = "condition") -> Non
         await asyncio.sleep(0.005)
 
 
-def sample_rss(pid: int, name: str, into: list[int]) -> None:
-    """Append the resident memory of each descendant of ``pid`` whose command line names ``name`` (a live process's
-    memory while a run goes on; a process that just ended is passed over)."""
+def sample_rss(pid: int, role: str, into: list[int]) -> None:
+    """Append the resident memory of each descendant of ``pid`` that is a ``role`` process of the run (a live
+    process's memory while a run goes on; a process that just ended is passed over)."""
     for proc in psutil.Process(pid).children(recursive=True):
         try:
-            if name in proc.cmdline():
+            if role_of(proc.cmdline()) == role:
                 into.append(proc.memory_info().rss)
         except psutil.Error:
             pass

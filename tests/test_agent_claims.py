@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from services.supervisor.process import ZENOH_CONFIG_ENV, base_zenoh_config
+from services.process import ZENOH_CONFIG_ENV, base_zenoh_config
 
 AGVS, PICKERS = 5, 3
 TIMEOUT = 120.0

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from services.sim.world.astar import INF, Planner, astar, neighbour_table
-from services.sim.world.layout import LayoutConfig, layout_for
+from services.world.astar import INF, Planner, astar, neighbour_table
+from services.world.layout import LayoutConfig, layout_for
 
 DATA = json.loads((Path(__file__).parent / "data" / "astar_cases_sample.json").read_text())
 CASES = DATA["cases"]

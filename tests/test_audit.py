@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 
 from morph_sim.lab.audit import VARIANTS, run_audit, variant_toml
-from services.agent.presets import load_preset
+from services.policies.presets import load_preset
 
 
 def test_variant_presets_are_the_paper_preset_with_their_overrides(tmp_path):

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from morph_sim.cli import main as cli_main
-from services.envconfig import command_parser, env_to_argv
+from morph_sim.environment import command_parser, env_to_argv
 from services.runconfig import RunConfig, config_from_args
 
 ROOT = Path(__file__).resolve().parents[1]

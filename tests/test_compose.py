@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 from _compose import defaults_of, interpolate, load
 
+from morph_sim import environment
 from morph_sim.cli import build_parser
 from services import envconfig
 from services.runconfig import RunConfig, config_from_args
@@ -29,7 +30,7 @@ COMPOSE = load(ROOT / "docker-compose.yml")
 SERVICES = {name: s for name, s in COMPOSE["services"].items() if "profiles" not in s}
 DEFAULTS = interpolate(COMPOSE, {})  # what `docker compose up` uses with an empty environment
 ROLE_RESTART = {"never": "no", "on-failure": "on-failure"}
-PROMETHEUS_FLAG_EXISTS = any(v.flag == "--prometheus-port" for v in envconfig.command_variables("monitor"))
+PROMETHEUS_FLAG_EXISTS = any(v.flag == "--prometheus-port" for v in environment.command_variables("monitor"))
 
 
 ROLES = ["sim", "monitor", "agent"]
@@ -197,12 +198,12 @@ def test_environment_variables_are_the_cli_flags_with_the_same_defaults():
     override = {"MORPH_SCALE": "small", "MORPH_PHASE_TIMEOUT": "2.5", "MORPH_AGVS": "4", "MORPH_ABLATION": ""}
     container_env = interpolate(env, override)
     from_env = RunConfig.from_env(container_env)
-    argv = envconfig.env_to_argv("sim", container_env)
+    argv = environment.env_to_argv("sim", container_env)
     from_flags = config_from_args(build_parser().parse_args(["sim", *argv]), environ={})
     assert from_env == from_flags
     assert (from_env.scale, from_env.phase_timeout, from_env.agvs, from_env.ablation) == ("small", 2.5, 4, None)
     with pytest.raises(ValueError, match="MORPH_NOT_A_FLAG"):
-        envconfig.env_to_argv("sim", {"MORPH_NOT_A_FLAG": "1"})
+        environment.env_to_argv("sim", {"MORPH_NOT_A_FLAG": "1"})
     with pytest.raises(ValueError, match="scale"):
         RunConfig.from_env(interpolate(env, {"MORPH_SCALE": "huge"}))
 
@@ -228,7 +229,7 @@ def test_per_command_options_follow_their_variables():
         envconfig.apply_env_defaults(parser, {"MORPH_MAX_RATE": "fast"})
     with pytest.raises(ValueError, match="MORPH_LOG_LEVEL"):
         envconfig.apply_env_defaults(parser, {"MORPH_LOG_LEVEL": "LOUD"})
-    table = envconfig.markdown_table("agent")  # the real command: every option, RunConfig ones with their defaults
+    table = environment.markdown_table("agent")  # the real command: every option, RunConfig ones with their defaults
     assert "| `MORPH_SCALE` | `--scale` | `tiny` |" in table and "`MORPH_ENDPOINT`" in table
 
 

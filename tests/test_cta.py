@@ -9,8 +9,8 @@ import pytest
 
 from schemas.fields import MissionType
 from schemas.tick import NEEDS_PICKER, NO_CELL
-from services.sim.world.cta import CTAController, resolve_requests
-from services.sim.world.warehouse import Warehouse, WarehouseConfig
+from services.world.cta import CTAController, resolve_requests
+from services.world.warehouse import Warehouse, WarehouseConfig
 
 
 def _controller(scale="tiny", seed=42):

@@ -18,11 +18,11 @@ import pytest
 
 from morph_sim.lab.network import dispatch_faults
 from morph_sim.lab.runner import EpisodeSpec, run_episode
+from morph_sim.local import run_local
 from schemas.faults import Duplicate, FaultSpec, Latency, Loss
-from services.monitor import catalogue
+from services.metrics import catalogue
 from services.monitor.recorder import read_metrics
 from services.runconfig import RunConfig
-from services.supervisor.local import run_local
 
 OUTCOME_COLUMNS = tuple(catalogue.outcome_values({}))
 # late, not lost: 2.5 ticks of latency with jitter, bursty loss and duplicates on every dispatch message

@@ -197,7 +197,7 @@ def test_the_build_context_holds_what_the_dockerfile_copies_and_nothing_private(
     assert sources == ["pyproject.toml", "README.md", "schemas", "services", "morph_sim"]
     for src in sources:
         assert not excluded(src), f".dockerignore excludes {src}, which the Dockerfile copies"
-    for shipped in ("morph_sim/presets/layouts.toml", "schemas/json/tick.json", "services/sim/__init__.py"):
+    for shipped in ("services/world/layouts.toml", "schemas/json/tick.json", "services/sim/__init__.py"):
         assert not excluded(shipped), f".dockerignore excludes {shipped}, which the image needs"
     for private in (".venv/bin/python", ".git/config", "runs/x/manifest.json", "tests/test_keys.py",
                     "deploy/zenoh/credentials.txt", "morph_sim/__pycache__/cli.cpython-311.pyc",
@@ -243,7 +243,7 @@ def test_the_wheel_installs_into_a_fresh_venv_and_runs_up(tmp_path):
         names = set(archive.namelist())
     in_wheel = {n.rsplit("/", 1)[0].replace("/", ".") for n in names if n.endswith("/__init__.py")}
     assert tree_packages() - in_wheel == set(), f"packages missing from the wheel: {tree_packages() - in_wheel}"
-    for data in ("schemas/json/tick.json", "morph_sim/presets/layouts.toml", "morph_sim/presets/morph_paper.toml"):
+    for data in ("schemas/json/tick.json", "services/world/layouts.toml", "services/policies/presets/morph_paper.toml"):
         assert data in names, f"{data} is missing from the wheel"
 
     # The venv has no pip of its own (seeding one costs seconds of CPU; the image uninstalls its pip anyway): this

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from morph_sim.local import run_local
 from services.monitor.recorder import read_metrics, read_snapshots
 from services.runconfig import RunConfig
-from services.supervisor.local import run_local
 
 POLICIES = [("full", "reference"), ("tsg", "reference"), ("proximity", "reference"), ("morph", "reference"),
             ("morph", "paper")]

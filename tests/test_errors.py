@@ -9,8 +9,8 @@ import pytest
 
 from schemas.errors import one_line
 from schemas.messages import FaultCommand
-from services.agent.presets import load_preset
 from services.faults.schedule import parse_schedule
+from services.policies.presets import load_preset
 from services.runconfig import RunConfig
 
 

@@ -10,6 +10,7 @@ import asyncio
 import pytest
 
 from morph_sim.commands import faults as faults_cli
+from morph_sim.local import run_local
 from schemas import FaultSpec, Loss, RunKeys, Scope
 from schemas.base import DecodeError
 from schemas.codec import decode, encode_fields
@@ -20,7 +21,6 @@ from services.faults.layer import FaultLayer
 from services.faults.runtime import FaultRuntime
 from services.faults.schedule import parse_schedule
 from services.runconfig import RunConfig
-from services.supervisor.local import run_local
 
 AT = 40
 SPEC = FaultSpec(id="late-loss", loss=Loss(model="gilbert_elliott", percent=35, burst_length=3),

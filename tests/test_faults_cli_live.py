@@ -48,7 +48,7 @@ async def _cli(*argv: str, timeout: float = 30) -> tuple[int, list[str], str]:
 
 
 async def test_faults_cli_verdicts_and_a_crash_carried_out_at_its_tick(tmp_path):
-    from services.supervisor.process import open_bus
+    from services.process import open_bus
 
     port = free_port()
     ep = endpoint(port)

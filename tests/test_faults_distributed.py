@@ -16,6 +16,7 @@ import asyncio
 import json
 from pathlib import Path
 
+from morph_sim.local import run_local
 from schemas import FaultSpec, Loss, RunKeys, Scope
 from services.faults.layer import FaultLayer
 from services.faults.runtime import FaultRuntime
@@ -23,7 +24,6 @@ from services.faults.vtime import VirtualTime
 from services.monitor.recorder import read_metrics
 from services.runconfig import RunConfig
 from services.supervisor.graph import process_graph
-from services.supervisor.local import run_local
 
 STEPS = 150
 # loss + latency on every agent key (help requests, commits, replies; acks are synchronisation and exempt), and on

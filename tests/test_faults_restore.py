@@ -11,7 +11,7 @@ from services.bus import LocalNetwork
 from services.faults.restore import restore_brains
 from services.runconfig import RunConfig
 from services.sim.service import make_controller
-from services.sim.world.cta import resolve_requests
+from services.world.cta import resolve_requests
 
 
 def trained_agents(config: RunConfig, net: LocalNetwork):

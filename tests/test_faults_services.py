@@ -4,11 +4,11 @@ than dropped, the run never hangs or loses a tick, and the same seed and fault c
 
 from __future__ import annotations
 
+from morph_sim.local import run_local
 from schemas import FaultSpec, Latency, Loss, Scope
 from services.faults.runtime import FaultRuntime
 from services.faults.schedule import parse_schedule
 from services.runconfig import RunConfig
-from services.supervisor.local import run_local
 
 SPEC = FaultSpec(id="agents", loss=Loss(model="gilbert_elliott", percent=25, burst_length=3),
                  latency=Latency(delay=0.3, jitter=0.3), scope=Scope(key_expr="agent/*/**"))

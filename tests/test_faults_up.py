@@ -66,7 +66,7 @@ async def test_up_kills_an_agent_every_100_ticks_and_it_rejoins_with_its_state(t
         if not await _port_open(port, proc, 60):
             proc.kill()
             raise AssertionError(f"the sim never opened its endpoint: {proc.communicate(timeout=10)[1][-3000:]}")
-        from services.supervisor.process import open_bus
+        from services.process import open_bus
 
         # a secured run: the observer connects with the operator credentials `up` wrote into the run directory
         bus = await open_bus("test-observer", connect=endpoint(port),

@@ -16,9 +16,10 @@ from PIL import Image
 
 matplotlib.use("Agg")
 
+from morph_sim.local import run_local  # noqa: E402
 from services.monitor.report import Record, load, write_report  # noqa: E402
 from services.runconfig import RunConfig  # noqa: E402
-from services.sim.world.render import (  # noqa: E402
+from services.world.render import (  # noqa: E402
     COLORS,
     RECORD_LEGEND,
     WAREHOUSE_LEGEND,
@@ -26,7 +27,6 @@ from services.sim.world.render import (  # noqa: E402
     image_size,
     render_frame,
 )
-from services.supervisor.local import run_local  # noqa: E402
 
 
 @pytest.fixture
@@ -101,7 +101,7 @@ def test_report_figures_legend_every_window_and_crash_and_label_the_colourbar(tm
     bars = [a for a in heat.axes if a.get_label() == "<colorbar>"]
     assert len(bars) == 1 and bars[0].get_ylabel().startswith("W")
 
-    from services.sim.world.layout import layout_for, named_sizes
+    from services.world.layout import layout_for, named_sizes
 
     lay = layout_for(named_sizes()["tiny"][0])
     with Image.open(tmp_path / "report" / "warehouse_0.gif") as gif:
@@ -145,7 +145,7 @@ def test_warehouse_cli_png_has_the_legend(tmp_path):
 
     png = tmp_path / "w.png"
     assert cli_main(["warehouse", "--scale", "tiny", "--steps", "5", "--png", str(png), "--no-progress"]) == 0
-    from services.sim.world.layout import layout_for, named_sizes
+    from services.world.layout import layout_for, named_sizes
 
     lay = layout_for(named_sizes()["tiny"][0])
     with Image.open(png) as im:

@@ -12,7 +12,9 @@ import time
 import psutil
 import pytest
 
-from services.supervisor.forkserver import COMMAND, ForkServer
+from services.supervisor.forkserver import ForkServer
+
+AGENT = [sys.executable, "-m", "services.agent"]  # what the supervisor asks the server to start
 from services.supervisor.graph import CHILD_ENV
 
 
@@ -42,7 +44,7 @@ def _closed_port() -> int:
 
 def _connecting_agent(port: int) -> list[str]:
     """An agent that tries to reach an endpoint nobody listens on: it stays alive for its connect timeout."""
-    return [*COMMAND, "agent", "--id", "0", "--run-id", "fork-test", "--endpoint", f"tcp/127.0.0.1:{port}"]
+    return [*AGENT, "--id", "0", "--run-id", "fork-test", "--endpoint", f"tcp/127.0.0.1:{port}"]
 
 
 def test_a_forked_process_has_its_own_session_command_line_and_exit_status(server, tmp_path):
@@ -68,10 +70,10 @@ def test_a_forked_process_has_its_own_session_command_line_and_exit_status(serve
 
 def test_a_forked_command_reads_its_own_environment_and_writes_its_own_log(server, tmp_path):
     log = tmp_path / "bad.log"  # the variable is the child's alone: the server's environment has no MORPH_SCALE
-    proc = server.spawn([*COMMAND, "agent", "--id", "0", "--run-id", "fork-test"], _env(MORPH_SCALE="huge"), log)
+    proc = server.spawn([*AGENT, "--id", "0", "--run-id", "fork-test"], _env(MORPH_SCALE="huge"), log)
     assert proc.wait(30) == 2  # a config error: one line and status 2, as when started by exec
     text = log.read_text()
-    assert "morph-sim agent: error:" in text and "scale" in text, text
+    assert "services.agent: error:" in text and "scale" in text, text
     assert proc.poll() == 2
 
 
@@ -89,7 +91,7 @@ def test_every_process_is_forked_from_one_single_threaded_interpreter(server, tm
 
 
 def test_not_a_morph_sim_command_is_refused(server, tmp_path):
-    with pytest.raises(RuntimeError, match="not a morph-sim command"):
+    with pytest.raises(RuntimeError, match="not a service of a run"):
         server.spawn([sys.executable, "-c", "print(1)"], _env(), tmp_path / "x.log")
 
 

@@ -13,12 +13,12 @@ import sys
 import msgpack
 import numpy as np
 
+from morph_sim.local import run_local
 from schemas import Ack, HelpRequest, Stop, encode
 from schemas.keys import RunKeys
 from services.bus.local import LocalNetwork
 from services.monitor.recorder import read_metrics, read_snapshots
 from services.runconfig import RunConfig
-from services.supervisor.local import run_local
 
 from _procs import kill_tree
 

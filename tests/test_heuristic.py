@@ -2,8 +2,8 @@
 
 import pytest
 
-from services.sim.world.heuristic import HeuristicController, MissionType, run_episode, split_list
-from services.sim.world.warehouse import Warehouse, WarehouseConfig
+from services.world.heuristic import HeuristicController, MissionType, run_episode, split_list
+from services.world.warehouse import Warehouse, WarehouseConfig
 
 
 @pytest.mark.parametrize(

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pytest
 
+from morph_sim.local import run_local
 from schemas import Ack, Commit, Event, FaultCommand, HelpReply, OnBoard, Stop, encode
 from schemas.keys import RunKeys
 from schemas.tick import encode_tick_body, tick_fields
@@ -29,7 +30,6 @@ from services.bus.zenoh_bus import endpoint, free_port, zenoh_config
 from services.monitor.recorder import read_metrics
 from services.runconfig import RunConfig
 from services.sim.service import make_controller, world_fields
-from services.supervisor.local import run_local
 
 # isort: split
 import zenoh  # noqa: E402  (after zenoh_bus set the runtime environment)

@@ -213,7 +213,7 @@ def test_sim_and_agent_services_do_not_import_each_other():
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1] / "services"
-    for own, other in (("sim", "services.agent"), ("agent", "services.sim.service"), ("agent", "services.sim.world")):
+    for own, other in (("sim", "services.agent"), ("agent", "services.sim.service"), ("agent", "services.world")):
         for path in (root / own).rglob("*.py"):
             for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
                 if isinstance(node, ast.ImportFrom) and node.module:

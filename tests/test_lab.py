@@ -101,7 +101,7 @@ def test_paper_preset_no_neuromod_changes_an_outcome_in_800_steps(scale):
 
 
 def test_reset_at_boundary_clears_the_state(tmp_path):
-    text = resources.files("morph_sim.presets").joinpath("morph_paper.toml").read_text()
+    text = resources.files("services.policies").joinpath("presets", "morph_paper.toml").read_text()
     preset = tmp_path / "paper_reset150.toml"
     preset.write_text(text.replace("reset_every = 400", "reset_every = 150"))
     seen = {}

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from services.sim.world.layout import Layout, LayoutConfig, layout_for, named_sizes
+from services.world.layout import Layout, LayoutConfig, layout_for, named_sizes
 
 # the original's size table: name -> (H, W, shelves S, goals G, action size 1+G+S, rack groups, highway cells, queue)
 SIZES = {

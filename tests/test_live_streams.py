@@ -14,7 +14,7 @@ import re
 from conftest import SHARED_STEPS
 from test_long_run import END_LAG, MONITOR_RSS_BOUND
 
-from services.monitor.catalogue import CATALOGUE
+from services.metrics.catalogue import CATALOGUE
 from services.monitor.recorder import read_metrics
 from services.runconfig import RunConfig
 

@@ -6,12 +6,12 @@ import asyncio
 
 import pytest
 
+from morph_sim.local import run_local
 from schemas import MetricSample
 from services.bus.local import LocalNetwork
-from services.monitor.catalogue import BY_NAME, NAMES
+from services.metrics.catalogue import BY_NAME, NAMES
 from services.monitor.streams import Decimator, Histogram, MessageStats, subscribe_metrics
 from services.runconfig import RunConfig
-from services.supervisor.local import run_local
 
 from _procs import until
 

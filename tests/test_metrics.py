@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from services.monitor import metrics as m
+from services.metrics import measures as m
 
 
 def sym(n, pairs):

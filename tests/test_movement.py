@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from services.sim.world.conflicts import commit_cells, networkx_commit_cells
-from services.sim.world.warehouse import FORWARD, NOOP, TOGGLE, Warehouse, WarehouseConfig
+from services.world.conflicts import commit_cells, networkx_commit_cells
+from services.world.warehouse import FORWARD, NOOP, TOGGLE, Warehouse, WarehouseConfig
 
 DATA = Path(__file__).parent / "data"
 SCENARIOS = json.loads((DATA / "movement_scenarios.json").read_text())["scenarios"]

@@ -6,9 +6,9 @@ import math
 
 import pytest
 
-from schemas.network import NetworkProfile, Placement, Rate, load_profile, parse_profile, profile_names
-from services.faults.network import NetworkModel, default_access_points
-from services.sim.world.layout import LayoutConfig, layout_for
+from schemas.network import NetworkProfile, Placement, Rate, parse_profile
+from services.faults.network import NetworkModel, default_access_points, load_profile, profile_names
+from services.world.layout import LayoutConfig, layout_for
 
 TINY = layout_for(LayoutConfig.named("tiny"))  # 14 × 15; default APs at x = 3, 10 and y = 3.25, 10.75
 

@@ -12,13 +12,12 @@ import sys
 
 import pytest
 
-from schemas.network import load_profile
+from morph_sim.local import run_local
 from services.bus import LocalNetwork
-from services.faults.network import NetworkModel
+from services.faults.network import NetworkModel, load_profile
 from services.faults.runtime import FaultRuntime
 from services.runconfig import RunConfig
-from services.sim.world.layout import LayoutConfig, layout_for
-from services.supervisor.local import run_local
+from services.world.layout import LayoutConfig, layout_for
 
 
 def config(tmp_path, network: str | None, run_id: str = "net", **kw) -> RunConfig:
@@ -178,7 +177,7 @@ def test_report_draws_access_points_and_dead_zones(tmp_path, legacy):
     from PIL import Image
 
     from services.monitor.report import load, warehouse_gif
-    from services.sim.world.render import COLORS, Frame, render_frame
+    from services.world.render import COLORS, Frame, render_frame
 
     cfg = legacy[0]
     path = tmp_path / "w.gif"

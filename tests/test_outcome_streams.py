@@ -11,7 +11,7 @@ import sys
 from test_dispatch_outcomes import BURSTY, LATE, OUTCOME_COLUMNS, _finished, schedule_toml
 
 from morph_sim.lab.network import dispatch_faults
-from services.monitor import catalogue
+from services.metrics import catalogue
 from services.monitor.recorder import read_metrics
 
 from _procs import OPERATOR_CLIENT

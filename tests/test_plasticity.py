@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from services.agent.plasticity import (
+from services.policies.plasticity import (
     PaperInputs,
     PaperState,
     ReferenceState,
@@ -13,7 +13,7 @@ from services.agent.plasticity import (
     position_mi,
     theta_form,
 )
-from services.agent.presets import load_preset
+from services.policies.presets import load_preset
 
 
 @pytest.fixture

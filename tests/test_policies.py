@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from morph_sim.lab.runner import EpisodeSpec, run_episode
-from services.agent.policies import (
+from services.policies.coordinators import (
     ConstantPolicy,
     Fleet,
     FullPolicy,
@@ -16,9 +16,9 @@ from services.agent.policies import (
     calibrate_radius,
     make_policy,
 )
-from services.agent.presets import load_preset
-from services.sim.world.cta import CTAController
-from services.sim.world.warehouse import Warehouse, WarehouseConfig
+from services.policies.presets import load_preset
+from services.world.cta import CTAController
+from services.world.warehouse import Warehouse, WarehouseConfig
 
 
 def _observations(scale="tiny", seed=42, ticks=60):

@@ -6,9 +6,9 @@ import asyncio
 import re
 import urllib.request
 
+from morph_sim.environment import command_variables
 from services.bus.local import LocalNetwork
 from services.bus.zenoh_bus import free_port
-from services.envconfig import command_variables
 from services.monitor.prometheus import PrometheusExporter
 from services.monitor.service import MonitorService
 from services.runconfig import RunConfig

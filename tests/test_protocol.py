@@ -17,7 +17,7 @@ from morph_sim.lab.network import (
 )
 from morph_sim.lab.runner import DispatchStats, EpisodeSpec, run_episode
 from schemas.faults import FaultSpec, Latency, Loss, Scope
-from services.agent.policies import Fleet, MorphPolicy
+from services.policies.coordinators import Fleet, MorphPolicy
 from services.protocol.dispatch import (
     AgvEndpoint,
     Commitment,
@@ -28,8 +28,8 @@ from services.protocol.dispatch import (
     Request,
     decision_points,
 )
-from services.sim.world.cta import CTAController
-from services.sim.world.warehouse import Warehouse, WarehouseConfig
+from services.world.cta import CTAController
+from services.world.warehouse import Warehouse, WarehouseConfig
 
 DT = 1.0
 
@@ -233,10 +233,10 @@ def test_an_agent_service_whose_fleet_broadcast_is_lost_for_k_ticks_learns_from_
     at the end equals the lab's agents fed the same stale views; the stale views changed what it learnt."""
     import asyncio
 
+    from morph_sim.local import run_local
     from services.monitor.recorder import read_metrics
     from services.runconfig import RunConfig
     from services.sim.service import make_controller
-    from services.supervisor.local import run_local
 
     k, start, victim, steps = 4, 10, 1, 24
     sched = tmp_path / "blackout.toml"

@@ -9,7 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from services.monitor import catalogue
+from services.metrics import catalogue
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 EXAMPLE_SECONDS = 4  # how long the example listens here (the README: 10)
@@ -30,7 +30,7 @@ def readme_example() -> str:
 
 def test_the_readme_table_of_streams_is_the_catalogue():
     section = _metrics_section()
-    assert catalogue.markdown_table() in section, "README table != services.monitor.catalogue.markdown_table()"
+    assert catalogue.markdown_table() in section, "README table != services.metrics.catalogue.markdown_table()"
     for name in catalogue.prometheus_names():
         assert f"`{name}" in section, f"Prometheus family {name} missing from the README"
 

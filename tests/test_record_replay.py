@@ -9,12 +9,12 @@ import sys
 import msgpack
 import pytest
 
+from morph_sim.local import run_local
 from schemas.tick import tick_number
 from services.bus.local import LocalNetwork
 from services.monitor.recorder import read_metrics
 from services.monitor.replay import BusRecorder, read_record, replay
 from services.runconfig import RunConfig
-from services.supervisor.local import run_local
 
 from _procs import FEW_ROBOTS
 

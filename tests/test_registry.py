@@ -16,16 +16,14 @@ from hypothesis import given, settings, strategies as st
 from schemas.keys import RunKeys
 from schemas.messages import Role
 from services.bus import LocalNetwork
-from services.sim.registry import (
+from services.bus.registry import claim_id, default_instance, mount_registry
+from services.protocol.registry import (
     BUSY,
     FULL,
     INVALID,
     IdAllocator,
     Refusal,
     RegistrationError,
-    claim_id,
-    default_instance,
-    mount_registry,
     reason_code,
 )
 
@@ -218,7 +216,7 @@ _AGENT_PROCESS = textwrap.dedent("""
     from schemas.keys import RunKeys
     from schemas.messages import Role
     from services.bus.zenoh_bus import ZenohBus
-    from services.sim.registry import claim_id
+    from services.bus.registry import claim_id
 
     async def main():
         endpoint, run, instance = sys.argv[1:4]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from PIL import Image, ImageSequence
 
-from services.sim.world.render import (
+from services.world.render import (
     COLORS,
     DOWN,
     LEFT,

@@ -12,10 +12,11 @@ import psutil
 import pytest
 from PIL import Image
 
+from morph_sim.local import run_local
 from services.monitor.recorder import Recorder, read_metrics
 from services.monitor.report import load, numbers, write_report
 from services.runconfig import RunConfig
-from services.supervisor.local import run_local
+from services.supervisor.graph import role_of
 
 
 def test_the_report_renders_every_figure_and_the_gif(tmp_path):
@@ -96,7 +97,7 @@ def test_a_monitor_killed_and_restarted_mid_run_leaves_a_record_equal_apart_from
     up.wait_for_endpoint()
     up.wait_for_rows(KILL_AT)
     monitor = [p for p in psutil.Process(up.pid).children(recursive=True)
-               if "monitor" in p.cmdline() and "morph_sim.cli" in p.cmdline()]
+               if role_of(p.cmdline()) == "monitor"]
     assert len(monitor) == 1
     os.kill(monitor[0].pid, signal.SIGKILL)  # no chance to flush or close; the supervisor restarts it
     # the record is incomplete (the gap): up says so and fails

@@ -13,6 +13,8 @@ import signal
 import psutil
 import pytest
 
+from services.supervisor.graph import role_of
+
 # a full-speed lockstep run whose restart races the record: the other pytest worker waits meanwhile
 pytestmark = pytest.mark.alone
 
@@ -30,7 +32,7 @@ def _agent_pid(up_pid: int, agent: int) -> int | None:
             cmd = p.cmdline()
         except psutil.Error:
             continue
-        if "agent" in cmd and "--id" in cmd and cmd[cmd.index("--id") + 1] == str(agent):
+        if role_of(cmd) == "agent" and "--id" in cmd and cmd[cmd.index("--id") + 1] == str(agent):
             return p.pid
     return None
 

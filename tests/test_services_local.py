@@ -10,16 +10,16 @@ import pytest
 
 from morph_sim.cli import build_parser
 from morph_sim.lab.runner import EpisodeSpec, run_episode
+from morph_sim.local import run_local
 from schemas import Stop
 from schemas.keys import RunKeys
 from schemas.tick import observation_from_tick, tick_from_observation
 from services.bus.local import LocalNetwork
-from services.monitor.catalogue import COLUMNS
+from services.metrics.catalogue import COLUMNS
 from services.monitor.recorder import read_metrics, read_snapshots
 from services.runconfig import RunConfig, add_config_arguments, config_from_args
 from services.sim.service import make_controller, world_fields
 from services.supervisor.graph import PROGRAM, process_graph
-from services.supervisor.local import run_local
 
 
 def cfg(tmp_path, **kw) -> RunConfig:

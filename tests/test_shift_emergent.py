@@ -17,8 +17,8 @@ from morph_sim.lab.shift import (
     run_shift,
     table_columns,
 )
-from services.sim.world.cta import CTAController, resolve_requests
-from services.sim.world.warehouse import Warehouse, WarehouseConfig
+from services.world.cta import CTAController, resolve_requests
+from services.world.warehouse import Warehouse, WarehouseConfig
 
 
 def _full_dispatch_episode(seed: int, steps: int, side=None, assignment_side=None, scale="medium"):

@@ -17,6 +17,7 @@ import pytest
 
 from services.monitor.recorder import read_metrics
 from services.runconfig import RunConfig
+from services.supervisor.graph import role_of
 
 from _procs import alive, descendants, kill_all
 
@@ -59,7 +60,7 @@ def test_up_restarts_an_agent_that_dies(shared_live_run):
                 cmd = psutil.Process(pid).cmdline()
             except psutil.NoSuchProcess:
                 continue
-            if "agent" in cmd and cmd[cmd.index("--id") + 1] == str(agent):
+            if role_of(cmd) == "agent" and cmd[cmd.index("--id") + 1] == str(agent):
                 out.append(pid)
         return out
 

@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from services.sim.world.heuristic import run_episode
-from services.sim.world.layout import LayoutConfig
-from services.sim.world.warehouse import Direction, Warehouse, WarehouseConfig, episode_digest
+from services.world.heuristic import run_episode
+from services.world.layout import LayoutConfig
+from services.world.warehouse import Direction, Warehouse, WarehouseConfig, episode_digest
 
 DATA = json.loads((Path(__file__).parent / "data" / "tarware_digests.json").read_text())
 EPISODES = DATA["episodes"]
@@ -61,7 +61,7 @@ def test_episode_digest_definition():
 def test_step_result_counters():
     env = Warehouse(WarehouseConfig.named("tiny", max_steps=3))
     env.reset(0)
-    from services.sim.world.heuristic import HeuristicController
+    from services.world.heuristic import HeuristicController
 
     ctrl = HeuristicController(env)
     res = [env.step(ctrl.actions()) for _ in range(3)]
@@ -138,7 +138,7 @@ def test_state_arrays_and_frame():
 
 def test_reseed_replays_the_request_stream():
     def deliveries_with_reseed(seed):
-        from services.sim.world.heuristic import HeuristicController
+        from services.world.heuristic import HeuristicController
 
         env = Warehouse(WarehouseConfig.named("tiny", max_steps=150))
         env.reset(0)

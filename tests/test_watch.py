@@ -8,10 +8,10 @@ import io
 from rich.console import Console
 
 from morph_sim.commands.watch import WatchState, find_run, sparkline, watch
+from morph_sim.local import run_local
 from schemas import AgentState, Event, MetricSample
 from services.bus.local import LocalNetwork
 from services.runconfig import RunConfig
-from services.supervisor.local import run_local
 
 
 def _text(renderable) -> str:

@@ -18,8 +18,8 @@ from pathlib import Path
 import pytest
 
 from schemas.keys import RunKeys
+from services.bus.registry import claim_id, mount_registry
 from services.bus.zenoh_bus import ZenohBus, endpoint, free_port, zenoh_config
-from services.sim.registry import claim_id, mount_registry
 
 # isort: split
 import zenoh  # noqa: E402  (after zenoh_bus set the runtime environment)

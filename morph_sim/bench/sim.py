@@ -23,7 +23,7 @@ SCALES = ("tiny", "small", "medium", "large", "extralarge")
 
 def reference_rates() -> tuple[dict[str, float], str, dict[str, float], str]:
     """(the original's rates on this machine, their source, the same re-measured on an idle machine, its source)."""
-    text = resources.files("morph_sim.presets").joinpath("bench_reference.toml").read_text(encoding="utf-8")
+    text = resources.files("morph_sim.bench").joinpath("reference.toml").read_text(encoding="utf-8")
     data = tomllib.loads(text)
     idle = dict(data.get("steps_per_second_idle", {}))
     idle_source = str(idle.pop("source", ""))
@@ -59,8 +59,8 @@ def measure(scale: str, steps: int, seed: int) -> dict:
     import resource
     import time
 
-    from services.sim.world.heuristic import run_episode
-    from services.sim.world.warehouse import WarehouseConfig
+    from services.world.heuristic import run_episode
+    from services.world.warehouse import WarehouseConfig
 
     config = WarehouseConfig.named(scale, max_steps=steps)
     cpu0 = time.process_time()

@@ -45,12 +45,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _role(cmdline: list[str]) -> str | None:
+    from services.supervisor.graph import role_of
+
     if "services.supervisor.forkserver" in cmdline:  # the interpreter the run's processes are forked from
         return "fork-server"
-    for role in ("sim", "agent", "monitor"):
-        if role in cmdline:
-            return role
-    return None
+    return role_of(cmdline)
 
 
 def measure_up(scale: str, steps: int, env: dict[str, str], cwd: str) -> dict:

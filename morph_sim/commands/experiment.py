@@ -141,7 +141,7 @@ def _one_scale(args) -> str:
     if len(scales) != 1:
         raise ValueError(f"scales: experiment {args.suite} runs at one scale, got {args.scales!r} "
                          "(give one, e.g. --scales tiny)")
-    from services.sim.world.layout import named_sizes
+    from services.world.layout import named_sizes
 
     if scales[0] not in named_sizes():
         raise ValueError(f"scales: unknown scale {scales[0]!r} (choose from {', '.join(named_sizes())})")
@@ -219,7 +219,7 @@ def _levels(value: str | None, what: str) -> tuple[float, ...] | None:
 
 
 def _scales(value: str | None, default: str) -> tuple[str, ...]:
-    from services.sim.world.layout import named_sizes
+    from services.world.layout import named_sizes
 
     scales = _csv(value or default)
     for sc in scales:
@@ -361,7 +361,7 @@ def run(args) -> int:
         from schemas.errors import explain
 
         raise ValueError(explain(exc, first_only=True)) from None
-    from services.agent.presets import load_preset
+    from services.policies.presets import load_preset
 
     load_preset(preset)  # fail early, naming the preset
     try:

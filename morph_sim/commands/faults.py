@@ -35,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for answers")
         p.add_argument("--id", dest="fault_id", help="fault id (set: name it; reset: heal only this one)")
         p.add_argument("--each", action="store_true", help="one line per answering process (default: alike merged)")
-        from services.supervisor.process import add_operator_arguments
+        from services.process import add_operator_arguments
 
         add_operator_arguments(p)
         if op in ("set", "reset"):
@@ -129,7 +129,7 @@ async def send(endpoint: str, run: str, command, timeout: float = 2.0, bus=None,
 
     own = bus is None
     if own:
-        from services.supervisor.process import open_operator_bus
+        from services.process import open_operator_bus
 
         bus = await open_operator_bus(f"faults-cli-{int(time.time() * 1000) % 10**9}", endpoint, args, run)
     try:

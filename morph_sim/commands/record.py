@@ -51,7 +51,7 @@ async def run_config(bus, run_id: str, timeout: float = CONFIG_WAIT):
 
 
 def _operator_args(parser) -> None:
-    from services.supervisor.process import add_operator_arguments
+    from services.process import add_operator_arguments
 
     add_operator_arguments(parser)
 
@@ -65,8 +65,8 @@ def run(args: argparse.Namespace) -> int:
     from morph_sim.commands.watch import check_run, find_run
     from schemas.keys import RunKeys, validate_run_id
     from services.monitor.replay import BusRecorder
+    from services.process import open_operator_bus
     from services.runconfig import RunConfig
-    from services.supervisor.process import open_operator_bus
 
     if args.run is not None:
         validate_run_id(args.run)

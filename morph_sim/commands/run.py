@@ -21,8 +21,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from morph_sim.local import run_local
     from services.runconfig import config_from_args
-    from services.supervisor.local import run_local
 
     config = config_from_args(args)
     if config.fault_schedule:

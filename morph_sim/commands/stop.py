@@ -15,7 +15,7 @@ HELP = "stop a running run (ctl/stop) with the operator's credentials"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from services.supervisor.process import add_operator_arguments
+    from services.process import add_operator_arguments
 
     parser.add_argument("--run", required=True, help="run id (key prefix morph/<run>/)")
     parser.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="Zenoh endpoint of the run")
@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from schemas import Stop
     from schemas.keys import RunKeys, validate_run_id
-    from services.supervisor.process import open_operator_bus
+    from services.process import open_operator_bus
 
     keys = RunKeys(validate_run_id(args.run))
 

@@ -13,7 +13,7 @@ PICK_RATE_SECONDS_PER_STEP = 5.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from services.sim.world.layout import named_sizes
+    from services.world.layout import named_sizes
 
     sizes = named_sizes()
     defaults = ", ".join(f"{k} {a}+{p}" for k, (_, a, p) in sizes.items())
@@ -37,8 +37,8 @@ def run(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from schemas.errors import invalid
-    from services.sim.world.heuristic import run_episode
-    from services.sim.world.warehouse import WarehouseConfig
+    from services.world.heuristic import run_episode
+    from services.world.warehouse import WarehouseConfig
 
     if args.steps is not None and args.steps < 1:
         raise ValueError(f"steps: must be >= 1, got {args.steps}")
@@ -93,12 +93,12 @@ def run(args: argparse.Namespace) -> int:
     out.print(f"  return      {result.global_return:.1f}  (sum over agents and steps)")
     out.print(f"  speed       {result.steps / sim_seconds:,.0f} steps/s  (simulation + controller)")
     if args.png:
-        from services.sim.world.render import WAREHOUSE_LEGEND, save_png
+        from services.world.render import WAREHOUSE_LEGEND, save_png
 
         save_png(frames_last[0], args.png, cell_px=args.cell_px, legend=WAREHOUSE_LEGEND)
         out.print(f"  png         {args.png}")
     if args.gif:
-        from services.sim.world.render import WAREHOUSE_LEGEND, write_gif
+        from services.world.render import WAREHOUSE_LEGEND, write_gif
 
         n = write_gif(frames, args.gif, fps=args.fps, cell_px=args.cell_px, legend=WAREHOUSE_LEGEND)
         out.print(f"  gif         {args.gif} ({n} frames)")

@@ -11,7 +11,7 @@ import asyncio
 import time
 from dataclasses import dataclass, field
 
-from services.monitor.catalogue import DISPATCH_OUTCOMES
+from services.metrics.catalogue import DISPATCH_OUTCOMES
 
 NAME = "watch"
 HELP = "live terminal view of an ongoing run: progress, deliveries, links, agents, counters"
@@ -108,7 +108,7 @@ class WatchState:
         for kind, count in sorted((msgs.labels if msgs else {}).items()):
             counters.add_row(f"  {kind}", count)
         counters.add_row("drops", self.value("drops_total"))
-        counters.add_row("dispatch", "")  # what became of the protocol's messages (services/monitor/catalogue.py)
+        counters.add_row("dispatch", "")  # what became of the protocol's messages (services/metrics/catalogue.py)
         for name in DISPATCH_OUTCOMES:
             counters.add_row(f"  {name.replace('_', ' ')}", self.value(f"dispatch_{name}"))
         for kind, count in sorted(self.faults.items()):
@@ -227,15 +227,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="Zenoh endpoint of the run")
     parser.add_argument("--steps", type=int, default=None, help="total ticks, for the progress (default: unknown)")
     parser.add_argument("--duration", type=float, default=None, help="stop watching after this many seconds")
-    from services.supervisor.process import add_operator_arguments
+    from services.process import add_operator_arguments
 
     add_operator_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     from schemas.keys import validate_run_id
+    from services.process import open_operator_bus
     from services.runconfig import RunConfig
-    from services.supervisor.process import open_operator_bus
 
     if args.run is not None:
         validate_run_id(args.run)

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from services.agent.presets import load_preset
+from services.policies.presets import load_preset
 
 #: variant -> (departure, what it changes, overrides of the paper preset's params)
 VARIANTS: dict[str, tuple[str, str, dict]] = {

@@ -23,7 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from morph_sim.lab.executors import episode_pool
 from morph_sim.lab.runner import EpisodeSpec, check_nonempty, run_episode
 from morph_sim.lab.suite import _git_revision, _jsonable, _versions
-from services.monitor import catalogue, metrics
+from services.metrics import catalogue, measures
 
 SNAPSHOT_TICKS = (0, 100, 200, 400, 600, 800, 1500)
 #: ticks at which λ₂ is quoted (the reference's list, plus the end)
@@ -50,7 +50,7 @@ class EmergentConfig(BaseModel):
     @field_validator("presets")
     @classmethod
     def _known(cls, v):
-        from services.agent.presets import load_preset
+        from services.policies.presets import load_preset
 
         for p in v:
             load_preset(p)
@@ -74,13 +74,13 @@ def analyse_episode(args: tuple[EmergentConfig, str, int]) -> dict:
     n_agv = _n_agvs(spec)
     is_agv = np.arange(n) < n_agv
     perms = cfg.n_permutations
-    sp_ap = metrics.spearman_agv_picker(W, D, is_agv, n_permutations=perms, rng=seed)
-    sp_both = metrics.spearman_agv_picker(W, D, is_agv, n_permutations=perms, rng=seed, direction="both")
-    sp_ref = metrics.spearman_reference_pairs(W, D, n_permutations=perms, rng=seed)
+    sp_ap = measures.spearman_agv_picker(W, D, is_agv, n_permutations=perms, rng=seed)
+    sp_both = measures.spearman_agv_picker(W, D, is_agv, n_permutations=perms, rng=seed, direction="both")
+    sp_ref = measures.spearman_reference_pairs(W, D, n_permutations=perms, rng=seed)
     life, cens = res.tracker.lifetimes()
     T = spec.steps
     core, periphery = res.tracker.core_periphery(T // 2)
-    blocks = metrics.mean_w_by_block(W, is_agv)
+    blocks = measures.mean_w_by_block(W, is_agv)
     lam_ref, lam_alg = res.ticks["fiedler_ref"], res.ticks["alg_conn"]
     at = [min(t, T) - 1 for t in LAMBDA_TICKS if t <= T]
     return {
@@ -117,12 +117,12 @@ def _trend(y: np.ndarray) -> float:
 
 
 def _n_agvs(spec: EpisodeSpec) -> int:
-    from services.sim.world.warehouse import WarehouseConfig
+    from services.world.warehouse import WarehouseConfig
 
     return WarehouseConfig.named(spec.scale).agvs
 
 
-def _sp(r: metrics.SpearmanResult) -> dict:
+def _sp(r: measures.SpearmanResult) -> dict:
     return {"rho": r.rho, "p": r.p_value, "p_permutation": r.p_permutation, "pairs": r.n_pairs}
 
 

@@ -1,5 +1,5 @@
 """The network study: MORPH (both presets), Full-Graph (unicast and broadcast), TSG and Proximity under the named
-network profiles (morph_sim/presets/network/, docs/faults.md "Network profiles"), at every scale, over fresh seeds.
+network profiles (services/faults/profiles/, docs/faults.md "Network profiles"), at every scale, over fresh seeds.
 
 Each episode is the lab's episode (:func:`morph_sim.lab.runner.run_episode`) with ``network=<profile>``: the services'
 radio model (access points, hand-overs, dead zones, rate limits and queues) judges every protocol message and every
@@ -95,8 +95,8 @@ def run_network_task(task: NetworkTask) -> dict:
 def grid_plan(*, scales=SCALES, profiles=PROFILES, conditions=None, seeds=SEEDS, steps: int | None = None) -> dict:
     """The grid as plain data (the run record's identity). ``steps``: one length for every scale (default
     :data:`STEPS`)."""
-    from schemas.network import load_profile
-    from services.sim.world.layout import named_sizes
+    from services.faults.network import load_profile
+    from services.world.layout import named_sizes
 
     conditions = [CONDITION_KEYS.get(c, c) for c in (conditions or available_conditions())]
     for c in conditions:

@@ -29,7 +29,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from morph_sim.lab.network import FLEET_KEY, EventNetwork, LabDispatch, Team, dispatch_faults
 from schemas.faults import FaultSpec
 from schemas.tick import TickObservation
-from services.agent.policies import (
+from services.metrics import catalogue, measures
+from services.policies.coordinators import (
     CoordinationPolicy,
     Coordinator,
     Fleet,
@@ -37,10 +38,9 @@ from services.agent.policies import (
     ProximityPolicy,
     make_policy,
 )
-from services.monitor import catalogue, metrics
 from services.protocol.dispatch import DEFAULT_REQUEST_TIMEOUT, gate
-from services.sim.world.cta import CTAController, resolve_requests
-from services.sim.world.warehouse import Warehouse, WarehouseConfig
+from services.world.cta import CTAController, resolve_requests
+from services.world.warehouse import Warehouse, WarehouseConfig
 
 SCALES = ("tiny", "small", "medium", "large")
 REFERENCE_SEEDS = (42, 7, 123, 999, 2024)
@@ -124,7 +124,7 @@ class EpisodeSpec(BaseModel):
     faults: tuple[FaultSpec, ...] = ()
     #: an AGV's request timeout, sim seconds (RunConfig.request_timeout)
     request_timeout: float = Field(default=DEFAULT_REQUEST_TIMEOUT, gt=0.0)
-    #: network profile (a name in morph_sim/presets/network/ or a .toml path; docs/faults.md): the services' radio
+    #: network profile (a name in services/faults/profiles/ or a .toml path; docs/faults.md): the services' radio
     #: model (hand-overs, dead zones, queues) under the fault specs, with the robots' positions of every tick
     network: str | None = None
 
@@ -132,7 +132,7 @@ class EpisodeSpec(BaseModel):
     @classmethod
     def _network(cls, value: str | None) -> str | None:
         if value is not None:
-            from schemas.network import load_profile
+            from services.faults.network import load_profile
 
             try:
                 load_profile(value)
@@ -240,7 +240,7 @@ class EpisodeResult:
     final_weights: np.ndarray | None = field(default=None, repr=False)
     final_links: np.ndarray | None = field(default=None, repr=False)
     mean_distance: np.ndarray | None = field(default=None, repr=False)
-    tracker: metrics.LinkTracker | None = field(default=None, repr=False)
+    tracker: measures.LinkTracker | None = field(default=None, repr=False)
     snapshots: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
 
 
@@ -286,7 +286,7 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
         draw = brains.draw if driver is None or driver.agent_brains is None else None
     is_agv = np.arange(n) < fleet.n_agvs
     directed = isinstance(policy, MorphPolicy) and policy.params is not None and _rules(policy) == "paper"
-    tracker = metrics.LinkTracker(n, directed=directed)
+    tracker = measures.LinkTracker(n, directed=directed)
     stats = DispatchStats()
 
     cols = {
@@ -305,8 +305,8 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
     def record(step: int) -> None:
         A = brains.team_links()
         on = A != 0  # diagonal is zero by construction
-        cols["links"][step] = np.count_nonzero(on | on.T) // 2  # = metrics.undirected_link_count(A)
-        cols["links_directed"][step] = np.count_nonzero(on)  # = metrics.directed_link_count(A)
+        cols["links"][step] = np.count_nonzero(on | on.T) // 2  # = measures.undirected_link_count(A)
+        cols["links_directed"][step] = np.count_nonzero(on)  # = measures.directed_link_count(A)
         if not brains.memoryless:
             W = brains.team_weights()
             cols["mean_w_links"][step] = float(W[on].mean()) if on.any() else 0.0
@@ -314,8 +314,8 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
         else:
             cols["mean_w_links"][step] = 1.0 if policy.name in ("full", "full-broadcast") else 0.0
         if step % spec.fiedler_every == 0:
-            cols["fiedler_ref"][step] = metrics.reference_normalized_fiedler(A)
-            cols["alg_conn"][step] = metrics.algebraic_connectivity(A)
+            cols["fiedler_ref"][step] = measures.reference_normalized_fiedler(A)
+            cols["alg_conn"][step] = measures.algebraic_connectivity(A)
         for k, v in brains.extra_metrics().items():
             if k in cols:
                 cols[k][step] = v
@@ -396,7 +396,7 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
             cols[name] = np.array(ages[:T], dtype=float) if driver.agent_brains is not None else np.zeros(T)
     W = brains.team_weights()
     A = brains.team_links()
-    blocks = metrics.mean_w_by_block(W, is_agv)
+    blocks = measures.mean_w_by_block(W, is_agv)
     mean_dist = dist_sum / T
     summary = {
         "scale": spec.scale,
@@ -432,8 +432,8 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
         summary["eta_mean"] = float(cols["eta"].mean())
         summary["eta_positive_share"] = float((cols["eta"] > 0).mean())
         if np.any(W):
-            summary["spearman_agv_picker"] = metrics.spearman_agv_picker(W, mean_dist, is_agv, n_permutations=0).rho
-            summary["spearman_all_pairs"] = metrics.spearman_reference_pairs(W, mean_dist).rho
+            summary["spearman_agv_picker"] = measures.spearman_agv_picker(W, mean_dist, is_agv, n_permutations=0).rho
+            summary["spearman_all_pairs"] = measures.spearman_reference_pairs(W, mean_dist).rho
     summary["wall_s"] = time.perf_counter() - t0
     return EpisodeResult(spec, cols, summary, summary["wall_s"], W, A, mean_dist,
                          tracker if not brains.memoryless else None, snapshots)
@@ -456,9 +456,8 @@ def _network_model(spec: EpisodeSpec, wh: Warehouse):
     """The episode's radio network (the services' model, seeded with the run's seed as theirs), or None."""
     if spec.network is None:
         return None
-    from schemas.network import load_profile
-    from services.faults.network import NetworkModel
-    from services.sim.world.layout import LayoutConfig, layout_for
+    from services.faults.network import NetworkModel, load_profile
+    from services.world.layout import LayoutConfig, layout_for
 
     return NetworkModel(load_profile(spec.network), layout_for(LayoutConfig.named(spec.scale)), seed=spec.seed)
 
@@ -471,6 +470,6 @@ def _radio_summary(model, network_stops: int) -> dict:
 
 
 def _rules(policy: MorphPolicy) -> str:
-    from services.agent.presets import load_preset
+    from services.policies.presets import load_preset
 
     return load_preset(policy.preset).rules

@@ -3,7 +3,7 @@
 Medium warehouse, six phases alternating left/right demand (L–R–L–R–L–R), each ``phase_steps`` long. Demand
 shift = replacement requests drawn from the active half of the shelves (:meth:`Warehouse.set_demand_side`); the
 reference's assignment filter is ``demand_mode="assignment"``. Per episode: deliveries per phase P1…P6, Δ6−3 and
-the recovery times r3…r6 of :func:`metrics.shift_recoveries` (censored at the phase length). Episodes run in
+the recovery times r3…r6 of :func:`measures.shift_recoveries` (censored at the phase length). Episodes run in
 parallel processes; each gets a run record like the scale suite's.
 """
 
@@ -32,7 +32,7 @@ from morph_sim.lab.runner import (
     run_episode,
 )
 from morph_sim.lab.suite import _git_revision, _jsonable, _num, _versions
-from services.monitor import metrics
+from services.metrics import measures
 
 #: shift condition key -> (label, lab condition, MORPH preset)
 SHIFT_CONDITIONS: dict[str, tuple[str, str, str]] = {
@@ -102,8 +102,8 @@ def episode_shift_metrics(cumulative: np.ndarray, cfg: ShiftConfig) -> dict:
     """P1…Pk, Δ(k)−3 and r3…rk (with censoring) of one episode from its cumulative delivery series."""
     per_step = np.diff(np.asarray(cumulative, dtype=float), prepend=0.0)
     bounds = [p * cfg.phase_steps for p in range(len(cfg.phases))]
-    phases = metrics.phase_deliveries(per_step, bounds)
-    rec = metrics.shift_recoveries(per_step, bounds, window=cfg.window, fraction=cfg.fraction)
+    phases = measures.phase_deliveries(per_step, bounds)
+    rec = measures.shift_recoveries(per_step, bounds, window=cfg.window, fraction=cfg.fraction)
     out = {f"P{p + 1}": int(v) for p, v in enumerate(phases)}
     last = len(phases)
     out[f"delta_{last}_3"] = int(phases[-1] - phases[2])
@@ -126,7 +126,7 @@ def summarise_shift(cfg: ShiftConfig, episodes: list[dict]) -> list[dict]:
         eps = [e for e in episodes if e["shift_condition"] == key]
         row = {"condition": key, "label": SHIFT_CONDITIONS[key][0], "n": len(eps)}
         for col in table_columns(cfg):
-            ms = metrics.mean_std([e[col] for e in eps])
+            ms = measures.mean_std([e[col] for e in eps])
             row[col] = ms.mean
             row[f"{col}_std"] = ms.std
             if col.startswith("r"):
@@ -200,7 +200,7 @@ def run_shift(cfg: ShiftConfig, out_root: Path | None = Path("runs"), run_id: st
             m = episode_shift_metrics(res.ticks["deliveries"], cfg)
             episodes.append({"shift_condition": key, "seed": seed, "deliveries": res.summary["deliveries"],
                              "mean_links": res.summary["mean_links"], "wall_s": res.wall_s, **m})
-            per.append(metrics.rolling_rate(np.diff(res.ticks["deliveries"], prepend=0.0), cfg.window))
+            per.append(measures.rolling_rate(np.diff(res.ticks["deliveries"], prepend=0.0), cfg.window))
         rates[key] = np.mean(per, axis=0)
     rows = summarise_shift(cfg, episodes)
     result = ShiftResult(cfg, episodes, rows, rates, wall, None)

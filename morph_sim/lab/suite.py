@@ -37,8 +37,8 @@ from morph_sim.lab.runner import (
     check_nonempty,
     run_episode,
 )
-from services.agent.policies import PROXIMITY_RADII
-from services.monitor import metrics
+from services.metrics import measures
+from services.policies.coordinators import PROXIMITY_RADII
 
 ABLATION_STUDY = ("v1", "no_threshold", "no_reward", "no_neuromod", "reset_at_boundary", "morph")
 
@@ -62,7 +62,7 @@ class SuiteConfig(BaseModel):
     @field_validator("scales")
     @classmethod
     def _scales(cls, v):
-        from services.sim.world.layout import named_sizes
+        from services.world.layout import named_sizes
 
         check_choices(v, named_sizes(), "scale")
         return check_nonempty(v, "scale")
@@ -189,7 +189,7 @@ def run_suite(cfg: SuiteConfig, out_root: Path | None = Path("runs"), run_id: st
     progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                         disable=not show_progress, transient=False)
     seed0 = cfg.calibration_seed if cfg.calibration_seed is not None else cfg.seeds[0]
-    from services.agent.presets import load_preset
+    from services.policies.presets import load_preset
 
     paper_rules = load_preset(cfg.preset).rules == "paper"
     todo = [sc for sc in cfg.scales if sc not in radii] if need_calib else []
@@ -280,7 +280,7 @@ def summarise(cfg: SuiteConfig, episodes: list[dict]) -> list[dict]:
         for c in cfg.conditions:
             eps = sorted(by[c], key=lambda e: cfg.seeds.index(e["seed"]) if e["seed"] in cfg.seeds else 0)
             d = [e["deliveries"] for e in eps]
-            ms = metrics.mean_std(d)
+            ms = measures.mean_std(d)
             links = float(np.mean([e["mean_links"] for e in eps]))
             max_links = eps[0]["max_links"]
             rows.append({
@@ -307,7 +307,7 @@ def _welch(a, b) -> float:
 
     with warnings.catch_warnings():  # near-identical samples: scipy warns, the p-value is still what it is
         warnings.simplefilter("ignore", RuntimeWarning)
-        return metrics.welch_p(a, b)
+        return measures.welch_p(a, b)
 
 
 def _nanmean(values) -> float:

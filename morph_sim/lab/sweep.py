@@ -325,7 +325,7 @@ def _run_services(plan: SweepPlan, task: EpisodeTask) -> dict[str, Any]:
     import asyncio
     import hashlib
 
-    from services.supervisor.local import run_local
+    from morph_sim.local import run_local
 
     root = Path(task.record_dir or "runs")
     run_id = "ep-" + hashlib.sha1(task.key.encode()).hexdigest()[:12]
@@ -447,7 +447,7 @@ def compare(plan: SweepPlan, rows: list[dict[str, Any]], metrics: Sequence[str] 
     against the baseline condition (the same condition with the baseline's value on its axis; seeds paired by
     design, but tested unpaired as the studies do)."""
     from morph_sim.lab.suite import _welch
-    from services.monitor.metrics import mean_std
+    from services.metrics.measures import mean_std
 
     by: dict[str, list[dict]] = {}
     for r in rows:

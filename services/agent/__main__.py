@@ -3,7 +3,7 @@
 import sys
 
 from services.agent import command
-from services.supervisor.process import command_main
+from services.process import command_main
 
 if __name__ == "__main__":
     sys.exit(command_main(command))

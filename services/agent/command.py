@@ -43,7 +43,7 @@ class ClaimingAgent:
     async def run(self):
         from schemas.keys import RunKeys
         from services.agent.service import AgentCounters, AgentService
-        from services.sim.registry import claim_id, default_instance
+        from services.bus.registry import claim_id, default_instance
 
         if self.agent_id is None:
             self.instance = self.instance or default_instance()
@@ -59,7 +59,7 @@ class ClaimingAgent:
                 raise ValueError(f"agvs/pickers: the sim's fleet is {reply.n_agvs}+{reply.n_pickers}, this agent's "
                                  f"configuration {self.config.n_agvs}+{self.config.n_pickers}")
             self.agent_id, self.role = reply.agent_id, reply.role
-        from services.supervisor.process import announce
+        from services.process import announce
 
         announce("agent", f"agent {self.agent_id} ({self.config.role_of(self.agent_id)}) of run {self.config.run_id}, "
                           f"connected to {self.config.endpoint}; waiting for the sim's ticks")
@@ -82,7 +82,7 @@ class ClaimingAgent:
 
 
 def run(args: argparse.Namespace) -> int:
-    from services.supervisor.process import exit_now, run_or_exit, serve, service_config, setup_logging
+    from services.process import exit_now, run_or_exit, serve, service_config, setup_logging
 
     config = service_config(args)
     if args.id is not None:
@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     if not config.endpoint:
         raise ValueError("endpoint: an agent needs --endpoint ENDPOINT (e.g. tcp/127.0.0.1:7447)")
     if args.id is None:
-        from services.sim.registry import default_instance
+        from services.bus.registry import default_instance
 
         args.instance = args.instance or default_instance()
     setup_logging(args.log_level, f"agent-{args.id if args.id is not None else args.instance}")

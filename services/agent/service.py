@@ -1,6 +1,6 @@
 """The agent service: one robot's coordination brain, learning and deciding from messages only.
 
-It owns that robot's :class:`~services.agent.policies.Coordinator` (its plasticity state and its own seeded
+It owns that robot's :class:`~services.policies.coordinators.Coordinator` (its plasticity state and its own seeded
 RNG) and nothing else. Per tick ``t`` (docs/services.md):
 
 * what it knows of the other robots is its latest fleet broadcast (``sim/fleet``, a network message that may be
@@ -32,8 +32,8 @@ from schemas import Ack, AgentState, Commit, Event, HelpReply, HelpRequest, OnBo
 from schemas.codec import encode_fields, unpack_envelope
 from schemas.keys import RunKeys
 from schemas.tick import decode_tick, observation_from_arrays, tick_number
-from services.agent.policies import Fleet, MorphBrains
 from services.bus.base import Bus, Sample
+from services.policies.coordinators import Fleet, MorphBrains
 from services.protocol import dispatch as protocol
 from services.rejects import Rejects
 from services.runconfig import RunConfig

@@ -28,15 +28,19 @@ from __future__ import annotations
 import bisect
 import hashlib
 import math
+import tomllib
 from collections import deque
 from dataclasses import dataclass, field
+from functools import lru_cache
+from importlib import resources
+from pathlib import Path
 
 import numpy as np
 
 from schemas.faults import Latency
-from schemas.network import NetworkProfile, Rate
+from schemas.network import NetworkProfile, Rate, parse_profile
 from services.faults.distributions import latency_quantile
-from services.sim.world.layout import Layout
+from services.world.layout import Layout
 
 CAUSES = ("handover", "link_queue", "ap_queue", "loss", "dead_zone")
 
@@ -356,3 +360,37 @@ class NetworkModel:
         for cause, n in self.stats.lost.items():
             out[f"lost/{cause}"] = float(n)
         return out
+
+
+# Named profiles are data shipped beside this module (profiles/<name>.toml); a path to a .toml file works too.
+def _profile_dir():
+    return resources.files("services.faults").joinpath("profiles")
+
+
+@lru_cache(maxsize=1)
+def profile_names() -> tuple[str, ...]:
+    """The named profiles shipped in services/faults/profiles/."""
+    return tuple(sorted(p.name[:-5] for p in _profile_dir().iterdir() if p.name.endswith(".toml")))
+
+
+@lru_cache(maxsize=32)
+def load_profile(name_or_path: str) -> NetworkProfile:
+    """A named profile (``wifi-legacy-roaming``) or a TOML file path; ValueError naming the profile and field."""
+    if name_or_path.endswith(".toml"):
+        path = Path(name_or_path)
+        try:
+            text = path.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ValueError(f"network: cannot read {path}: {exc.strerror}") from None
+        where = f"network {path}"
+    else:
+        if name_or_path not in profile_names():
+            raise ValueError(f"network: unknown profile {name_or_path!r}; choose one of "
+                             f"{', '.join(profile_names())} or give a .toml file")
+        text = _profile_dir().joinpath(name_or_path + ".toml").read_text(encoding="utf-8")
+        where = f"network profile {name_or_path}"
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{where}: not valid TOML: {exc}") from None
+    return parse_profile(data, where)

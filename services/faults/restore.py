@@ -20,8 +20,8 @@ import numpy as np
 
 from schemas.keys import RunKeys
 from schemas.messages import AgentState
-from services.agent.policies import Coordinator, MorphBrains
 from services.bus.base import Bus
+from services.policies.coordinators import Coordinator, MorphBrains
 
 
 async def fetch_states(bus: Bus, run: str, *, timeout: float = 2.0) -> dict[int, AgentState]:

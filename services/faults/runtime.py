@@ -62,9 +62,8 @@ class FaultRuntime:
         if network is not None:
             if not virtual:
                 raise ValueError("network: a network profile needs virtual fault time")
-            from schemas.network import load_profile
-            from services.faults.network import NetworkModel
-            from services.sim.world.layout import LayoutConfig, layout_for
+            from services.faults.network import NetworkModel, load_profile
+            from services.world.layout import LayoutConfig, layout_for
 
             self.network = NetworkModel(load_profile(network[0]), layout_for(LayoutConfig.named(network[1])),
                                         seed=seed)

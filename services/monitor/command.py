@@ -42,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from services.monitor.service import MonitorService
-    from services.supervisor.process import announce, exit_now, run_or_exit, serve, service_config, setup_logging
+    from services.process import announce, exit_now, run_or_exit, serve, service_config, setup_logging
 
     config = service_config(args)
     if not config.endpoint:

@@ -11,7 +11,7 @@ from __future__ import annotations
 from prometheus_client import CollectorRegistry, start_http_server
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
 
-from services.monitor import catalogue
+from services.metrics import catalogue
 
 #: exported from the monitor's message statistics (labels per kind or reason, histograms), not from a stream's value
 FROM_STATS = ("messages_total", "drops_total", "latency_seconds", "dispatch_delay")

@@ -30,7 +30,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from services.monitor.catalogue import COLUMNS  # per-tick columns; ``deliveries`` of step t come with tick t+1
+from services.metrics.catalogue import COLUMNS  # per-tick columns; ``deliveries`` of step t come with tick t+1
 from services.runconfig import RunConfig
 
 FLUSH_SECONDS = 1.0

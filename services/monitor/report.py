@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.monitor import metrics as M
+from services.metrics import measures as M
 from services.monitor.recorder import read_metrics, read_snapshots
 
 log = logging.getLogger("morph_sim.report")
@@ -261,8 +261,8 @@ GIF_MIN_WIDTH = 640  # px: a warehouse GIF a person can read without zooming (ce
 def warehouse_gif(rec: Record, path: Path, *, max_frames: int = 200, cell_px: int | None = None) -> int | None:
     """GIF of the robots with their coordination links, from ``positions.csv`` and ``links.csv``, with a legend of
     the glyphs and colours; ``cell_px`` defaults to what makes it at least GIF_MIN_WIDTH wide. None if absent."""
-    from services.sim.world.layout import layout_for, named_sizes
-    from services.sim.world.render import RECORD_LEGEND, Frame, link_statuses, write_gif
+    from services.world.layout import layout_for, named_sizes
+    from services.world.render import RECORD_LEGEND, Frame, link_statuses, write_gif
 
     positions, links = rec.positions(), rec.links()
     ticks = sorted(set(positions) & set(links))
@@ -277,8 +277,7 @@ def warehouse_gif(rec: Record, path: Path, *, max_frames: int = 200, cell_px: in
     is_agv = np.arange(rec.n_agents) < rec.n_agvs
     aps = dead = None
     if config.get("network"):  # the run's Wi-Fi: its access points and dead zones on every frame
-        from schemas.network import load_profile
-        from services.faults.network import NetworkModel
+        from services.faults.network import NetworkModel, load_profile
 
         try:
             model = NetworkModel(load_profile(config["network"]), lay)

@@ -32,7 +32,7 @@ from schemas import Ack, AgentState, Commit, Event, MetricSample, Phase, Stop
 from schemas.keys import RunKeys, intersects
 from schemas.tick import TickArrays, decode_tick
 from services.bus.base import Bus, Query, Sample
-from services.monitor import catalogue, metrics as M
+from services.metrics import catalogue, measures as M
 from services.monitor.recorder import Recorder, read_metrics
 from services.monitor.streams import MessageStats
 from services.protocol.dispatch import view_age_stats
@@ -166,9 +166,8 @@ class MonitorService:
         # trajectories as every fault layer of the run, observed here, never applied (the monitor is the instrument)
         self.network = None
         if config.network is not None:
-            from schemas.network import load_profile
-            from services.faults.network import NetworkModel
-            from services.sim.world.layout import LayoutConfig, layout_for
+            from services.faults.network import NetworkModel, load_profile
+            from services.world.layout import LayoutConfig, layout_for
 
             self.network = NetworkModel(load_profile(config.network), layout_for(LayoutConfig.named(config.scale)),
                                         seed=config.seed)

@@ -4,7 +4,7 @@ Every stream is published on ``morph/<run>/metrics/<name>`` as a :class:`~schema
 versioned wire message carrying the tick ``t`` and the sim time), at most ``--max-rate`` updates per second per stream
 (the monitor's publish path), and answered from the latest value on ``get morph/<run>/state/metrics/<name>``.
 
-Names, units and meanings are in :mod:`services.monitor.catalogue`. The row streams come from the monitor's per-tick
+Names, units and meanings are in :mod:`services.metrics.catalogue`. The row streams come from the monitor's per-tick
 rows (``metrics.csv``); :class:`MessageStats` adds the statistics that come from the messages themselves (counts,
 drops by sequence gaps, latency, dispatch delay).
 """
@@ -21,7 +21,7 @@ from collections.abc import Awaitable, Callable
 import numpy as np
 
 from schemas import MetricSample
-from services.monitor.catalogue import RATE_WINDOW, sample
+from services.metrics.catalogue import RATE_WINDOW, sample
 
 #: Histogram bucket boundaries (seconds): prometheus_client's defaults, also OTel's for messaging durations.
 LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.075, 0.1, 0.25, 0.5, 0.75, 1.0, 2.5, 5.0, 7.5, 10.0)

@@ -2,8 +2,8 @@
 
 import sys
 
+from services.process import command_main
 from services.sim import command
-from services.supervisor.process import command_main
 
 if __name__ == "__main__":
     sys.exit(command_main(command))

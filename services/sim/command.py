@@ -23,8 +23,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from services.process import announce, exit_now, run_or_exit, serve, service_config, setup_logging
     from services.sim.service import SimService
-    from services.supervisor.process import announce, exit_now, run_or_exit, serve, service_config, setup_logging
 
     config = service_config(args)
     if not config.listen and not config.endpoint:
@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
     setup_logging(args.log_level, "sim")
     import os
 
-    from services.supervisor.process import ZENOH_CONFIG_ENV
+    from services.process import ZENOH_CONFIG_ENV
 
     if config.listen and not os.environ.get(ZENOH_CONFIG_ENV):
         # hosting an endpoint without a config file means no credentials and no access control (docs/deploy.md)

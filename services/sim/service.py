@@ -39,12 +39,12 @@ from schemas.codec import encode_fields
 from schemas.keys import RunKeys
 from schemas.tick import TickObservation, encode_tick_body, onboard_fields, tick_fields
 from services.bus.base import Bus, LivelinessEvent, Sample
+from services.bus.registry import mount_registry
 from services.protocol import dispatch as protocol
 from services.rejects import Rejects
 from services.runconfig import RunConfig
-from services.sim.registry import mount_registry
-from services.sim.world.cta import CTAController
-from services.sim.world.warehouse import Warehouse, WarehouseConfig
+from services.world.cta import CTAController
+from services.world.warehouse import Warehouse, WarehouseConfig
 
 log = logging.getLogger("morph_sim.sim")
 

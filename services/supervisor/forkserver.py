@@ -7,13 +7,14 @@ first tick: for a medium fleet that is most of the CPU an `up` costs before step
 
 A forked process is what an exec'd one was: its own pid, session and process group, its log file as stdout and
 stderr, its own environment (set before Zenoh reads ``ZENOH_RUNTIME`` when its first session opens), its command
-line in its argument space (``ps`` and ``/proc/<pid>/cmdline`` show ``… morph_sim.cli agent --id 3 …``), and
+line in its argument space (``ps`` and ``/proc/<pid>/cmdline`` show ``… -m services.agent --id 3 …``), and
 SIGTERM when its parent dies: the server gets SIGTERM when the supervisor dies and its children theirs when the
 server does, so nothing outlives the supervisor. Fork is safe only while this process has one thread (no Zenoh
 session is ever opened here, and BLAS is held to one thread by the environment the supervisor gives the server); it
 refuses a request otherwise.
 
-The server speaks JSON lines: on stdin ``{"id": n, "argv": [python, "-m", "morph_sim.cli", ...], "env": {...},
+The server speaks JSON lines: on stdin ``{"id": n, "argv": [python, "-m", "services.<sim|agent|monitor>", ...],
+"env": {...},
 "log": path}``; on stdout
 ``{"ready": pid}`` once, ``{"id": n, "pid": p}`` or ``{"id": n, "error": "..."}`` per request, and
 ``{"exit": pid, "status": code}`` (negative: killed by that signal, as ``subprocess`` reports it) for every child
@@ -37,15 +38,15 @@ PRELOAD = (
     "morph_sim.commands.sim",
     "morph_sim.commands.agent",
     "morph_sim.commands.monitor",
-    "services.supervisor.process",
+    "services.process",
     "services.bus.zenoh_bus",
     "services.faults.runtime",
     "services.sim.service",
     "services.agent.service",
     "services.monitor.service",
 )
-#: what a request's argv starts with (the interpreter, then the CLI module): ``ProcessSpec.command()``
-COMMAND = (sys.executable, "-m", "morph_sim.cli")
+#: the service processes a request may start: ``[python, "-m", "services.<name>", flags...]`` (``ProcessSpec.command()``)
+SERVICES = ("sim", "agent", "monitor")
 #: bytes of argument space the server reserves for its children's command lines (a medium run's is ~400)
 TITLE_SPACE = 4096
 _PR_SET_PDEATHSIG = 1
@@ -107,11 +108,13 @@ def _child(request: dict, server_pid: int, started: int, channels: tuple[int, ..
         os.environ.clear()
         os.environ.update(request["env"])
         set_command_line(request["argv"])
-        args = request["argv"][len(COMMAND):]
-        sys.argv = ["morph-sim", *args]
-        from morph_sim.cli import main
+        module, args = request["argv"][2], request["argv"][3:]
+        sys.argv = [module, *args]
+        import importlib
 
-        code = int(main(args) or 0)
+        from services.process import command_main
+
+        code = int(command_main(importlib.import_module(module + ".command"), args) or 0)
     except SystemExit as exc:
         code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
     except BaseException:
@@ -125,6 +128,10 @@ def _child(request: dict, server_pid: int, started: int, channels: tuple[int, ..
             sys.stderr.flush()
         finally:
             os._exit(code)
+
+
+def _is_service(argv: list[str]) -> bool:
+    return len(argv) >= 3 and argv[1] == "-m" and argv[2] in {f"services.{name}" for name in SERVICES}
 
 
 def _status(raw: int) -> int:
@@ -177,8 +184,8 @@ def serve() -> int:
         while b"\n" in pending:
             line, pending = pending.split(b"\n", 1)
             request = json.loads(line)
-            if tuple(request["argv"][1:len(COMMAND)]) != COMMAND[1:]:
-                say({"id": request["id"], "error": f"not a morph-sim command: {request['argv'][:4]}"})
+            if not _is_service(request["argv"]):
+                say({"id": request["id"], "error": f"not a service of a run: {request['argv'][:4]}"})
                 continue
             if _threads() != 1:
                 say({"id": request["id"], "error": f"the fork server has {_threads()} threads; fork is unsafe"})
@@ -288,7 +295,7 @@ class ForkServer:
             self.on_exit()
 
     def spawn(self, argv: list[str], env: dict[str, str], log_path, timeout: float = 10.0) -> ForkedProcess:
-        """Fork ``argv`` (``python -m morph_sim.cli …``) with ``env``, its output appended to ``log_path``."""
+        """Fork ``argv`` (``python -m services.<name> …``) with ``env``, its output appended to ``log_path``."""
         with self._lock:
             if self._closed:
                 raise RuntimeError("the fork server has ended")

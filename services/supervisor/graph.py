@@ -45,12 +45,21 @@ class ProcessSpec:
     agent: int | None = None
 
     def command(self) -> list[str]:
-        """The argv to exec here: ``morph-sim`` runs as ``python -m morph_sim.cli`` of this interpreter."""
-        assert self.argv[0] == PROGRAM
-        return [sys.executable, "-m", "morph_sim.cli", *self.argv[1:]]
+        """The argv to exec here: ``morph-sim <role> …`` runs as ``python -m services.<role> …`` of this interpreter
+        (the same flags and environment variables; the service needs none of the tool on top)."""
+        assert self.argv[0] == PROGRAM and self.argv[1] == self.role
+        return [sys.executable, "-m", f"services.{self.role}", *self.argv[2:]]
 
     def environment(self, base: dict[str, str] | None = None) -> dict[str, str]:
         return child_environment(self.env, base)
+
+
+def role_of(cmdline: list[str]) -> str | None:
+    """The role of a run's process from its command line (``ps``, psutil): ``sim``, ``agent``, ``monitor``, or None."""
+    for role in ("sim", "agent", "monitor"):
+        if f"services.{role}" in cmdline:
+            return role
+    return None
 
 
 def child_environment(extra: dict[str, str], base: dict[str, str] | None = None) -> dict[str, str]:

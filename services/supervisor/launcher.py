@@ -185,7 +185,7 @@ class Supervisor:
                  end_grace: float = 0.0):
         from services.bus.zenoh_bus import endpoint as make_endpoint, free_port
         from services.credentials import RunCredentials, run_credentials
-        from services.supervisor.process import ZENOH_CONFIG_ENV
+        from services.process import ZENOH_CONFIG_ENV
 
         self.config = config
         self.external = config.endpoint is not None
@@ -428,7 +428,7 @@ class Supervisor:
         raise StartError(f"sim did not open {self.endpoint} within {self.ready_timeout:.0f} s:\n{sim.log_tail()}")
 
     async def _open_bus(self):
-        from services.supervisor.process import open_bus
+        from services.process import open_bus
 
         operator = None if self.credentials is None else str(self.credentials.operator)
         return await open_bus("supervisor", connect=self.endpoint, config_file=operator)

@@ -48,6 +48,9 @@ def command_main(command, argv=None) -> int:
     except ValueError as exc:
         print(f"{parser.prog}: error: {exc}", file=sys.stderr)
         return 2
+    except ConnectionError as exc:  # no endpoint there, or it refuses these credentials: one line
+        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
+        return 1
 
 
 ZENOH_CONFIG_ENV = "ZENOH_CONFIG"  # path of a Zenoh config file (zenoh's own convention): credentials, TLS …

@@ -1,4 +1,4 @@
-"""MORPH presets: parameter sets as data (``morph_sim/presets/morph_*.toml``), validated by pydantic.
+"""MORPH presets: parameter sets as data (``services/policies/presets/morph_*.toml``), validated by pydantic.
 
 A preset names its rule set (``reference`` or ``paper``), its parameters, and its ablations as
 parameter overrides. :func:`load_preset` reads a bundled preset by name or a TOML file by path;
@@ -153,7 +153,7 @@ def load_preset(name_or_path: str | Path) -> MorphPreset:
     if path.suffix == ".toml" and path.exists():
         preset = _read_toml(path.read_text(), key)
     else:
-        res = resources.files("morph_sim.presets").joinpath(f"morph_{key}.toml")
+        res = resources.files("services.policies").joinpath("presets", f"morph_{key}.toml")
         if not res.is_file():
             raise ValueError(f"preset: unknown {key!r} (bundled: reference, paper; or a .toml path)")
         preset = _read_toml(res.read_text(), f"morph_{key}.toml")

@@ -16,7 +16,7 @@ from enum import Enum
 
 import numpy as np
 
-from services.sim.world.warehouse import PICKER, StepResult, Warehouse, WarehouseConfig, episode_digest
+from services.world.warehouse import PICKER, StepResult, Warehouse, WarehouseConfig, episode_digest
 
 
 class MissionType(Enum):

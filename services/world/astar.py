@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from services.sim.world.layout import Layout
+from services.world.layout import Layout
 
 INF = float("inf")
 # Static plans (no other agents as obstacles) depend only on the layout, so planners of one layout share them.

@@ -24,8 +24,8 @@ from typing import ClassVar
 import numpy as np
 
 from schemas.tick import NEEDS_PICKER, TickObservation
-from services.agent.plasticity import PaperInputs, PaperState, ReferenceState
-from services.agent.presets import ABLATIONS, MorphParams, load_preset
+from services.policies.plasticity import PaperInputs, PaperState, ReferenceState
+from services.policies.presets import ABLATIONS, MorphParams, load_preset
 
 W_FLOOR = 0.25  # the reference's gate floor for the memoryless gates (TSG, Proximity)
 

@@ -122,7 +122,7 @@ def sample(name: str, t: int, sim_time: float, **fields) -> MetricSample:
 
 
 def w_block_values(blocks) -> dict[str, float | None]:
-    """The W block means of a :class:`~services.monitor.metrics.BlockMeans` (or None) under their metric names."""
+    """The W block means of a :class:`~services.metrics.measures.BlockMeans` (or None) under their metric names."""
     if blocks is None:
         return dict.fromkeys(W_BLOCKS)
     return {"w_agv_agv": blocks.agv_agv, "w_agv_picker": blocks.agv_picker, "w_picker_picker": blocks.picker_picker}

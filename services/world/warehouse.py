@@ -21,9 +21,9 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from schemas.fields import Heading as Direction  # TA-RWARE's name for a robot's heading, one enum on the wire and here
-from services.sim.world.astar import Planner
-from services.sim.world.conflicts import commit_cells
-from services.sim.world.layout import Layout, LayoutConfig, layout_for
+from services.world.astar import Planner
+from services.world.conflicts import commit_cells
+from services.world.layout import Layout, LayoutConfig, layout_for
 
 
 class Action(IntEnum):
@@ -74,7 +74,7 @@ class WarehouseConfig(BaseModel):
     @classmethod
     def named(cls, scale: str, agvs: int | None = None, pickers: int | None = None, **kw) -> WarehouseConfig:
         """A named size with its default fleet unless counts are given."""
-        from services.sim.world.layout import named_sizes
+        from services.world.layout import named_sizes
 
         sizes = named_sizes()
         if scale not in sizes:
@@ -669,8 +669,8 @@ class Warehouse:
         return abs(a[0] - b[0]) + abs(a[1] - b[1])
 
     def frame(self, step: int | None = None, caption: str | None = None, links=()):
-        """The current state as a renderer :class:`~services.sim.world.render.Frame` (plain arrays)."""
-        from services.sim.world.render import Frame
+        """The current state as a renderer :class:`~services.world.render.Frame` (plain arrays)."""
+        from services.world.render import Frame
 
         H, W, lay = self.H, self.W, self.layout
         floor = np.array(self.shelf_layer, dtype=np.int64).reshape(H, W)

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.agent.presets import MorphParams
+from services.policies.presets import MorphParams
 
 _EPS = 1e-9
 

@@ -56,7 +56,7 @@ class LayoutConfig(BaseModel):
 
 @lru_cache(maxsize=1)
 def _presets() -> dict:
-    text = resources.files("morph_sim.presets").joinpath("layouts.toml").read_text(encoding="utf-8")
+    text = resources.files("services.world").joinpath("layouts.toml").read_text(encoding="utf-8")
     return tomllib.loads(text)
 
 

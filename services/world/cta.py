@@ -23,7 +23,7 @@ import numpy as np
 
 from schemas.fields import MissionType
 from schemas.tick import NEEDS_PICKER, NO_CELL, TickObservation
-from services.sim.world.warehouse import StepResult, Warehouse
+from services.world.warehouse import StepResult, Warehouse
 
 PICKING, DELIVERING, RETURNING = MissionType.PICKING, MissionType.DELIVERING, MissionType.RETURNING
 
