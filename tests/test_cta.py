@@ -9,7 +9,8 @@ import pytest
 
 from schemas.fields import MissionType
 from schemas.tick import NEEDS_PICKER, NO_CELL
-from services.world.cta import CTAController, resolve_requests
+from services.protocol.tick import first_in_mission_order
+from services.world.cta import CTAController
 from services.world.warehouse import Warehouse, WarehouseConfig
 
 
@@ -102,9 +103,9 @@ def test_commit_rejects_double_assignments():
     assert cta.commit([(p1, agv)]) == []  # busy picker
 
 
-def test_resolve_requests_first_in_mission_order_wins():
-    assert resolve_requests([(3, 9), (1, 9), (2, 8)]) == [(9, 3), (8, 2)]
-    assert resolve_requests([]) == []
+def test_the_first_request_in_mission_order_wins():
+    assert first_in_mission_order([(3, 9), (1, 9), (2, 8)]) == [(9, 3), (8, 2)]
+    assert first_in_mission_order([]) == []
 
 
 def test_controller_needs_pickers():

@@ -9,9 +9,9 @@ import pytest
 from services.agent.service import AgentService
 from services.bus import LocalNetwork
 from services.faults.restore import restore_brains
+from services.protocol.tick import first_in_mission_order
 from services.runconfig import RunConfig
 from services.sim.service import make_controller
-from services.world.cta import resolve_requests
 
 
 def trained_agents(config: RunConfig, net: LocalNetwork):
@@ -27,7 +27,7 @@ def trained_agents(config: RunConfig, net: LocalNetwork):
             picker = brains.candidate(agv, obs)
             if picker >= 0 and brains.draw(agv) < brains.probability(agv, picker, obs):
                 requests.append((agv, picker))
-        ctl.commit(resolve_requests(requests))
+        ctl.commit(first_in_mission_order(requests))
         ctl.finish_tick()
     return agents, ctl.t
 

@@ -28,6 +28,7 @@ from services.protocol.dispatch import (
     Request,
     decision_points,
 )
+from services.protocol.tick import TickStep
 from services.world.cta import CTAController
 from services.world.warehouse import Warehouse, WarehouseConfig
 
@@ -195,16 +196,17 @@ def test_agent_whose_fleet_broadcast_is_lost_for_k_ticks_learns_from_a_view_k_ti
     net = EventNetwork(fleet_faults(FaultSpec(loss=Loss(percent=0.0), seed=1)), seed=5)
     driver = LabDispatch(fleet.n_agvs, fleet.n_pickers, dt=DT, timeout=5.0, network=net, agent_brains=brains)
     stats = DispatchStats()
+    step = TickStep(cta, dt=DT)
     ages = []
     for t in range(start + k + 2):
         if t == start:  # the broadcast to one agent is lost from now on, for k steps
             net.layer.set(FaultSpec(id="blackout", loss=Loss(percent=100.0), duration=k * DT,
                                     scope=Scope(key_expr=FLEET_KEY, agents=[victim])), at=t * DT)
-        obs = cta.begin_tick()
+        obs = step.begin()
         driver.learn(obs)
         ages.append(driver.views[victim].age(t * DT))
-        driver.dispatch(obs, cta.commit, stats)
-        cta.finish_tick()
+        driver.dispatch(obs, step.settle, stats)
+        step.finish()
     assert ages[start - 1] == 0.0
     assert ages[start + k - 1] == k * DT  # the last lost tick: its view is k ticks old
     assert ages[start + k] == 0.0  # the broadcast is back
@@ -263,15 +265,16 @@ def test_an_agent_service_whose_fleet_broadcast_is_lost_for_k_ticks_learns_from_
     driver = LabDispatch(fleet.n_agvs, fleet.n_pickers, dt=DT, timeout=config.request_timeout, network=net,
                          agent_brains=brains)
     stats = DispatchStats()
+    step = TickStep(cta, dt=DT)
     for t in range(steps):
         if t == start:
             net.layer.set(FaultSpec(id="blackout", loss=Loss(percent=100.0), duration=k * DT,
                                     scope=Scope(key_expr=FLEET_KEY, agents=[victim])), at=t * DT)
-        obs = cta.begin_tick()
+        obs = step.begin()
         driver.learn(obs)
-        driver.dispatch(obs, cta.commit, stats)
-        cta.finish_tick()
-    driver.learn(cta.final_observation())
+        driver.dispatch(obs, step.settle, stats)
+        step.finish()
+    driver.learn(step.final())
     W, W_clean = run.monitor.snapshots[steps][0], clean.monitor.snapshots[steps][0]
     np.testing.assert_array_equal(W, np.vstack([b.weight_rows() for b in brains]))
     assert driver.view_age_max[start + k - 1] == k * DT

@@ -17,7 +17,8 @@ from morph_sim.lab.shift import (
     run_shift,
     table_columns,
 )
-from services.world.cta import CTAController, resolve_requests
+from services.protocol.tick import first_in_mission_order
+from services.world.cta import CTAController
 from services.world.warehouse import Warehouse, WarehouseConfig
 
 
@@ -32,7 +33,7 @@ def _full_dispatch_episode(seed: int, steps: int, side=None, assignment_side=Non
     for _ in range(steps):
         obs = cta.begin_tick()
         reqs = [(a, obs.nearest_free_picker(a)) for a in obs.requesters().tolist()]
-        cta.commit(resolve_requests([(a, p) for a, p in reqs if p >= 0]))
+        cta.commit(first_in_mission_order([(a, p) for a, p in reqs if p >= 0]))
         before = set(wh.queue)
         assigned = dict(cta.items)
         cta.finish_tick()
@@ -64,7 +65,7 @@ def test_demand_shift_off_is_the_original_generator():
     for _ in range(300):
         obs = cta.begin_tick()
         reqs = [(x, obs.nearest_free_picker(x)) for x in obs.requesters().tolist()]
-        cta.commit(resolve_requests([(x, p) for x, p in reqs if p >= 0]))
+        cta.commit(first_in_mission_order([(x, p) for x, p in reqs if p >= 0]))
         cta.finish_tick()
         b.append((list(wh.queue), cta.deliveries))
     assert a == b

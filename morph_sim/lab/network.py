@@ -282,9 +282,10 @@ class LabDispatch:
             return self.agent_brains[agv], None
         return self.agent_brains[agv], with_own_state(view, agv, obs.cells[agv], obs.target[agv])
 
-    def dispatch(self, obs: TickObservation, apply: Callable, count: DispatchStats,
+    def dispatch(self, obs: TickObservation, settle: Callable, count: DispatchStats,
                  draw: Callable[[int], float] | None = None) -> list[tuple[int, int]]:
-        """AGVs ask, pickers decide, the sim applies what has arrived; returns the (picker, AGV) pairs applied."""
+        """AGVs ask, pickers decide, the sim settles what has arrived (``settle``: the tick step's,
+        :meth:`services.protocol.tick.TickStep.settle`); returns the (picker, AGV) pairs applied."""
         ep, out, net, k = self.ep, self.ep.outcomes, self.net, self.keys
         s_agv, s_pick, s_sim = decision_points(obs.t, self.dt)
         needs = obs.needs_picker
@@ -331,9 +332,7 @@ class LabDispatch:
         self._deliver(s_sim)
         if not ep.desk.inbox:
             return []
-        rank = {int(a): i for i, a in enumerate(obs.request_order)}
-        wanted = {a: (int(obs.target[a, 0]), int(obs.target[a, 1])) for a in np.flatnonzero(needs).tolist()}
-        applied, refusals = ep.desk.settle(s_sim, rank, wanted, apply, out)
+        applied, refusals = settle(obs, ep.desk, out)
         for _, agv in applied:
             self.dispatch_delays.append(obs.t - self._waiting_since.pop(agv, obs.t))
         for r in refusals:

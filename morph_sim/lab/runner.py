@@ -28,18 +28,23 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from morph_sim.lab.network import FLEET_KEY, EventNetwork, LabDispatch, Team, dispatch_faults
 from schemas.faults import FaultSpec
-from schemas.tick import TickObservation
 from services.metrics import catalogue, measures
 from services.policies.coordinators import (
     CoordinationPolicy,
-    Coordinator,
     Fleet,
     MorphPolicy,
     ProximityPolicy,
     make_policy,
 )
-from services.protocol.dispatch import DEFAULT_REQUEST_TIMEOUT, gate
-from services.world.cta import CTAController, resolve_requests
+from services.protocol.dispatch import DEFAULT_REQUEST_TIMEOUT
+from services.protocol.tick import (
+    DemandShift,
+    TickStep,
+    concurrent_commits,
+    distinct_cells,
+    sequential_commits,
+)
+from services.world.cta import CTAController
 from services.world.warehouse import Warehouse, WarehouseConfig
 
 SCALES = ("tiny", "small", "medium", "large")
@@ -151,6 +156,10 @@ class EpisodeSpec(BaseModel):
         reset = self.phase_steps if self.demand_phases else None
         return make_condition_policy(self.condition, self.preset, self.radius, reset_every=reset, steps=self.steps)
 
+    def demand_shift(self) -> DemandShift | None:
+        """The episode's demand phases as the tick step takes them (None: no shift)."""
+        return DemandShift(self.demand_phases, self.phase_steps, self.demand_mode) if self.demand_phases else None
+
     def boundaries(self) -> list[int]:
         return [p * self.phase_steps for p in range(len(self.demand_phases))] if self.demand_phases else [0]
 
@@ -172,52 +181,6 @@ class DispatchStats:
         self.dispatched += int(ask)
         self.p_sum += p
         self.w_positive += int(p > 0.25 + 1e-12)
-
-
-def sequential_commits(obs: TickObservation, brains: Coordinator, draw, stats: DispatchStats | None = None
-                       ) -> list[tuple[int, int]]:
-    """The reference's sequential dispatch, kept as a switch for exact comparison with the reference code: AGVs in
-    mission order, each asking the nearest picker still free after those taken earlier in the step; one picker per
-    cell."""
-    free = obs.free_picker.copy()
-    cells: set[tuple[int, int]] = set()
-    commits = []
-    for agv in obs.requesters().tolist():
-        cell = (int(obs.target[agv, 0]), int(obs.target[agv, 1]))
-        if cell in cells or not free.any():
-            continue
-        g = gate(brains, agv, obs, lambda agv=agv: draw(agv), free)
-        if g.picker < 0:
-            continue
-        if stats is not None:
-            stats.count(g.ask, g.p)
-        if g.ask:
-            commits.append((g.picker, agv))
-            free[g.picker] = False
-            cells.add(cell)
-    return commits
-
-
-def concurrent_commits(obs: TickObservation, brains: Coordinator, draw) -> list[tuple[int, int]]:
-    """What the protocol commits at zero latency (each picker takes the first requester in mission order), replayed
-    with given draws: the comparison the sequential switch reports."""
-    requests = []
-    for agv in obs.requesters().tolist():
-        g = gate(brains, agv, obs, lambda agv=agv: draw(agv))
-        if g.ask:
-            requests.append((agv, g.picker))
-    return resolve_requests(requests)
-
-
-def _dedupe_cells(obs: TickObservation, commits) -> set[tuple[int, int]]:
-    seen, out = set(), set()
-    for picker, agv in commits:
-        cell = (int(obs.target[agv, 0]), int(obs.target[agv, 1]))
-        if cell in seen:
-            continue
-        seen.add(cell)
-        out.add((picker, agv))
-    return out
 
 
 def episode_faults(spec: EpisodeSpec) -> list[FaultSpec]:
@@ -299,8 +262,6 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
     if driver is not None:  # the dispatch outcomes by the end of each step, as the monitor's rows have them
         cols.update((name, np.zeros(T)) for name in catalogue.outcome_values({}))
     dist_sum = np.zeros((n, n))
-    committed = 0
-    network_stops = 0
 
     def record(step: int) -> None:
         A = brains.team_links()
@@ -322,14 +283,9 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
 
     snaps = set(snapshot_ticks)
     snapshots: dict[int, np.ndarray] = {}
+    step = TickStep(cta, dt=DT, demand=spec.demand_shift())
     for t in range(T):
-        if spec.demand_phases and t % spec.phase_steps == 0:
-            side = spec.demand_phases[t // spec.phase_steps]
-            if spec.demand_mode == "requests":
-                wh.set_demand_side(side)
-            elif spec.demand_mode == "assignment":
-                cta.assignment_side = side
-        obs = cta.begin_tick()
+        obs = step.begin()
         if driver is not None:
             driver.learn(obs)
         else:
@@ -345,13 +301,13 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
         c = obs.cells
         dist_sum += np.abs(c[:, None, 0] - c[None, :, 0]) + np.abs(c[:, None, 1] - c[None, :, 1])
         if driver is not None:
-            applied = driver.dispatch(obs, cta.commit, stats, draw)
+            driver.dispatch(obs, step.settle, stats, draw)
             if not faults and driver.team_brain is not None:
                 draws = driver.last_draws
                 other = sequential_commits(obs, brains, lambda agv, draws=draws: draws.get(agv, float("inf")))
                 rank = {int(a): i for i, a in enumerate(obs.request_order)}
                 sent = sorted(driver.sent_commits, key=lambda pa: rank.get(pa[1], len(rank)))
-                stats.divergent_ticks += _dedupe_cells(obs, sent) != _dedupe_cells(obs, other)
+                stats.divergent_ticks += distinct_cells(obs, sent) != distinct_cells(obs, other)
         else:
             draws: dict[int, float] = {}
 
@@ -359,25 +315,19 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
                 draws[agv] = draw(agv)
                 return draws[agv]
 
-            commits = sequential_commits(obs, brains, live, stats)
+            commits = sequential_commits(obs, brains, live, stats.count)
             other = concurrent_commits(obs, brains, lambda agv, draws=draws: draws.get(agv, float("inf")))
-            stats.divergent_ticks += _dedupe_cells(obs, commits) != _dedupe_cells(obs, other)
-            applied = cta.commit(commits)
-        committed += len(applied)
-        if model is not None and model.profile.silence_stop is not None:
-            # as the sim service: a robot whose radio has been silent for silence_stop at the step's start (a
-            # hand-over outage) stands still for the step
-            cta.held = model.silenced(t * DT, model.profile.silence_stop)
-            network_stops += len(cta.held)
-        cta.finish_tick()
+            stats.divergent_ticks += distinct_cells(obs, commits) != distinct_cells(obs, other)
+            step.commit_now(commits)
+        step.finish(radio=model)
         cols["deliveries"][t] = cta.deliveries
         cols["dispatched"][t] = stats.dispatched  # gate successes (requests sent)
-        cols["committed"][t] = committed  # pickers actually sent
+        cols["committed"][t] = step.commits_applied  # pickers actually sent
         cols["gate_p_sum"][t] = stats.p_sum  # Σ P(respond) over the gate decisions so far
         if driver is not None:
             for name, v in catalogue.outcome_values(driver.outcomes.as_dict()).items():
                 cols[name][t] = v
-    final = cta.final_observation()
+    final = step.final()
     if not brains.memoryless:
         if driver is not None:
             driver.learn(final)
@@ -412,13 +362,13 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
         "mean_links_directed": float(cols["links_directed"].mean()),
         "dispatch_decisions": stats.decisions,
         "dispatched": stats.dispatched,
-        "committed": committed,
+        "committed": step.commits_applied,
         "mean_p_respond": stats.p_sum / stats.decisions if stats.decisions else float("nan"),
         "share_above_floor": stats.w_positive / stats.decisions if stats.decisions else float("nan"),
         "divergent_dispatch_ticks": stats.divergent_ticks,
         **({f"protocol_{k}": v for k, v in driver.outcomes.as_dict().items()} if driver is not None else {}),
         **(_network_summary(driver) if driver is not None else {}),
-        **(_radio_summary(model, network_stops) if model is not None else {}),
+        **(_radio_summary(model, step.network_stops) if model is not None else {}),
         **catalogue.w_block_values(blocks),
         "w_asymmetry": float(np.abs(W - W.T).max()),
     }

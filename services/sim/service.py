@@ -41,6 +41,7 @@ from schemas.tick import TickObservation, encode_tick_body, onboard_fields, tick
 from services.bus.base import Bus, LivelinessEvent, Sample
 from services.bus.registry import mount_registry
 from services.protocol import dispatch as protocol
+from services.protocol.tick import TickStep
 from services.rejects import Rejects
 from services.runconfig import RunConfig
 from services.world.cta import CTAController
@@ -106,25 +107,11 @@ def handling_pairs(obs: TickObservation, carrying) -> tuple[list[tuple[int, int]
     return loads, unloads
 
 
-class FleetController(CTAController):
-    """The CTA controller with one addition of the distributed run: robots whose agent is absent stay idle."""
-
-    def __init__(self, warehouse: Warehouse) -> None:
-        super().__init__(warehouse)
-        self.idle: set[int] = set()
-
-    def actions(self) -> list[int]:
-        acts = super().actions()
-        for robot in self.idle:
-            acts[robot] = 0  # macro action 0: no target, the robot stays where it is
-        return acts
-
-
-def make_controller(config: RunConfig) -> FleetController:
+def make_controller(config: RunConfig) -> CTAController:
     """The world of a run: a warehouse of the configured size and fleet, reset with the run's seed."""
     wh_cfg = WarehouseConfig.named(config.scale, config.n_agvs, config.n_pickers,
                                    max_steps=max(config.steps + 1, 500))
-    ctl = FleetController(Warehouse(wh_cfg))
+    ctl = CTAController(Warehouse(wh_cfg))
     ctl.reset(config.seed)
     return ctl
 
@@ -244,6 +231,7 @@ class SimService:
         self.wait_for_monitor = wait_for_monitor
         self.on_tick = on_tick
         self.ctl = make_controller(config)
+        self.step = TickStep(self.ctl, dt=config.dt)
         self.result = SimResult()
         self.result.pace.period = config.period
         self.alive: set[int | str] = set()  # liveliness tokens visible
@@ -458,16 +446,8 @@ class SimService:
     async def _settle(self, obs: TickObservation) -> list[tuple[int, int]]:
         """The step boundary: apply the commitments delivered by now (services/protocol), tell both sides of each
         refused one."""
-        boundary = (obs.t + 1) * self.config.dt
-        rank = {int(a): i for i, a in enumerate(obs.request_order)}
-        wanted = {int(a): (int(obs.target[a, 0]), int(obs.target[a, 1])) for a in np.flatnonzero(obs.needs_picker)}
         with self._desk_lock:
-            # a Commit that did not say its cell is checked against the AGV's current one
-            for i, (due, c) in enumerate(self.desk.inbox):
-                if c.cell is None:
-                    self.desk.inbox[i] = (due, protocol.Commitment(c.picker, c.agv, wanted.get(c.agv, (-1, -1)),
-                                                                   c.sent_at, c.seq))
-            applied, refusals = self.desk.settle(boundary, rank, wanted, self.ctl.commit, self.outcomes)
+            applied, refusals = self.step.settle(obs, self.desk, self.outcomes)
         for r in refusals:
             refusal = Refusal(t=obs.t + 1, picker=r.picker, agv=r.agv, commit_seq=r.commit_seq)
             await self.bus.publish(self.keys.refusal(r.agv), refusal)
@@ -689,7 +669,7 @@ class SimService:
                 await self._keep_monitor_window(self.result.steps)
             started = time.monotonic()
             spent = self.result.phase_seconds
-            obs = self.ctl.begin_tick()
+            obs = self.step.begin()
             t = obs.t
             if self.on_tick is not None:
                 self.on_tick(t, obs)
@@ -710,12 +690,7 @@ class SimService:
             if cfg.mode == "paced":
                 more = set(range(cfg.n_agvs, self.n))  # a real-time fleet: every picker decides every step
             if self._requests or more:
-                order = [int(a) for a in obs.request_order if int(a) in self._requests]
-                expected: dict[int, list[int]] = {p: [] for p in more}
-                for agv in order:
-                    for picker in self._requests[agv]:
-                        expected.setdefault(picker, []).append(agv)
-                self._expected = expected
+                self._expected = expected = self.step.decision_plan(obs, self._requests, more)
                 pickers = sorted(expected)
                 ph = _Phase(t, Phase.RESOLVE, {p for p in pickers if p in self.present()})
                 self._phase = ph
@@ -726,24 +701,19 @@ class SimService:
                 self.faults.advance((t + 1) * cfg.dt)  # the step boundary: what is due by now is delivered
             t3 = time.monotonic()
             spent["resolve_phase"] += t3 - t2
-            applied = await self._settle(obs)
-            self.ctl.idle = set(range(self.n)) - self.present()  # an absent agent's robot gets no new target
-            net = self.faults.network if self.faults is not None else None
-            if net is not None and net.profile.silence_stop is not None:
-                # AGV software stops a robot that has heard nothing for silence_stop seconds: a robot whose radio is
-                # in a hand-over outage that long at the step's start stands still for the step (path kept)
-                self.ctl.held = net.silenced(t * cfg.dt, net.profile.silence_stop)
-                self.result.network_stops += len(self.ctl.held)
-            self.result.commits_applied += len(applied)
-            before = self.ctl.deliveries
-            self.ctl.finish_tick()
+            await self._settle(obs)
+            # an absent agent's robot gets no new target
+            delivered = self.step.finish(idle=set(range(self.n)) - self.present(),
+                                         radio=self.faults.network if self.faults is not None else None)
+            self.result.network_stops = self.step.network_stops
+            self.result.commits_applied = self.step.commits_applied
             self.result.steps += 1
             self.result.deliveries = self.ctl.deliveries
-            self.result.per_tick_deliveries.append(self.ctl.deliveries - before)
+            self.result.per_tick_deliveries.append(delivered)
             spent["step"] += time.monotonic() - t3
             self.result.wall_seconds = time.monotonic() - t0
         # the final tick: agents apply the update of the last step, nobody dispatches
-        obs = self.ctl.final_observation()
+        obs = self.step.final()
         if self.faults is not None:
             self.faults.advance(obs.t * cfg.dt)  # its boundary, as every tick: stamps and releases like the others
         ph = _Phase(obs.t, Phase.TICK, self.present())

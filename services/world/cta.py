@@ -58,6 +58,8 @@ class CTAController:
         self.assignment_side: str | None = None
         #: robots that stand still in the next step whatever their path (the services' network safety stop)
         self.held: set[int] = set()
+        #: robots that take no new target in the next step (their driver, a distributed run's agent, is absent)
+        self.idle: set[int] = set()
         self._reset_state()
 
     def _reset_state(self) -> None:
@@ -261,6 +263,8 @@ class CTAController:
             acts[a] = 0 if busy[a] else m.action
         for p, m in self.picker_missions.items():
             acts[p] = m.action
+        for robot in self.idle:
+            acts[robot] = 0  # macro action 0: no target, the robot stays where it is
         return acts
 
     def finish_tick(self) -> StepResult:
@@ -309,18 +313,3 @@ class CTAController:
 
 # ---------------------------------------------------------------------------------------------------
 # resolving requests
-
-
-def resolve_requests(requests) -> list[tuple[int, int]]:
-    """The picker rule of the tick protocol (docs/services.md): each picker takes the first request in mission order and declines the others.
-
-    ``requests``: (agv, picker) pairs in the sim's mission order. Returns (picker, agv) commitments.
-    """
-    taken: set[int] = set()
-    commits = []
-    for agv, picker in requests:
-        if picker in taken:
-            continue
-        taken.add(picker)
-        commits.append((picker, agv))
-    return commits
