@@ -6,6 +6,7 @@ import argparse
 import asyncio
 import shutil
 import sys
+from pathlib import Path
 
 NAME = "up"
 HELP = "start a distributed run: sim (Zenoh endpoint), one process per agent, monitor; live progress"
@@ -75,9 +76,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"morph-sim up: error: {exc}", file=sys.stderr)
         return 1
     if supervisor.credentials is not None:
+        # the operator commands read the endpoint and the credentials from the record, which they look for under
+        # their own --output-dir (default runs)
+        elsewhere = "" if Path(config.output_dir) == Path("runs") else f" --output-dir {config.output_dir}"
         print(f"run {config.run_id}: secured endpoint {supervisor.endpoint}; operator credentials "
-              f"{supervisor.credentials.operator} (watch/faults/record/stop find them with --run {config.run_id})",
-              file=sys.stderr)
+              f"{supervisor.credentials.operator} (watch/faults/record/stop find them with --run {config.run_id}"
+              f"{elsewhere})", file=sys.stderr)
     elif args.insecure and not supervisor.external:
         print(f"morph-sim up: warning: INSECURE run: the endpoint {supervisor.endpoint} has no credentials and no "
               "access control; anyone who reaches it can stop the run, inject faults or forge messages",
