@@ -142,7 +142,7 @@ def monitor_flags(args: argparse.Namespace) -> tuple[tuple[str, ...], float]:
     return tuple(flags), float(args.prometheus_grace)
 
 
-def claim_record_dir(directory) -> None:
+def claim_record_dir(directory, how: str = "choose another --run-id or remove it") -> None:
     """Create the run's record directory, refusing one that exists: a second run under the same id would append to
     the first one's record (a restarted monitor does that on purpose). A run cannot be resumed (the world restarts
     at tick 0), so there is nothing to continue. Raises ValueError (one line, exit 2) naming the problem."""
@@ -159,8 +159,7 @@ def claim_record_dir(directory) -> None:
     try:
         directory.mkdir()
     except FileExistsError:
-        raise ValueError(f"run_id: {directory} exists (a run with this id was recorded there); choose another "
-                         "--run-id or remove it") from None
+        raise ValueError(f"run_id: {directory} exists (a run with this id was recorded there); {how}") from None
     except OSError as exc:
         raise ValueError(f"output_dir: cannot create {directory}: {exc.strerror or exc}") from None
     try:  # writable, not just creatable (e.g. a read-only bind mount)
