@@ -359,25 +359,60 @@ def _in_fresh_loop(coro_factory):
     return box["value"]
 
 
-def run(base: RunConfig | Mapping[str, Any] | None = None, **fields: Any) -> Record:
+#: what a run record directory may hold (services/monitor/recorder.py, the supervisor's credentials and logs, a
+#: report): ``overwrite=True`` removes a directory only when everything in it is one of these
+RECORD_ENTRIES = frozenset({"manifest.json", "metrics.csv", "events.jsonl", "snapshots", "positions.csv", "links.csv",
+                            "summary.json", "credentials", "logs", "report"})
+
+
+def _claim(cfg: RunConfig, overwrite: bool) -> None:
+    """Make ``cfg``'s record directory this run's, as the CLI does: an existing one is refused (ValueError naming
+    ``run_id``), so a second call with the same id never writes into the first run's record; ``overwrite`` removes
+    the old record wholly first (a run cannot be continued: its world restarts at tick 0)."""
+    import shutil
+
+    from morph_sim.commands.up import claim_record_dir
+
+    directory = cfg.record_dir
+    if overwrite and directory.is_dir():
+        strangers = sorted(p.name for p in directory.iterdir() if p.name not in RECORD_ENTRIES)
+        if strangers:
+            raise ValueError(f"run_id: {directory} is not a run record (it holds {', '.join(strangers[:3])}); "
+                             "overwrite removes only a run record")
+        shutil.rmtree(directory)
+    claim_record_dir(directory, how="choose another run_id, remove it, or pass overwrite=True")
+
+
+def run(base: RunConfig | Mapping[str, Any] | None = None, *, overwrite: bool = False, **fields: Any) -> Record:
     """Run the services in this process over the in-process bus (``morph-sim run``); returns the run's record.
+    A run id that already has a record is refused (ValueError naming ``run_id``) unless ``overwrite=True``, which
+    removes that record wholly before the run starts.
 
     >>> rec = run(policy="full", scale="tiny", steps=100, seed=1, output_dir="runs")
     """
     from morph_sim.local import run_local
 
     cfg = config(base, **fields)
+    _claim(cfg, overwrite)
     _in_fresh_loop(lambda: run_local(cfg, record=True))
     return load(cfg.record_dir)
 
 
-def up(base: RunConfig | Mapping[str, Any] | None = None, **fields: Any) -> Record:
+def up(base: RunConfig | Mapping[str, Any] | None = None, *, overwrite: bool = False, **fields: Any) -> Record:
     """A distributed run on this machine (``morph-sim up``): one OS process per agent; returns the run's record.
-    Raises RuntimeError if the run did not complete (its record is kept)."""
-    from services.supervisor.launcher import Supervisor
+    Raises RuntimeError if the run did not complete (its record is kept). An existing run id is refused as by
+    :func:`run` (``overwrite=True`` removes its record first)."""
+    import shutil
+
+    from services.supervisor.launcher import StartError, Supervisor
 
     cfg = config(base, **fields)
-    supervisor = Supervisor(cfg)
+    _claim(cfg, overwrite)
+    try:
+        supervisor = Supervisor(cfg)
+    except (StartError, ValueError):
+        shutil.rmtree(cfg.record_dir, ignore_errors=True)  # nothing started: the run id stays free, as in the CLI
+        raise
     code = _in_fresh_loop(supervisor.run)
     if code != 0:
         raise RuntimeError(f"up: run {cfg.run_id} did not complete (exit {code}); record: {cfg.record_dir}")

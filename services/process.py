@@ -105,9 +105,15 @@ def _seconds(text: str) -> float:
     return value
 
 
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"  # where an operator command looks when nothing tells it where the run is
+
+
 def add_operator_arguments(parser) -> None:
-    """``--credentials``, ``--connect-timeout`` and ``--output-dir`` of the operator commands (watch, faults,
-    record, stop)."""
+    """``--endpoint``, ``--credentials``, ``--connect-timeout`` and ``--output-dir`` of the operator commands (watch,
+    faults, record, stop)."""
+    parser.add_argument("--endpoint", default=None,
+                        help="Zenoh endpoint of the run (default: where the run of --run ID is hosted, from its "
+                             f"record <output-dir>/<run>/credentials/where or manifest.json; else {DEFAULT_ENDPOINT})")
     parser.add_argument("--credentials", default=None, metavar="FILE",
                         help="Zenoh config with the operator's user/password (default: $ZENOH_CONFIG, else "
                              "<output-dir>/<run>/credentials/operator.json5 written by `morph-sim up`)")
@@ -132,8 +138,37 @@ def operator_credentials(args, run_id: str | None, output_dir=None) -> str | Non
 
         from services.credentials import find_operator_config
 
-        return os.environ.get(ZENOH_CONFIG_ENV) or find_operator_config(out, getattr(args, "endpoint", "") or "")
+        return os.environ.get(ZENOH_CONFIG_ENV) or find_operator_config(out, operator_endpoint(args, None))
     return operator_config_path(out / run_id)
+
+
+def operator_endpoint(args, run_id: str | None, output_dir=None) -> str:
+    """The endpoint an operator command connects to: ``--endpoint``; else where run ``run_id`` is hosted, as its
+    record says (``credentials/where``, written by ``up`` before any process starts; else the endpoint in the
+    monitor's ``manifest.json``, which an ``--insecure`` run has too); else :data:`DEFAULT_ENDPOINT`. ``up`` hosts
+    a run on a free port, so the record is the only place that knows it."""
+    import json
+    from pathlib import Path
+
+    from services.credentials import WHERE_FILE, run_credentials
+
+    if getattr(args, "endpoint", None):
+        return args.endpoint
+    if run_id is not None:
+        record = Path(output_dir if output_dir is not None else getattr(args, "output_dir", None) or "runs") / run_id
+        try:
+            where = (run_credentials(record).directory / WHERE_FILE).read_text().strip()
+        except OSError:
+            where = ""
+        if where:
+            return where
+        try:
+            where = json.loads((record / "manifest.json").read_text()).get("config", {}).get("endpoint") or ""
+        except (OSError, ValueError, AttributeError):
+            where = ""
+        if where:
+            return where
+    return DEFAULT_ENDPOINT
 
 
 async def open_operator_bus(identity: str, endpoint: str, args, run_id: str | None, output_dir=None):

@@ -47,7 +47,7 @@ KINDS: dict[str, tuple[str, ...]] = {
         "test_dockerfile", "test_equivalence", "test_experiment_flags", "test_forkserver", "test_faults_at_tick", "test_faults_cli_live",
         "test_faults_distributed", "test_faults_up", "test_fuzz_services", "test_hostile", "test_network_services",
         "test_readme_example", "test_report", "test_secure_defaults", "test_sweep", "test_up", "test_warehouse_cli", "test_watch",
-        "test_live_streams", "test_long_run", "test_no_run", "test_outcome_streams", "test_realtime_fleet", "test_restore_lockstep", "test_start_lines", "test_up_exit",
+        "test_live_streams", "test_long_run", "test_no_run", "test_operator_commands", "test_outcome_streams", "test_realtime_fleet", "test_restore_lockstep", "test_start_lines", "test_up_exit",
     ),
 }
 KIND_OF = {name: kind for kind, names in KINDS.items() for name in names}

@@ -125,3 +125,41 @@ async def test_run_works_from_inside_a_running_event_loop_as_in_a_notebook(tmp_p
     """Jupyter runs cells inside an event loop; asyncio.run would refuse there, so the API runs in a helper thread."""
     rec = ms.run(policy="full", steps=15, seed=2, run_id="in-loop", output_dir=tmp_path)
     assert len(rec.metrics) == 15 and rec.totals["steps"] == 15
+
+
+def _files(directory: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(directory)): p.read_bytes() for p in sorted(directory.rglob("*")) if p.is_file()}
+
+
+def test_a_run_id_with_a_record_is_refused_and_the_record_left_as_it_was(tmp_path):
+    """A notebook cell run twice: the second call names the run id and writes nothing; ms.up refuses it before any
+    process starts."""
+    import time
+
+    first = ms.run(policy="full", steps=20, seed=1, run_id="rr", output_dir=tmp_path)
+    before = _files(first.path)
+    assert len(first.positions) == 8 * 21  # t = 0..20
+    for again in (ms.run, ms.up):
+        started = time.monotonic()
+        with pytest.raises(ValueError, match=r"^run_id: .*rr exists .*overwrite=True"):
+            again(policy="full", steps=20, seed=1, run_id="rr", output_dir=tmp_path)
+        assert time.monotonic() - started < 2
+        assert _files(first.path) == before
+
+
+def test_overwrite_removes_the_old_record_wholly_before_the_run(tmp_path):
+    ms.run(policy="full", steps=20, seed=1, run_id="ow", output_dir=tmp_path)
+    stale = tmp_path / "ow" / "snapshots" / "stale.npz"
+    stale.write_bytes(b"left by the first run")
+    rec = ms.run(policy="tsg", steps=15, seed=2, run_id="ow", output_dir=tmp_path, overwrite=True)
+    twin = ms.run(policy="tsg", steps=15, seed=2, run_id="twin", output_dir=tmp_path)
+    assert not stale.exists()
+    assert rec.manifest.run_config.policy == "tsg" and len(rec.metrics) == 15
+    for name in ("metrics.csv", "positions.csv", "links.csv"):
+        assert (rec.path / name).read_text() == (twin.path / name).read_text(), name
+    # a directory that is not a run record is never removed
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "thesis.tex").write_text("mine")
+    with pytest.raises(ValueError, match=r"^run_id: .*notes is not a run record \(it holds thesis.tex\)"):
+        ms.run(policy="tsg", steps=5, run_id="notes", output_dir=tmp_path, overwrite=True)
+    assert (tmp_path / "notes" / "thesis.tex").read_text() == "mine"

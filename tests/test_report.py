@@ -126,3 +126,55 @@ def test_a_monitor_killed_and_restarted_mid_run_leaves_a_record_equal_apart_from
     assert summary["mean_links"] == pytest.approx(sum(int(r["links"]) for r in rows) / len(rows))
     lost = sum(int(calm[t]["deliveries"]) for t in range(first, last + 1))
     print(f"gap rows {first}..{last} ({last - first + 1} ticks, {lost} deliveries)")
+
+
+# palette entries that are not glyphs of their own: floors and lines around the glyphs, the header, words
+_NOT_GLYPHS = {"background", "rack_floor", "grid", "header", "text", "outline", "heading", "goal_mark", "target"}
+
+
+def _colours(pixels: np.ndarray) -> set[str]:
+    from services.sim.world.render import COLORS
+
+    name = {(r << 16) | (g << 8) | b: key for key, (r, g, b) in COLORS.items()}
+    rgb = pixels.reshape(-1, 3).astype(np.int64)
+    return {name[c] for c in np.unique((rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]).tolist() if c in name}
+
+
+def test_the_report_names_each_runs_network_and_hand_overs_and_the_gif_legend_names_every_glyph(tmp_path, capsys):
+    """A Wi-Fi run and an ideal-network run side by side: the table tells them apart, with the hand-overs the run
+    itself reported; every glyph the GIF draws (access points and dead zones included) is in its legend."""
+    import re
+
+    from morph_sim.cli import main
+    from services.sim.world.layout import layout_for, named_sizes
+    from services.sim.world.render import image_size
+
+    said = {}
+    for name, flags in (("wifi", ["--network", "wifi-legacy-roaming"]), ("ideal", [])):
+        assert main(["run", "--quiet", "--scale", "tiny", "--steps", "20", "--policy", "full", "--run-id", name,
+                     "--output-dir", str(tmp_path), *flags]) == 0
+        said[name] = capsys.readouterr().out
+    handovers = int(re.search(r"^network wifi-legacy-roaming: (\d+) hand-overs", said["wifi"], re.M).group(1))
+    assert handovers > 0
+    assert main(["report", str(tmp_path / "wifi"), str(tmp_path / "ideal"), "--out", str(tmp_path / "report")]) == 0
+    lines = (tmp_path / "report" / "report.md").read_text().splitlines()
+    head = next(line for line in lines if line.startswith("| run |"))
+    cols = [c.strip() for c in head.strip("|").split("|")]
+    table = {cells[0]: dict(zip(cols, cells)) for line in lines if line.startswith(("| wifi |", "| ideal |"))
+             for cells in [[c.strip() for c in line.strip("|").split("|")]]}
+    assert (table["wifi"]["network"], table["wifi"]["hand-overs"]) == ("wifi-legacy-roaming", str(handovers))
+    assert (table["ideal"]["network"], table["ideal"]["hand-overs"]) == ("ideal (none)", "–")
+
+    lay = layout_for(named_sizes()["tiny"][0])
+    for k, network_glyphs in ((0, {"access_point", "dead_zone"}), (1, set())):
+        drawn, named = set(), set()
+        with Image.open(tmp_path / "report" / f"warehouse_{k}.gif") as gif:
+            cell = (gif.size[0] - 1) // lay.W - 1
+            map_height = image_size(lay.H, lay.W, cell, True, ())[1]  # the frame above its legend band
+            for i in range(gif.n_frames):
+                gif.seek(i)
+                rgb = np.asarray(gif.convert("RGB"))
+                drawn |= _colours(rgb[:map_height])
+                named |= _colours(rgb[map_height:])
+        assert drawn & {"access_point", "dead_zone"} == network_glyphs
+        assert drawn - _NOT_GLYPHS <= named, f"drawn but not in the legend: {drawn - _NOT_GLYPHS - named}"

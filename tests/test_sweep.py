@@ -15,7 +15,7 @@ import pytest
 
 from morph_sim.lab.sweep import SweepPlan, run_sweep
 
-from _procs import alive, descendants, kill_tree, terminal_signals
+from _procs import alive, descendants, kill_all, kill_tree, terminal_signals
 
 # The acceptance sweep: 3 policies × 3 loss levels × 2 scales × 5 seeds = 90 episodes. The default suite runs it with
 # short episodes and two seeds; the slow versions run it whole at the studies' length.
@@ -286,8 +286,9 @@ def test_a_record_of_another_sweep_is_not_resumed(tmp_path, capsys):
     code, _, err = _main("--grid", "policy=full", "--set", "steps=5", "--out", str(tmp_path), "--run-id", "x",
                          "--no-progress", capsys=capsys)
     assert code == 2
-    assert err.strip().splitlines()[-1] == f"morph-sim sweep: error: sweep: {tmp_path / 'x'} holds a different sweep; give " \
-                                 "another --run-id or --out"
+    assert err.strip().splitlines()[-1] == (f"morph-sim sweep: error: sweep: {tmp_path / 'x'} holds a different sweep "
+                                            "(not the same grid; only more seeds extend it); give another --run-id or "
+                                            "--out")
 
 
 def test_dask_executor_without_the_extra_says_how_to_install(tmp_path, monkeypatch):
@@ -356,3 +357,65 @@ def test_lab_engine_sweeps_network_profiles_as_the_lab_episode():
     specs = [plan.episode_spec(c, s) for c, s in plan.episodes()]
     assert [s.network for s in specs] == ["lan", "wifi-legacy-roaming"]
     assert run_episode(specs[1]).summary["network_handovers"] > 0
+
+
+def test_no_worker_outlives_a_sweep_killed_with_sigkill(tmp_path):
+    """SIGKILL leaves the parent no chance to stop its pool: each worker dies with it (the kernel tells it)."""
+    log = tmp_path / "k" / "episodes.jsonl"
+    with open(tmp_path / "stderr", "w") as err:
+        proc = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "sweep", "--grid", "policy=morph,tsg",
+                                 "--seeds", "1-30", "--set", "steps=300", "--out", str(tmp_path), "--run-id", "k",
+                                 "--no-progress", "--jobs", "2"], stdout=subprocess.DEVNULL, stderr=err)
+    workers: set[int] = set()
+    try:
+        deadline = time.monotonic() + 120
+        while _lines(log) < 1 or len(workers) < 2:
+            assert proc.poll() is None, (tmp_path / "stderr").read_text()
+            assert time.monotonic() < deadline, "the sweep's workers did not start"
+            workers |= descendants(proc.pid)
+            time.sleep(0.02)
+        proc.kill()
+        proc.wait(timeout=10)
+        deadline = time.monotonic() + 10
+        while alive(workers) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not alive(workers), f"workers of the killed sweep still run: {alive(workers)}"
+        assert _lines(log) < 60  # killed mid-way: the workers had episodes left to run
+    finally:
+        kill_tree(proc)
+        kill_all(alive(workers))
+
+
+WELCH_GRID = ["--grid", "policy=morph,full", "--set", "steps=120", "--no-progress", "--jobs", "1"]
+
+
+def test_welch_p_is_withheld_below_three_seeds_and_more_seeds_extend_the_sweep(tmp_path, capsys):
+    out = ("--out", str(tmp_path))
+    code, stdout, err = _main(*WELCH_GRID, "--seeds", "1-2", *out, "--run-id", "w", capsys=capsys)
+    assert code == 0, err
+    comp = {r["policy"]: r for r in csv.DictReader(open(tmp_path / "w" / "comparison.csv"))}
+    assert comp["full"]["p_vs_baseline"] == "" and comp["full"]["p_note"] == "n < 3"
+    assert "| full | 2 |" in stdout and "| policy=morph | withheld (n < 3) |" in stdout
+    assert "Welch p is withheld where a condition or its baseline has fewer than 3 seeds" in stdout
+
+    # the same sweep with one more seed: the four episodes run are kept, the two new ones run
+    code, stdout, err = _main(*WELCH_GRID, "--seeds", "1-3", *out, "--run-id", "w", capsys=capsys)
+    assert code == 0, err
+    assert stdout.splitlines()[-1].startswith("sweep w: 2 episodes run, 4 already in the record")
+    assert _lines(tmp_path / "w" / "episodes.jsonl") == 6
+    code, fresh, err = _main(*WELCH_GRID, "--seeds", "1-3", *out, "--run-id", "fresh", capsys=capsys)
+    assert code == 0, err
+    for name in ("results.csv", "comparison.csv", "comparison.md"):
+        assert (tmp_path / "w" / name).read_text() == (tmp_path / "fresh" / name).read_text(), name
+    comp = {r["policy"]: r for r in csv.DictReader(open(tmp_path / "w" / "comparison.csv"))}
+    assert comp["full"]["p_note"] == "" and 0 <= float(comp["full"]["p_vs_baseline"]) <= 1
+    assert "withheld (" not in stdout and "Welch p is withheld" not in stdout
+    import morph_sim as ms
+
+    assert ms.load(tmp_path / "w").manifest.sweep_plan.seeds == (1, 2, 3)
+
+    # anything else changed is still another sweep: fewer seeds, another grid
+    for args in (("--seeds", "1-2"), ("--seeds", "1-4", "--set", "scale=small")):
+        code, _, err = _main(*WELCH_GRID, *args, *out, "--run-id", "w", capsys=capsys)
+        assert code == 2 and f"sweep: {tmp_path / 'w'} holds a different sweep (not the same " in err, err
+    assert _lines(tmp_path / "w" / "episodes.jsonl") == 6

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import sys
 import time
 
 NAME = "faults"
@@ -31,7 +32,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       ("reset", "heal one fault (--id) or all of them")):
         p = sub.add_parser(op, help=help_)
         p.add_argument("--run", required=True, help="run id (key prefix morph/<run>/)")
-        p.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="Zenoh endpoint of the run")
         p.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for answers")
         p.add_argument("--id", dest="fault_id", help="fault id (set: name it; reset: heal only this one)")
         p.add_argument("--each", action="store_true", help="one line per answering process (default: alike merged)")
@@ -53,7 +53,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p.add_argument("--duplicate", type=float, help="duplicate, percent")
         p.add_argument("--key", help="scope: key expression relative to morph/<run>/ (default **)")
         p.add_argument("--agents", help="scope: comma-separated agent ids")
-        p.add_argument("--duration", type=float, help="auto-heal after this many seconds")
+        p.add_argument("--duration", type=float,
+                       help="auto-heal after this many seconds of the run's fault clock: sim seconds under "
+                            "--fault-time virtual (the default: Δ per tick, however long a tick takes on the wall "
+                            "clock), wall-clock seconds under --fault-time wall")
         p.add_argument("--seed", type=int, help="seed of this fault's random streams")
 
 
@@ -179,10 +182,39 @@ def verdict(command, replies: list, run: str, endpoint: str) -> list:
     return replies
 
 
+def duration_clock(duration: float, output_dir, run_id: str) -> str:
+    """Which clock a fault's ``duration`` runs on in run ``run_id``: its fault time, from the run's record under
+    ``output_dir`` (each process of a run heals on the run's fault clock, the CLI's own clock plays no part)."""
+    from pathlib import Path
+
+    from services.runconfig import RunConfig
+
+    try:
+        config = RunConfig.coerce(json.loads((Path(output_dir) / run_id / "manifest.json").read_text())["config"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return (f"heals after {duration:g} s of the run's fault clock: sim seconds if its --fault-time is virtual "
+                "(the default), wall-clock seconds if wall (no record of the run here to tell which)")
+    if config.fault_time == "wall":
+        return f"heals after {duration:g} wall-clock seconds (the run's --fault-time is wall)"
+    ticks = duration / config.dt
+    pace = (f", about {ticks * config.period:g} s of wall time at its period of {config.period:g} s per tick"
+            if config.mode == "paced" else ", however long they take on the wall clock (lock-step)")
+    return (f"heals after {duration:g} sim seconds (the run's --fault-time is virtual): {ticks:g} ticks of "
+            f"Δ = {config.dt:g} s{pace}")
+
+
 def run(args: argparse.Namespace) -> int:
+    from services.process import operator_endpoint
+
     command = build_command(args)
-    replies = verdict(command, asyncio.run(send(args.endpoint, args.run, command, args.timeout, args=args)), args.run,
-                      args.endpoint)
+    endpoint = operator_endpoint(args, args.run)
+    replies = verdict(command, asyncio.run(send(endpoint, args.run, command, args.timeout, args=args)), args.run,
+                      endpoint)
+    if all(r.ok for r in replies) and command.spec is not None and command.spec.duration is not None:
+        # a fault's duration runs on the run's fault clock, which is not the operator's wall clock under virtual
+        # time: said on stderr, so that stdout stays the processes' answers
+        print(f"faults: {command.spec.id}: {duration_clock(command.spec.duration, args.output_dir, args.run)}",
+              file=sys.stderr)
     if getattr(args, "each", False):
         for reply in replies:
             print(reply.model_dump_json(exclude_none=True))

@@ -17,7 +17,6 @@ PROGRESS_EVERY = 2.0  # seconds between progress lines
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="file to write (appended if it exists), e.g. runs/r1.mbr")
-    parser.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="Zenoh endpoint of the run")
     parser.add_argument("--run-id", dest="run", default=None,
                         help="run id (default: the run whose monitor is alive on the endpoint)")
     parser.add_argument("--timeout", type=float, default=None, help="stop after this many seconds")
@@ -65,12 +64,13 @@ def run(args: argparse.Namespace) -> int:
     from morph_sim.commands.watch import check_run, find_run
     from schemas.keys import RunKeys, validate_run_id
     from services.monitor.replay import BusRecorder
-    from services.process import open_operator_bus
+    from services.process import open_operator_bus, operator_endpoint
     from services.runconfig import RunConfig
 
     if args.run is not None:
         validate_run_id(args.run)
-    RunConfig(endpoint=args.endpoint)  # validates the endpoint, naming the field
+    endpoint = operator_endpoint(args, args.run)
+    RunConfig(endpoint=endpoint)  # validates the endpoint, naming the field
     if args.timeout is not None and args.timeout <= 0:
         raise ValueError(f"timeout: must be > 0, got {args.timeout}")
 
@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
             print(line, file=sys.stderr, flush=True)
 
     async def main() -> tuple[int, str]:
-        bus = await open_operator_bus("recorder", args.endpoint, args, args.run)
+        bus = await open_operator_bus("recorder", endpoint, args, args.run)
         try:
             run_id = args.run
             if run_id is None:

@@ -18,7 +18,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from services.process import add_operator_arguments
 
     parser.add_argument("--run", required=True, help="run id (key prefix morph/<run>/)")
-    parser.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="Zenoh endpoint of the run")
     parser.add_argument("--reason", default="operator stop", help="reason recorded with the stop")
     parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the sim to hear it")
     add_operator_arguments(parser)
@@ -27,12 +26,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from schemas import Stop
     from schemas.keys import RunKeys, validate_run_id
-    from services.process import open_operator_bus
+    from services.process import open_operator_bus, operator_endpoint
 
     keys = RunKeys(validate_run_id(args.run))
+    endpoint = operator_endpoint(args, args.run)
 
     async def main() -> bool:
-        bus = await open_operator_bus("operator-stop", args.endpoint, args, args.run)
+        bus = await open_operator_bus("operator-stop", endpoint, args, args.run)
         try:
             try:  # a put made before the sim's subscription is known here would be lost silently
                 await bus.wait_for_subscribers(keys.stop, timeout=args.timeout)
@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
             await bus.close()
 
     if not asyncio.run(main()):
-        print(f"morph-sim stop: error: nobody of run {args.run!r} listens on {args.endpoint}")
+        print(f"morph-sim stop: error: nobody of run {args.run!r} listens on {endpoint}")
         return 1
     print(f"run {args.run}: stop sent ({args.reason})")
     return 0

@@ -6,6 +6,7 @@ import argparse
 import asyncio
 import shutil
 import sys
+from pathlib import Path
 
 NAME = "up"
 HELP = "start a distributed run: sim (Zenoh endpoint), one process per agent, monitor; live progress"
@@ -75,9 +76,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"morph-sim up: error: {exc}", file=sys.stderr)
         return 1
     if supervisor.credentials is not None:
+        # the operator commands read the endpoint and the credentials from the record, which they look for under
+        # their own --output-dir (default runs)
+        elsewhere = "" if Path(config.output_dir) == Path("runs") else f" --output-dir {config.output_dir}"
         print(f"run {config.run_id}: secured endpoint {supervisor.endpoint}; operator credentials "
-              f"{supervisor.credentials.operator} (watch/faults/record/stop find them with --run {config.run_id})",
-              file=sys.stderr)
+              f"{supervisor.credentials.operator} (watch/faults/record/stop find them with --run {config.run_id}"
+              f"{elsewhere})", file=sys.stderr)
     elif args.insecure and not supervisor.external:
         print(f"morph-sim up: warning: INSECURE run: the endpoint {supervisor.endpoint} has no credentials and no "
               "access control; anyone who reaches it can stop the run, inject faults or forge messages",
@@ -138,7 +142,7 @@ def monitor_flags(args: argparse.Namespace) -> tuple[tuple[str, ...], float]:
     return tuple(flags), float(args.prometheus_grace)
 
 
-def claim_record_dir(directory) -> None:
+def claim_record_dir(directory, how: str = "choose another --run-id or remove it") -> None:
     """Create the run's record directory, refusing one that exists: a second run under the same id would append to
     the first one's record (a restarted monitor does that on purpose). A run cannot be resumed (the world restarts
     at tick 0), so there is nothing to continue. Raises ValueError (one line, exit 2) naming the problem."""
@@ -155,8 +159,7 @@ def claim_record_dir(directory) -> None:
     try:
         directory.mkdir()
     except FileExistsError:
-        raise ValueError(f"run_id: {directory} exists (a run with this id was recorded there); choose another "
-                         "--run-id or remove it") from None
+        raise ValueError(f"run_id: {directory} exists (a run with this id was recorded there); {how}") from None
     except OSError as exc:
         raise ValueError(f"output_dir: cannot create {directory}: {exc.strerror or exc}") from None
     try:  # writable, not just creatable (e.g. a read-only bind mount)

@@ -222,9 +222,25 @@ async def check_run(bus, run_id: str, timeout: float = 5.0) -> None:
         await asyncio.sleep(0.2)
 
 
+def finished_record(output_dir, run_id: str) -> str | None:
+    """The last line for run ``run_id`` if its record under ``output_dir`` has its ``summary.json`` (the monitor writes
+    it once the run has ended, and a run id is never used twice), else None."""
+    import json
+    from pathlib import Path
+
+    record = Path(output_dir) / run_id
+    try:
+        summary = json.loads((record / "summary.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(summary, dict):
+        return None
+    return (f"run {run_id}: tick {summary.get('steps', '?')}, deliveries {summary.get('deliveries_total', '?')} "
+            f"(finished: its record {record} has its summary; nothing to watch)")
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--run", default=None, help="run id (default: the run whose monitor answers)")
-    parser.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="Zenoh endpoint of the run")
     parser.add_argument("--steps", type=int, default=None, help="total ticks, for the progress (default: unknown)")
     parser.add_argument("--duration", type=float, default=None, help="stop watching after this many seconds")
     from services.process import add_operator_arguments
@@ -234,15 +250,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from schemas.keys import validate_run_id
-    from services.process import open_operator_bus
+    from services.process import open_operator_bus, operator_endpoint
     from services.runconfig import RunConfig
 
     if args.run is not None:
         validate_run_id(args.run)
-    RunConfig(endpoint=args.endpoint)  # validates the endpoint, naming the field
+    endpoint = operator_endpoint(args, args.run)
+    RunConfig(endpoint=endpoint)  # validates the endpoint, naming the field
+    if args.run is not None:
+        ended = finished_record(args.output_dir, args.run)
+        if ended is not None:  # nothing of the run is left to join: say so now instead of waiting for it
+            print(ended)
+            return 0
 
     async def main() -> WatchState:
-        bus = await open_operator_bus("watch", args.endpoint, args, args.run)
+        bus = await open_operator_bus("watch", endpoint, args, args.run)
         try:
             return await watch(bus, args.run, steps=args.steps, duration=args.duration)
         finally:

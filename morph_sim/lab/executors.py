@@ -6,7 +6,8 @@ result does not depend on where it was computed: every episode seeds its own str
 
 * :class:`LocalExecutor` — ``jobs`` worker processes of :func:`episode_pool`, the one pool of this machine's
   processes every study uses (``jobs=1``: in this process, no pool). Workers ignore SIGINT so Ctrl-C reaches only
-  the parent, which stops them; nothing keeps running after an interrupt.
+  the parent, which stops them; nothing keeps running after an interrupt, nor after the parent is killed (each
+  worker dies with it).
 * :class:`DaskExecutor` — a ``dask.distributed`` client on a scheduler address (``tcp://HOST:8786``) or an existing
   client/cluster; needs the optional extra ``pip install 'morph-sim[cluster]'``. The workers need morph-sim
   installed at the same version (see docs/sweep.md, two-machine recipe).
@@ -15,6 +16,7 @@ result does not depend on where it was computed: every episode seeds its own str
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 import signal
 import sys
 from collections.abc import Callable, Iterator, Sequence
@@ -36,9 +38,37 @@ class Executor(Protocol):
 STOP_WAIT = 5.0
 
 
-def _ignore_sigint() -> None:
+def _worker_start(parent: int) -> None:
+    """A pool worker's first act: deaf to SIGINT, and bound to the life of the process that started it."""
     # Ctrl-C goes to the whole process group; only the parent decides what an interrupt means.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _die_with(parent)
+
+
+def _die_with(parent: int) -> None:
+    """End this worker when ``parent`` ends, however it ends. A parent killed with SIGKILL runs no clean-up, and the
+    workers, which hold copies of the pool's pipes, would never see them close and would wait for work forever.
+    Linux: the kernel sends SIGKILL on the parent's death; elsewhere a daemon thread notices the worker was handed
+    to another parent. (On Linux the parent is the thread that started the worker: episode_pool starts them in the
+    thread that holds the pool, which outlives them.)"""
+    from services.supervisor.parent import signal_on_parent_death
+
+    if signal_on_parent_death(signal.SIGKILL):
+        if os.getppid() != parent:  # the parent died before the kernel was asked
+            os._exit(1)
+        return
+    import threading
+    import time
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="watch-parent", daemon=True).start()
+
+
+PARENT_POLL = 0.5  # seconds between a worker's looks at its parent where no kernel signal tells it
 
 
 class _InProcess(PoolExecutor):
@@ -64,7 +94,7 @@ def episode_pool(jobs: int) -> Iterator[PoolExecutor]:
         yield _InProcess()
         return
     pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("fork" if sys.platform != "win32" else "spawn"),
-                               initializer=_ignore_sigint)
+                               initializer=_worker_start, initargs=(os.getpid(),))
     try:
         yield pool
     except BaseException:

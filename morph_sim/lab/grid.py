@@ -60,12 +60,15 @@ def run_grid(run_dir: str | Path, *, kind: str, plan: Mapping[str, Any], tasks: 
              fn: Callable[[Any], dict], record: Callable[[Any, dict], dict] | None = None,
              executor: str = "local", jobs: int = 2, scheduler: Any = None,
              progress: bool | Callable[[int, int], None] = True, argv: Sequence[str] | None = None,
-             manifest_extra: Mapping[str, Any] | None = None) -> GridRun:
+             manifest_extra: Mapping[str, Any] | None = None,
+             extends: Callable[[Mapping[str, Any], Mapping[str, Any]], bool] | None = None) -> GridRun:
     """Run ``fn(task)`` for every (key, task) not yet in ``run_dir``'s record.
 
     ``fn`` is module-level (it is pickled to worker processes) and returns a dict with the task's ``key``;
     ``record(task, result)`` makes the line kept in ``episodes.jsonl`` (default: the result itself). ``plan`` is the
-    grid's identity: a record made by another plan (or another ``kind``) is refused, naming ``kind``.
+    grid's identity: a record made by another plan (or another ``kind``) is refused, naming ``kind`` and what
+    differs, unless ``extends(stored plan, plan)`` says the new plan only adds episodes to the stored one (a sweep
+    given more seeds): then the manifest takes the new plan and only the new episodes run.
     """
     from morph_sim.lab.executors import make_executor
 
@@ -79,9 +82,21 @@ def run_grid(run_dir: str | Path, *, kind: str, plan: Mapping[str, Any], tasks: 
     mpath = run_dir / MANIFEST
     if mpath.exists():
         stored = json.loads(mpath.read_text())
-        if stored.get("kind") != kind or stored.get("plan") != plan:
+        if stored.get("kind") != kind:
             raise RecordMismatch(f"{kind}: {run_dir} holds a different {stored.get('kind') or 'run'}; give another "
                                  "--run-id or --out")
+        if stored.get("plan") != plan:
+            old = stored.get("plan") or {}
+            if extends is None:
+                raise RecordMismatch(f"{kind}: {run_dir} holds a different {kind}; give another --run-id or --out")
+            if not extends(old, plan):
+                differ = sorted(k for k in {*old, *plan} if old.get(k) != plan.get(k))
+                raise RecordMismatch(f"{kind}: {run_dir} holds a different {kind} (not the same {', '.join(differ)}; "
+                                     "only more seeds extend it); give another --run-id or --out")
+            stored.update(plan=plan, **(manifest_extra or {}))
+            tmp = mpath.with_suffix(".tmp")
+            tmp.write_text(json.dumps(stored, indent=2))
+            os.replace(tmp, mpath)
     else:
         from morph_sim.lab.suite import _git_revision, _versions
 

@@ -56,6 +56,10 @@ LAB_FIELDS = ("scale", "policy", "preset", "ablation", "radius", "seed", "steps"
 #: fields the sweep sets itself (per episode or per sweep)
 MANAGED_FIELDS = ("run_id", "seed", "output_dir", "fault_schedule", "endpoint", "listen")
 PARQUET_HINT = "pip install pyarrow (or 'morph-sim[data]') for results.parquet"
+#: fewest seeds on each side for which the comparison gives a Welch p: with two, each variance rests on one degree of
+#: freedom and one episode can swing p anywhere between significant and not
+WELCH_MIN_N = 3
+WELCH_WITHHELD = f"n < {WELCH_MIN_N}"
 
 
 # -- parsing ------------------------------------------------------------------------------------------------------
@@ -407,11 +411,21 @@ def run_sweep(plan: SweepPlan, out: str | Path = "runs", sweep_id: str | None = 
 
     grid = run_grid(run_dir, kind="sweep", plan=plan_data, tasks=tasks, fn=run_task, record=record,
                     executor=executor, jobs=jobs, scheduler=scheduler, progress=progress, argv=argv,
-                    manifest_extra={"axes": list(plan.axes), "seeds": list(plan.seeds), "metrics": list(METRICS)})
+                    manifest_extra={"axes": list(plan.axes), "seeds": list(plan.seeds), "metrics": list(METRICS)},
+                    extends=more_seeds)
     rows = tidy_rows(plan, grid.done)
     comparison = compare(plan, rows)
     files = write_tables(plan, run_dir, rows, comparison)
     return SweepResult(plan, run_dir, rows, comparison, grid.ran, grid.skipped, time.perf_counter() - t0, files)
+
+
+def more_seeds(stored: Mapping[str, Any], plan: Mapping[str, Any]) -> bool:
+    """Whether ``plan`` is the ``stored`` sweep with seeds added and nothing else changed: every episode already
+    run is then an episode of the new plan too, with the same key and the same result (an episode depends on its
+    condition and seed alone), so the record is kept and only the new seeds run."""
+    old_seeds, new_seeds = list(stored.get("seeds") or ()), list(plan.get("seeds") or ())
+    rest = lambda p: {k: v for k, v in p.items() if k != "seeds"}  # noqa: E731
+    return rest(stored) == rest(plan) and set(old_seeds) < set(new_seeds)
 
 
 def default_sweep_id() -> str:
@@ -467,8 +481,12 @@ def compare(plan: SweepPlan, rows: list[dict[str, Any]], metrics: Sequence[str] 
         differs = {k: v for k, v in (base or {}).items() if cond.get(k) != v}
         row["baseline"] = ",".join(f"{k}={v}" for k, v in differs.items())
         ref = by.get(plan.condition_key(base), []) if base else []
+        row["p_note"] = ""
         if base is None or base == cond or not ref:
             row["p_vs_baseline"] = None
+        elif min(len(ref), len(group)) < WELCH_MIN_N:
+            row["p_vs_baseline"] = None
+            row["p_note"] = WELCH_WITHHELD
         else:
             p = _welch([r["deliveries"] for r in ref], [r["deliveries"] for r in group])
             row["p_vs_baseline"] = None if p != p else p
@@ -484,12 +502,17 @@ def comparison_markdown(plan: SweepPlan, rows: list[dict[str, Any]]) -> str:
         d = "–" if r["deliveries_mean"] is None else f"{r['deliveries_mean']:.1f} ± {r['deliveries_std']:.1f}"
         lk = "–" if r["mean_links_mean"] is None else f"{r['mean_links_mean']:.1f} ± {r['mean_links_std']:.1f}"
         p = r["p_vs_baseline"]
-        ps = "–" if p is None else (f"**{p:.3f}**" if p < 0.05 else f"{p:.3f}")
+        ps = (f"withheld ({r['p_note']})" if r.get("p_note") else "–" if p is None
+              else (f"**{p:.3f}**" if p < 0.05 else f"{p:.3f}"))
         lines.append("| " + " | ".join([*(str(r[a]) for a in axes), str(r["n"]), d, lk,
                                          r["baseline"] or "–", ps]) + " |")
     lines += ["", f"{len(plan.seeds)} seeds per condition (the same seeds in every condition): "
                   f"{_seed_text(plan.seeds)}; engine `{plan.engine}`. Cells: mean ± population std over seeds; "
                   "Welch p of deliveries against the baseline (the condition that differs only in the named value)."]
+    if any(r.get("p_note") == WELCH_WITHHELD for r in rows):
+        lines.append(f"Welch p is withheld where a condition or its baseline has fewer than {WELCH_MIN_N} seeds: with "
+                     "two, each variance rests on one degree of freedom and a single episode swings p anywhere; run "
+                     "more seeds (the same --run-id with more --seeds extends the sweep).")
     return "\n".join(lines) + "\n"
 
 

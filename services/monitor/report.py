@@ -113,6 +113,16 @@ def load(directory: Path) -> Record:
     return rec
 
 
+def network_text(rec: Record) -> tuple[str, str]:
+    """(network, hand-overs) of the report's table: the run's network profile and its access-point hand-overs (the
+    ``net.handover`` events of the record), or an ideal network without any."""
+    profile = rec.manifest.get("config", {}).get("network")
+    if not profile:
+        return "ideal (none)", "–"
+    handovers = sum(e.get("kind") == "net.handover" for e in rec.events)
+    return str(profile), str(handovers)
+
+
 def numbers(rec: Record) -> dict:
     """The report's table of one record (what a restarted monitor's record must reproduce apart from its gap)."""
     d = rec.column("deliveries")
@@ -297,7 +307,10 @@ def warehouse_gif(rec: Record, path: Path, *, max_frames: int = 200, cell_px: in
                         links=link_statuses(A, prev), access_points=aps, dead_zone=dead)
             prev = A
 
-    return write_gif(frames(), path, fps=8, cell_px=cell_px, legend=RECORD_LEGEND)
+    # the legend names every glyph the frames draw: the run's network adds its access points and dead zones
+    legend = (*RECORD_LEGEND, *(("access_point",) if aps is not None and len(aps) else ()),
+              *(("dead_zone",) if dead is not None and dead.any() else ()))
+    return write_gif(frames(), path, fps=8, cell_px=cell_px, legend=legend)
 
 
 def write_report(run_dirs: list[Path], out: Path, *, gif: bool = True) -> Path:
@@ -307,14 +320,17 @@ def write_report(run_dirs: list[Path], out: Path, *, gif: bool = True) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     figs = figures(recs, out)
     lines = ["# morph-sim run report", ""]
-    lines += ["| run | scale | policy | seed | steps | deliveries | mean links | final links | gaps |",
-              "|---|---|---|---|---|---|---|---|---|"]
+    lines += ["| run | scale | policy | seed | network | steps | deliveries | mean links | final links | hand-overs "
+              "| gaps |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for rec in recs:
         c = rec.manifest.get("config", {})
         nb = numbers(rec)
         gaps = ", ".join(f"{a}–{b}" for a, b in nb["gaps"]) or "none"
-        lines.append(f"| {rec.name} | {c.get('scale')} | {c.get('policy')} | {c.get('seed')} | {nb['rows']} | "
-                     f"{nb['deliveries']} | {nb['mean_links']:.1f} | {nb['final_links']} | {gaps} |")
+        network, handovers = network_text(rec)
+        lines.append(f"| {rec.name} | {c.get('scale')} | {c.get('policy')} | {c.get('seed')} | {network} | "
+                     f"{nb['rows']} | {nb['deliveries']} | {nb['mean_links']:.1f} | {nb['final_links']} | "
+                     f"{handovers} | {gaps} |")
     lines.append("")
     for rec in recs:
         windows = rec.fault_windows()

@@ -29,6 +29,8 @@ import select
 import signal
 import sys
 
+from services.supervisor.parent import signal_on_parent_death
+
 # What the processes of a run import before their first tick (the rest, e.g. the monitor's scipy.stats, is imported
 # where it is used, by the one process that uses it).
 PRELOAD = (
@@ -49,7 +51,6 @@ PRELOAD = (
 SERVICES = ("sim", "agent", "monitor")
 #: bytes of argument space the server reserves for its children's command lines (a medium run's is ~400)
 TITLE_SPACE = 4096
-_PR_SET_PDEATHSIG = 1
 
 
 def _threads() -> int:
@@ -82,12 +83,7 @@ def _child(request: dict, server_pid: int, started: int, channels: tuple[int, ..
     code = 1
     try:
         os.setsid()  # its own session and process group: the supervisor signals the group
-        try:
-            import ctypes
-
-            ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
-        except Exception:
-            pass
+        signal_on_parent_death(signal.SIGTERM)
         if os.getppid() != server_pid:  # the server died before the prctl took hold
             os._exit(1)
         os.write(started, b"s")

@@ -14,7 +14,6 @@ Process hygiene, because a distributed run must never leave processes behind:
 from __future__ import annotations
 
 import asyncio
-import ctypes
 import logging
 import os
 import signal
@@ -27,6 +26,7 @@ from pathlib import Path
 from services.runconfig import RunConfig
 from services.supervisor.forkserver import ForkedProcess, ForkServer
 from services.supervisor.graph import CHILD_ENV, ProcessSpec, child_environment, process_graph
+from services.supervisor.parent import signal_on_parent_death
 
 log = logging.getLogger("morph_sim.supervisor")
 
@@ -37,7 +37,6 @@ SHUTDOWN_BOUND = 5.0
 # "kill agent k every 100 ticks" runs for any number of steps.
 MAX_RESTARTS = 5
 RESTART_WINDOW = 60.0
-_PR_SET_PDEATHSIG = 1
 MONITOR_END_TIMEOUT = 30.0  # seconds the monitor may take after the sim's end to finish the record
 STOPPED_FROM_OUTSIDE = 3  # exit status of `up` when someone else's stop ended the run before its steps
 RECORD_FAILED = 74  # a monitor's exit status when the record cannot be written (services/monitor/command.py)
@@ -45,11 +44,7 @@ SHOW_EVERY = 0.25  # seconds between live lines; also the longest the watch loop
 
 
 def _die_with_parent() -> None:  # runs in the child between fork and exec
-    try:
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
-    except Exception:
-        pass
+    signal_on_parent_death(signal.SIGTERM)
 
 
 class StartError(RuntimeError):

@@ -97,6 +97,8 @@ LEGEND_TEXT = {
     "link_stable": "stable link",
     "link_new": "new link",
     "link_pruned": "pruned link",
+    "access_point": "Wi-Fi access point",
+    "dead_zone": "network dead zone",
 }
 WAREHOUSE_LEGEND = ("agv", "agv_loaded", "picker", "shelf", "shelf_requested", "rack_floor", "goal")
 RECORD_LEGEND = ("agv", "agv_loaded", "picker", "shelf", "goal", "link_stable", "link_new", "link_pruned")
@@ -388,7 +390,7 @@ class Renderer:
                 pts = [(cx + r * math.cos(math.pi / 2 * a), cy + r * math.sin(math.pi / 2 * a)) for a in range(4)]
                 d.polygon(pts, fill=_IDX["picker"], outline=_IDX["outline"])
                 d.line([(cx, cy), (cx, cy - r)], fill=_IDX["heading"], width=max(1, g // 10))
-            elif key in ("shelf", "shelf_requested", "rack_floor"):
+            elif key in ("shelf", "shelf_requested", "rack_floor", "dead_zone"):
                 d.rectangle((x0, y0, x1, y1), fill=_IDX[key], outline=_IDX["grid"])
             elif key == "goal":
                 d.rectangle((x0, y0, x1, y1), fill=_IDX["goal"])
@@ -398,6 +400,10 @@ class Renderer:
                 d.line([(x0, cy), (x1, cy)], fill=_IDX[key], width=max(2, g // 6))
             elif key == "link_new":
                 d.line([(x0, cy), (x1, cy)], fill=_IDX[key], width=max(1, g // 12))
+            elif key == "access_point":  # as on the map: a disc with its antenna
+                ra = g * 0.3
+                d.ellipse([cx - ra, cy - ra * 0.4, cx + ra, cy + ra * 1.6], fill=_IDX[key], outline=_IDX["outline"])
+                d.line([(cx, cy - ra * 0.4), (cx, cy - ra * 1.2)], fill=_IDX["outline"], width=max(1, g // 12))
             else:  # link_pruned
                 _dashed(d, (x0, cy), (x1, cy), _IDX[key], width=max(1, g // 10), dash=max(3, g // 4))
             d.text((x1 + 5, cy), LEGEND_TEXT[key], fill=_IDX["text"], font=font, anchor="lm")
