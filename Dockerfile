@@ -40,7 +40,8 @@ COPY --from=build /wheels /tmp/wheels
 RUN python -m pip install /tmp/wheels/*.whl \
  && rm -rf /tmp/wheels \
  && python -m pip uninstall --yes setuptools wheel pip
-USER morph
+# Numeric: Kubernetes checks runAsNonRoot against the image's user, which it cannot do for a name.
+USER 10001:10001
 WORKDIR /home/morph
 # Run records (MORPH_OUTPUT_DIR). A named volume mounted here starts out owned by the morph user.
 VOLUME ["/data/runs"]

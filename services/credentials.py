@@ -124,9 +124,11 @@ def access_control(run_id: str, n_agents: int) -> dict:
 
 
 def endpoint_config(run_id: str, n_agents: int, passwords_file: Path) -> dict:
-    """The endpoint's Zenoh config (JSON): authentication, access control, size limit."""
+    """The endpoint's Zenoh config (JSON): authentication, access control, size limit. ``passwords_file`` is where
+    the endpoint's process reads the passwords, an absolute path (Zenoh would resolve a relative one against its
+    working directory)."""
     return {
-        "transport": {"auth": {"usrpwd": {"dictionary_file": str(Path(passwords_file).resolve())}}},
+        "transport": {"auth": {"usrpwd": {"dictionary_file": str(passwords_file)}}},
         "access_control": access_control(run_id, n_agents),
         "low_pass_filter": size_limits(),
     }
@@ -136,15 +138,15 @@ def client_config(user: str, password: str) -> dict:
     return {"transport": {"auth": {"usrpwd": {"user": user, "password": password}}}}
 
 
-def _write_private(path: Path, text: str) -> None:
-    """Create ``path`` with mode 0600 from the start (never world-readable, not even for a moment)."""
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+def _write_private(path: Path, text: str, mode: int = 0o600) -> None:
+    """Create ``path`` with ``mode`` (default 0600) from the start (never wider, not even for a moment)."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
     try:
         with os.fdopen(fd, "w") as out:
             out.write(text)
     except OSError as exc:  # a failed write names no file of its own: name the one it was writing
         raise OSError(exc.errno, exc.strerror, str(path)) from None
-    os.chmod(path, 0o600)  # an existing file keeps its old mode through O_CREAT
+    os.chmod(path, mode)  # an existing file keeps its old mode through O_CREAT
 
 
 @dataclass(frozen=True)
@@ -180,21 +182,30 @@ class RunCredentials:
         return self.operator
 
     @classmethod
-    def create(cls, directory: Path, run_id: str, n_agents: int, where: str | None = None) -> RunCredentials:
-        """Fresh random passwords for the operator, the monitor and every robot, written owner-only."""
+    def create(cls, directory: Path, run_id: str, n_agents: int, where: str | None = None,
+               mounted_at: str | None = None) -> RunCredentials:
+        """Fresh random passwords for the operator, the monitor and every robot, written owner-only.
+
+        ``mounted_at``: the directory in which the processes will see these files (a container's secrets mount),
+        so the endpoint's config names the passwords file there. The directory stays owner-only, and its files are
+        written readable by others (0644): a container's user is not the host's, and a file mounted from the host
+        keeps the host's owner and mode, so an owner-only file could not be read in the container."""
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True, mode=0o700)
         os.chmod(directory, 0o700)
+        mode = 0o600 if mounted_at is None else 0o644
         users = [OPERATOR, MONITOR, *(user_of_agent(a) for a in range(n_agents))]
         passwords = {user: secrets.token_urlsafe(24) for user in users}
         creds = cls(directory)
-        _write_private(directory / PASSWORDS_FILE, "".join(f"{u}:{p}\n" for u, p in passwords.items()))
+        _write_private(directory / PASSWORDS_FILE, "".join(f"{u}:{p}\n" for u, p in passwords.items()), mode)
+        # a path in the container is taken as it is: resolving it would follow this machine's links
+        seen_at = directory.resolve() if mounted_at is None else Path(mounted_at)
         _write_private(creds.endpoint, json.dumps(
-            endpoint_config(run_id, n_agents, directory / PASSWORDS_FILE), indent=1) + "\n")
+            endpoint_config(run_id, n_agents, seen_at / PASSWORDS_FILE), indent=1) + "\n", mode)
         for user, password in passwords.items():
-            _write_private(directory / f"{user}.json5", json.dumps(client_config(user, password)) + "\n")
+            _write_private(directory / f"{user}.json5", json.dumps(client_config(user, password)) + "\n", mode)
         if where:
-            _write_private(directory / WHERE_FILE, where + "\n")
+            _write_private(directory / WHERE_FILE, where + "\n", mode)
         return creds
 
 

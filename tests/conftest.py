@@ -44,6 +44,7 @@ KINDS: dict[str, tuple[str, ...]] = {
     ),
     "e2e": (
         "test_agent_claims", "test_api", "test_bench_distributed", "test_cli_messages", "test_compose",
+        "test_dashboard_live",
         "test_dockerfile", "test_equivalence", "test_experiment_flags", "test_forkserver", "test_faults_at_tick", "test_faults_cli_live",
         "test_faults_distributed", "test_faults_up", "test_fuzz_services", "test_hostile", "test_network_services",
         "test_readme_example", "test_report", "test_secure_defaults", "test_sweep", "test_up", "test_warehouse_cli", "test_watch",

@@ -25,15 +25,37 @@ from services.supervisor.graph import process_graph
 
 ROOT = Path(__file__).resolve().parent.parent
 COMPOSE = load(ROOT / "docker-compose.yml")
-# The run itself: the services `docker compose up` starts without a profile (profile services such as
-# "monitoring"'s Prometheus and Grafana are third-party images, checked in tests/test_monitoring.py).
-SERVICES = {name: s for name, s in COMPOSE["services"].items() if "profiles" not in s}
+THIRD_PARTY = {"prometheus", "grafana"}  # the "monitoring" profile's images, checked in tests/test_monitoring.py
+
+
+def enabled(compose: dict, environ: dict[str, str]) -> dict:
+    """The run's services `docker compose up` starts under ``environ``: those without profiles and those in one of
+    COMPOSE_PROFILES (Prometheus and Grafana aside)."""
+    active = {p.strip() for p in environ.get("COMPOSE_PROFILES", "").split(",") if p.strip()}
+    return {name: s for name, s in compose["services"].items()
+            if name not in THIRD_PARTY and (not s.get("profiles") or active & set(s["profiles"]))}
+
+
+# The run itself as `docker compose up` starts it with an empty environment.
+SERVICES = enabled(COMPOSE, {})
 DEFAULTS = interpolate(COMPOSE, {})  # what `docker compose up` uses with an empty environment
+AGENTS = sorted((n for n in SERVICES if n.startswith("agent-")), key=lambda n: int(n.split("-")[1]))
 ROLE_RESTART = {"never": "no", "on-failure": "on-failure"}
 PROMETHEUS_FLAG_EXISTS = any(v.flag == "--prometheus-port" for v in environment.command_variables("monitor"))
 
 
 ROLES = ["sim", "monitor", "agent"]
+
+
+def role_of(service: dict) -> str:
+    return service["command"][1]
+
+
+def header_commands() -> list[str]:
+    """The command lines the compose file's header shows."""
+    text = (ROOT / "docker-compose.yml").read_text()
+    return [line[1:].split("#")[0].strip() for line in text.splitlines()
+            if line.startswith("#   ") and ("docker compose" in line or "morph-sim credentials" in line)]
 
 
 def _seconds(text: str) -> float:
@@ -78,99 +100,177 @@ def test_interpolation_follows_compose():
 
 
 # -- structure ----------------------------------------------------------------------------------------------------
-def test_services_are_the_sim_the_monitor_and_one_scaled_agent_service():
-    assert set(SERVICES) == {"sim", "monitor", "agent"}
-    agent = DEFAULTS["services"]["agent"]
-    # One service scaled to the default fleet (the tiny scale's 5 AGVs + 3 pickers).
-    assert int(agent["deploy"]["replicas"]) == RunConfig(run_id="x").n_agents == 8
-    assert "container_name" not in agent and "hostname" not in agent, "a fixed name or hostname defeats scaling"
-    assert "ports" not in agent, "replicas cannot all publish the same host port"
+def test_services_are_the_sim_the_monitor_and_one_service_per_robot():
+    assert set(SERVICES) == {"sim", "monitor", *(f"agent-{n}" for n in range(8))}
+    assert len(AGENTS) == RunConfig(run_id="x").n_agents == 8  # the tiny scale's 5 AGVs + 3 pickers
     version = re.search(r'^version = "([^"]+)"', (ROOT / "pyproject.toml").read_text(), re.M).group(1)
     for name, service in SERVICES.items():
         assert service["image"] == f"morph-sim:{version}" and service["build"] == ".", name  # one image, this build
         assert service["init"] is True, f"{name}: init forwards signals and reaps children"
+        assert "deploy" not in service, f"{name}: one container per service (its credentials name one process)"
+    for name in AGENTS:
+        assert "ports" not in SERVICES[name] and "container_name" not in SERVICES[name]
 
 
-@pytest.mark.parametrize("name", ROLES)
+@pytest.mark.parametrize("name", ["sim", "monitor", "agent-0", "agent-7"])
 def test_every_command_is_a_real_cli_invocation(name):
     argv = _without_prometheus(_argv(name))
     args = _parse(argv)
-    assert args.command == name
+    assert args.command == role_of(SERVICES[name])
     env = DEFAULTS["services"][name]["environment"]
     config = config_from_args(args, environ=env)  # validates the whole config (ValueError names a bad field)
     assert config.run_id == "compose" and config.output_dir == Path("/data/runs")
-    if name == "agent":
-        assert args.id is None  # the agents claim their id: their command must not pin one
+    if args.command == "agent":
+        assert args.id == int(name.split("-")[1])  # robot N, whose credentials agent-N.json5 are
 
 
 def test_the_monitor_serves_prometheus_on_the_published_port():
     argv = _argv("monitor", {"MORPH_PROMETHEUS_PORT": "9500"})
     args = _parse(argv)
     assert int(args.prometheus_port) == 9500
-    assert interpolate(SERVICES["monitor"]["ports"], {"MORPH_PROMETHEUS_PORT": "9500"}) == ["9500:9500"]
+    assert interpolate(SERVICES["monitor"]["ports"], {"MORPH_PROMETHEUS_PORT": "9500"}) == ["127.0.0.1:9500:9500"]
 
 
 def test_the_prometheus_port_is_published_with_the_flags_variable():
     ports = SERVICES["monitor"]["ports"]
-    assert defaults_of(ports[0]) == [("MORPH_PROMETHEUS_PORT", "9464")] * 2
+    assert defaults_of(ports[0]) == [("PUBLISH_HOST", "127.0.0.1")] + [("MORPH_PROMETHEUS_PORT", "9464")] * 2
     argv = SERVICES["monitor"]["command"]
     assert argv[argv.index("--prometheus-port") + 1] == "${MORPH_PROMETHEUS_PORT:-9464}"
     assert envconfig.env_for_flag("--prometheus-port") == "MORPH_PROMETHEUS_PORT"
 
 
 # -- the same process graph as `morph-sim up` ---------------------------------------------------------------------
+SMALL = {"MORPH_SCALE": "small", "COMPOSE_PROFILES": "small", "MORPH_POLICY": "constant", "MORPH_P": "0.5",
+         "MORPH_SEED": "7", "MORPH_RUN_ID": "exp-1"}
+
+
 @pytest.mark.parametrize("role", ROLES)
-@pytest.mark.parametrize("host_env", [{}, {"MORPH_SCALE": "small", "MORPH_POLICY": "constant", "MORPH_P": "0.5",
-                                           "MORPH_SEED": "7", "AGENTS": "12", "MORPH_RUN_ID": "exp-1"}])
+@pytest.mark.parametrize("host_env", [{}, SMALL], ids=["defaults", "small"])
 def test_the_compose_graph_is_the_supervisors(host_env, role):
     compose = interpolate(COMPOSE, host_env)
-    services = {name: s for name, s in compose["services"].items() if "profiles" not in s}
-    env = services["sim"]["environment"]
+    services = enabled(compose, host_env)
+    env = {k: v for k, v in services["sim"]["environment"].items() if k != "ZENOH_CONFIG"}
     config = RunConfig.from_env(env)
     specs = process_graph(config, "tcp/sim:7447")
-    by_role: dict[str, list] = {}
-    for spec in specs:
-        by_role.setdefault(spec.role, []).append(spec)
-    assert set(by_role) == set(services)
-    assert int(services["agent"]["deploy"]["replicas"]) == len(by_role["agent"]) == config.n_agents
-
-    role_specs = by_role[role]
-    service = services[role]
-    spec = role_specs[0]
-    assert service["environment"] == env, f"{role}: every service sees the same run configuration"
-    for name, value in spec.env.items():  # the supervisor's child environment (Zenoh runtime, BLAS threads)
-        assert service["environment"].get(name) == value, f"{role}: {name} differs from the supervisor's"
-    assert service.get("restart", "no") == ROLE_RESTART[spec.restart], role
-    theirs = _parse(list(spec.argv))
-    ours = _parse(_without_prometheus(service["command"]))
-    assert ours.command == theirs.command == role
-    mine = config_from_args(ours, environ=service["environment"]).model_dump()
-    sup = config_from_args(theirs, environ={}).model_dump()
-    # Where the Zenoh endpoint is differs by design (container DNS name, all interfaces); the rest is equal.
-    for field in ("endpoint", "listen"):
-        mine.pop(field), sup.pop(field)
-    assert mine == sup, f"{role}: compose and supervisor configure the run differently"
-    if role == "sim":
-        assert ours.cfg_listen == "tcp/0.0.0.0:7447" and theirs.cfg_listen == "tcp/sim:7447"
-    else:
-        assert ours.cfg_endpoint == theirs.cfg_endpoint == "tcp/sim:7447"
-    if role == "agent":  # compose: N identical replicas that claim ids; supervisor: ids 0..N-1 given explicitly
-        assert ours.id is None and sorted(s.agent for s in role_specs) == list(range(config.n_agents))
+    assert {spec.name for spec in specs} == set(services)
+    for spec in (s for s in specs if s.role == role):
+        service = services[spec.name]
+        mine_env = {k: v for k, v in service["environment"].items() if k != "ZENOH_CONFIG"}
+        assert mine_env == env, f"{spec.name}: every service sees the same run configuration"
+        for name, value in spec.env.items():  # the supervisor's child environment (Zenoh runtime, BLAS threads)
+            assert service["environment"].get(name) == value, f"{spec.name}: {name} differs from the supervisor's"
+        assert service.get("restart", "no") == ROLE_RESTART[spec.restart], spec.name
+        theirs = _parse(list(spec.argv))
+        ours = _parse(_without_prometheus(service["command"]))
+        assert ours.command == theirs.command == role
+        mine = config_from_args(ours, environ=mine_env).model_dump()
+        sup = config_from_args(theirs, environ={}).model_dump()
+        # Where the Zenoh endpoint is differs by design (container DNS name, all interfaces); the rest is equal.
+        for field in ("endpoint", "listen"):
+            mine.pop(field), sup.pop(field)
+        assert mine == sup, f"{spec.name}: compose and supervisor configure the run differently"
+        if role == "sim":
+            assert ours.cfg_listen == "tcp/0.0.0.0:7447" and theirs.cfg_listen == "tcp/sim:7447"
+        else:
+            assert ours.cfg_endpoint == theirs.cfg_endpoint == "tcp/sim:7447"
+        if role == "agent":
+            assert ours.id == theirs.id == spec.agent
 
 
-def test_endpoints_are_explicit_and_scouting_is_off():
-    from services.bus.zenoh_bus import zenoh_config
+def _agent_containers(compose: dict, environ: dict[str, str]) -> int:
+    """How many `morph-sim agent` containers `docker compose up` starts under ``environ``."""
+    services = enabled(interpolate(compose, environ), environ)
+    return sum(int((s.get("deploy") or {}).get("replicas", 1)) for s in services.values() if role_of(s) == "agent")
 
-    for name, service in SERVICES.items():
-        assert "network_mode" not in service, f"{name}: host networking is only needed for multicast scouting"
-        assert "ZENOH_CONFIG" not in service["environment"]
-    sim_port = SERVICES["sim"]["command"][-1].rsplit(":", 1)[1]
-    assert DEFAULTS["services"]["sim"]["ports"] == [f"7447:{sim_port}"]
-    assert "7447" in SERVICES["sim"]["healthcheck"]["test"][-1]
-    cfg = zenoh_config(connect="tcp/sim:7447", mode="client")  # what every connecting service opens
-    assert cfg.get_json("scouting/multicast/enabled") == "false"
-    assert cfg.get_json("scouting/gossip/enabled") == "false"
-    assert cfg.get_json("connect/endpoints") == '["tcp/sim:7447"]'
+
+def test_the_headers_scaling_example_starts_the_scales_fleet():
+    """Each `docker compose up` line of the header, with its variables, through the file's own interpolation and
+    profiles: as many robot containers as the run's fleet."""
+    examples = [c for c in header_commands() if "docker compose up" in c]
+    assert any("MORPH_SCALE=small" in c for c in examples)
+    for line in examples:
+        environ = dict(x.split("=", 1) for x in line.split("docker compose")[0].split())
+        sim_env = interpolate(COMPOSE, environ)["services"]["sim"]["environment"]
+        fleet = RunConfig.from_env({k: v for k, v in sim_env.items() if k != "ZENOH_CONFIG"}).n_agents
+        assert _agent_containers(COMPOSE, environ) == fleet, f"{line!r}: not the fleet of {fleet} robots"
+
+
+@pytest.mark.parametrize("scale", ["tiny", "small", "medium", "large", "extralarge"])
+def test_the_scales_profile_starts_exactly_its_fleet(scale):
+    environ = {"MORPH_SCALE": scale, "COMPOSE_PROFILES": scale}
+    services = enabled(interpolate(COMPOSE, environ), environ)
+    ids = sorted(_parse(s["command"]).id for s in services.values() if role_of(s) == "agent")
+    assert ids == list(range(RunConfig(run_id="x", scale=scale).n_agents))
+
+
+# -- secure by default, published on loopback ---------------------------------------------------------------------
+def test_ports_are_published_on_loopback_unless_told():
+    for environ, host in (({}, "127.0.0.1"), ({"PUBLISH_HOST": "0.0.0.0"}, "0.0.0.0")):
+        compose = interpolate(COMPOSE, environ)
+        published = [p for s in compose["services"].values() for p in s.get("ports", [])]
+        assert published and all(p.startswith(f"{host}:") and p.count(":") == 2 for p in published), published
+    assert DEFAULTS["services"]["sim"]["ports"] == ["127.0.0.1:7447:7447"]
+
+
+def _credentials(tmp_path: Path, here: bool = False) -> tuple[Path, str]:
+    """The header's `morph-sim credentials` command, run by the real CLI with its output in ``tmp_path`` (``here``:
+    mounted where it is written, for processes on this machine)."""
+    import contextlib
+    import io
+    import shlex
+
+    from morph_sim.cli import main as cli_main
+
+    (line,) = [c for c in header_commands() if c.startswith("morph-sim credentials")]
+    argv = shlex.split(line)
+    out = tmp_path / "credentials"
+    argv[argv.index("--out") + 1] = str(out)
+    if here:
+        argv[argv.index("--mounted-at") + 1] = str(out)
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert cli_main(argv[1:]) == 0
+    return out, argv[argv.index("--mounted-at") + 1]
+
+
+def test_every_container_gets_only_its_own_credentials_as_a_secret(tmp_path):
+    out, mounted_at = _credentials(tmp_path)
+    sources = {name: s["file"] for name, s in DEFAULTS["secrets"].items()}
+    for name, service in DEFAULTS["services"].items():
+        if name in THIRD_PARTY:
+            continue
+        secrets = {x["source"]: x["target"] for x in service["secrets"]}
+        config = service["environment"]["ZENOH_CONFIG"]
+        assert config in secrets.values(), f"{name}: ZENOH_CONFIG is not one of its secrets"
+        for source, target in secrets.items():
+            assert Path(target).parent == Path(mounted_at), f"{name}: {target} is not where the credentials are"
+            assert Path(sources[source]).name == Path(target).name
+            assert Path(sources[source]).parent == Path("./credentials")
+        expected = {"sim": {"endpoint.json5", "passwords.txt"}, "monitor": {"monitor.json5"}}.get(
+            name, {f"{name}.json5"})
+        assert {Path(t).name for t in secrets.values()} == expected, name
+        if name in SERVICES:
+            assert all((out / Path(t).name).is_file() for t in secrets.values()), f"{name}: credentials not written"
+    endpoint = json.loads((out / "endpoint.json5").read_text())
+    sim_secrets = {x["source"]: x["target"] for x in DEFAULTS["services"]["sim"]["secrets"]}
+    assert endpoint["transport"]["auth"]["usrpwd"]["dictionary_file"] == sim_secrets["passwords"]
+    assert endpoint["access_control"]["default_permission"] == "deny"
+    assert (out / "operator.json5").is_file() and "operator" not in DEFAULTS["secrets"], "the operator keeps theirs"
+
+
+def test_grafanas_admin_password_comes_from_the_environment():
+    grafana = COMPOSE["services"]["grafana"]
+    assert defaults_of(grafana["environment"]["GF_SECURITY_ADMIN_PASSWORD"]) == [("GRAFANA_ADMIN_PASSWORD", "")]
+    assert interpolate(grafana, {"GRAFANA_ADMIN_PASSWORD": "s3cret"})["environment"][
+        "GF_SECURITY_ADMIN_PASSWORD"] == "s3cret"
+    # without a password the container stops before Grafana could create admin/admin; with one it goes on to the
+    # image's entrypoint (absent here: exit 127)
+    entrypoint = interpolate(grafana, {})["entrypoint"]
+    assert entrypoint[:2] == ["sh", "-c"]
+    for password, code in (("", 1), ("s3cret", 127)):
+        run = subprocess.run(entrypoint, env={"PATH": os.environ["PATH"], "GF_SECURITY_ADMIN_PASSWORD": password},
+                             capture_output=True, text=True, timeout=10)
+        assert run.returncode == code, run.stderr
+        assert ("GRAFANA_ADMIN_PASSWORD" in run.stderr) == (code == 1)
 
 
 # -- environment ⇄ flags ⇄ RunConfig ------------------------------------------------------------------------------
@@ -236,7 +336,7 @@ def test_per_command_options_follow_their_variables():
 # -- start order, health, stop ------------------------------------------------------------------------------------
 def test_agents_and_monitor_start_after_the_endpoint_is_healthy():
     assert "healthcheck" in SERVICES["sim"]
-    for name in ("monitor", "agent"):
+    for name in ("monitor", *AGENTS):
         assert SERVICES[name]["depends_on"] == {"sim": {"condition": "service_healthy"}}
     for name in ("sim", "monitor"):
         check = SERVICES[name]["healthcheck"]
@@ -262,13 +362,24 @@ def _wait_port(port: int, timeout: float) -> None:
             time.sleep(0.1)
 
 
-async def _tokens(where: str, run: str, expected: set, timeout: float, procs: list[subprocess.Popen]) -> set:
+def _service_env(name: str, env: dict[str, str], credentials: Path) -> dict[str, str]:
+    """``env`` with the service's ZENOH_CONFIG pointing at its file among ``credentials`` (where the container would
+    have it mounted)."""
+    return {**env, "ZENOH_CONFIG": str(credentials / Path(SERVICES[name]["environment"]["ZENOH_CONFIG"]).name)}
+
+
+async def _tokens(where: str, run: str, expected: set, timeout: float, procs: list[subprocess.Popen],
+                  operator: Path) -> set:
     """The ids whose liveliness tokens are up, once ``expected`` are (or the timeout passes / a process exits)."""
+    import zenoh
+
     from schemas.keys import RunKeys
-    from services.bus.zenoh_bus import ZenohBus
+    from services.bus.zenoh_bus import ZenohBus, zenoh_config
 
     keys = RunKeys(run)
-    bus = await ZenohBus.open("compose-test", connect=where, mode="client", connect_timeout=5.0)
+    config = zenoh_config(connect=where, mode="client", connect_timeout=5.0,
+                          base=zenoh.Config.from_file(str(operator)))
+    bus = await ZenohBus.open("compose-test", connect=where, mode="client", config=config, connect_timeout=5.0)
     try:
         deadline = time.monotonic() + timeout
         while True:
@@ -301,25 +412,29 @@ def test_the_services_pass_the_healthcheck_and_stop_within_the_grace_period(tmp_
 
     port = free_port()
     grace = min(_seconds(SERVICES[n]["stop_grace_period"]) for n in SERVICES)
-    env = {**os.environ, **interpolate(COMPOSE["x-morph-env"], {}), "MORPH_OUTPUT_DIR": str(tmp_path),
-           "MORPH_RUN_ID": "compose-sigterm"}
+    env = {**os.environ, **interpolate(COMPOSE["x-morph-env"], {}), "MORPH_OUTPUT_DIR": str(tmp_path)}
+    credentials, _ = _credentials(tmp_path, here=True)
     cli = [sys.executable, "-m", "morph_sim.cli"]
     assert _run_check(SERVICES["sim"]["healthcheck"]["test"], port) != 0, "healthcheck passes with nothing listening"
     procs: list[subprocess.Popen] = []
     try:
         sim_argv = [c.replace("tcp/0.0.0.0:7447", f"tcp/127.0.0.1:{port}") for c in _argv("sim")[1:]]
-        procs.append(subprocess.Popen(cli + sim_argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT))
+        procs.append(subprocess.Popen(cli + sim_argv, env=_service_env("sim", env, credentials),
+                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT))
         _wait_port(port, 30.0)
         assert _run_check(SERVICES["sim"]["healthcheck"]["test"], port) == 0
         where = f"tcp/127.0.0.1:{port}"
-        agent_argv = [c.replace("tcp/sim:7447", where) for c in _argv("agent")[1:]]
+        agent_argv = [c.replace("tcp/sim:7447", where) for c in _argv("agent-0")[1:]]
         monitor_argv = _live_monitor_argv(where)
-        procs.append(subprocess.Popen(cli + agent_argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT))
-        procs.append(subprocess.Popen(cli + monitor_argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT))
+        procs.append(subprocess.Popen(cli + agent_argv, env=_service_env("agent-0", env, credentials),
+                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT))
+        procs.append(subprocess.Popen(cli + monitor_argv, env=_service_env("monitor", env, credentials),
+                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT))
         # A service declares its liveliness token after installing its signal handlers: once all three tokens are
         # up, SIGTERM tests the handlers, not Python's default (which would just kill the process).
         expected = {"sim", "monitor", 0}
-        present = asyncio.run(_tokens(where, env["MORPH_RUN_ID"], expected, 30.0, procs))
+        present = asyncio.run(_tokens(where, env["MORPH_RUN_ID"], expected, 30.0, procs,
+                                      credentials / "operator.json5"))
         assert expected <= present, f"services did not come up: tokens {present}"
         for proc in reversed(procs):
             took = _stop(proc, grace)
@@ -361,40 +476,47 @@ def test_the_deploy_guide_lists_every_variable_and_sample():
     assert pin and pin.group(1) == "1.10.2"
 
 
-def test_a_compose_shaped_run_completes_with_agents_that_claim_their_ids(tmp_path):
-    """Live, on 127.0.0.1: the compose commands (sim listening, monitor, 8 agents WITHOUT --id, each with its own
-    instance name as Compose's hostnames would give) run a short lock-step run to the end."""
+def test_a_compose_shaped_run_completes_secured_by_its_credentials(tmp_path):
+    """Live, on 127.0.0.1: the compose commands (sim listening, monitor, the 8 robots' services), each process with
+    only its own credentials file as its container would have it, run a short lock-step run to the end; a process
+    without credentials cannot join it."""
     from services.bus.zenoh_bus import free_port
 
     port = free_port()
     where = f"tcp/127.0.0.1:{port}"
     env = {**os.environ, **interpolate(COMPOSE["x-morph-env"], {}), "MORPH_OUTPUT_DIR": str(tmp_path),
-           "MORPH_RUN_ID": "compose-claims", "MORPH_STEPS": "10", "MORPH_READY_TIMEOUT": "60"}
+           "MORPH_STEPS": "10", "MORPH_READY_TIMEOUT": "60"}
+    credentials, _ = _credentials(tmp_path, here=True)
     cli = [sys.executable, "-m", "morph_sim.cli"]
-    n = int(DEFAULTS["services"]["agent"]["deploy"]["replicas"])
     procs: list[subprocess.Popen] = []
     try:
         sim_argv = [c.replace("tcp/0.0.0.0:7447", where) for c in _argv("sim")[1:]]
-        sim = subprocess.Popen(cli + sim_argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        sim = subprocess.Popen(cli + sim_argv, env=_service_env("sim", env, credentials), stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT, text=True)
         procs.append(sim)
         _wait_port(port, 30.0)
+        stranger = subprocess.run(cli + [c.replace("tcp/sim:7447", where) for c in _argv("agent-0")[1:]],
+                                  env={k: v for k, v in env.items() if k != "ZENOH_CONFIG"}, capture_output=True,
+                                  text=True, timeout=60)
+        assert stranger.returncode != 0, "an agent without credentials joined the run"
         monitor_argv = _live_monitor_argv(where)
-        procs.append(subprocess.Popen(cli + monitor_argv, env=env, stdout=subprocess.DEVNULL,
-                                      stderr=subprocess.DEVNULL))
+        procs.append(subprocess.Popen(cli + monitor_argv, env=_service_env("monitor", env, credentials),
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         agents = []
-        for i in range(n):
-            agent_argv = [c.replace("tcp/sim:7447", where) for c in _argv("agent")[1:]]
-            agents.append(subprocess.Popen(cli + agent_argv, env={**env, "MORPH_INSTANCE": f"container-{i}"},
+        for name in AGENTS:
+            agent_argv = [c.replace("tcp/sim:7447", where) for c in _argv(name)[1:]]
+            agents.append(subprocess.Popen(cli + agent_argv, env=_service_env(name, env, credentials),
                                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
         procs += agents
         out, _ = sim.communicate(timeout=180)
         assert sim.returncode == 0, out[-3000:]
+        assert "open" not in out, "the sim hosted an open endpoint"
         ids = []
         for proc in agents:
             text, _ = proc.communicate(timeout=30)
             assert proc.returncode == 0, text[-2000:]
             ids.append(json.loads(text.strip().splitlines()[-1])["agent"])
-        assert sorted(ids) == list(range(n))
+        assert sorted(ids) == list(range(len(AGENTS)))
     finally:
         for proc in procs:
             if proc.poll() is None:

@@ -156,7 +156,8 @@ def test_the_runtime_stage_runs_as_a_non_root_user_without_dev_tools():
     users = [rest for word, rest in runtime if word == "USER"]
     assert users and users[-1] not in ("root", "0") and not users[-1].startswith("0:")
     runs = " && ".join(rest for word, rest in runtime if word == "RUN")
-    assert "useradd --system --uid 10001 --gid morph" in runs and users[-1] == "morph"
+    # numeric, so that Kubernetes can check runAsNonRoot against the image (a name it cannot resolve)
+    assert "useradd --system --uid 10001 --gid morph" in runs and users[-1] == "10001:10001"
     for tool in ("apt-get", "apk ", "gcc", "build-essential", "git ", "make ", "pytest", "[test]", "-e "):
         assert tool not in runs, f"runtime stage installs or uses {tool.strip()!r}"
     assert "pip install /tmp/wheels/*.whl" in runs, "the runtime installs the wheel built in the first stage"

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from _dashboard import dashboard_queries, grouping, selectors
 
 from services.bus.local import LocalNetwork
 from services.monitor.prometheus import MonitorCollector
@@ -29,9 +30,10 @@ def _exported() -> dict[str, set[str]]:
     for fam in MonitorCollector(monitor).collect():
         labels = set(getattr(fam, "_labelnames", ()))
         names = {"counter": [fam.name + "_total"], "histogram": [fam.name + s for s in ("_bucket", "_sum", "_count")],
-                 "gauge": [fam.name]}[fam.type]
+                 "summary": [fam.name + s for s in ("", "_sum", "_count")], "gauge": [fam.name]}[fam.type]
         for n in names:
-            out[n] = labels | ({"le"} if n.endswith("_bucket") else set())
+            out[n] = labels | ({"le"} if n.endswith("_bucket") else {"quantile"} if n == fam.name and
+                               fam.type == "summary" else set())
     return out
 
 
@@ -119,3 +121,34 @@ def test_provisioning_points_at_the_scraped_monitor():
 @pytest.mark.parametrize("path", sorted(p for p in MON.rglob("*") if p.suffix in (".yml", ".yaml")))
 def test_every_monitoring_yaml_parses(path):
     assert isinstance(yaml.safe_load(path.read_text()), dict)
+
+
+def test_every_metric_of_the_catalogue_is_charted():
+    """Each metric the catalogue exports to Prometheus has a panel: the seven dispatch outcomes and the fleet view's
+    age included (a histogram through its buckets)."""
+    from services.metrics import catalogue
+
+    charted = {name for _, expr in dashboard_queries() for name, _ in selectors(expr)}
+    missing = []
+    for metric in catalogue.CATALOGUE:
+        if metric.prometheus:
+            name = metric.prometheus + {"counter": "_total", "histogram": "_bucket"}.get(metric.kind, "")
+            if name not in charted:
+                missing.append(name)
+    assert not missing, f"exported but not charted: {missing}"
+
+
+def test_multi_run_selections_aggregate_by_run():
+    """The run variable selects several runs at once: every aggregation keeps them apart (``by (run, …)``), and a
+    panel's legend names the run of each series."""
+    problems = []
+    for where, expr in dashboard_queries():
+        for kind, labels in grouping(expr):
+            if kind != "by" or "run" not in labels:
+                problems.append(f"{where}: {kind} ({', '.join(labels)}) mixes runs in {expr!r}")
+    dash = json.loads(DASHBOARD.read_text())
+    for panel in dash["panels"]:
+        for target in panel["targets"]:
+            if "run" in target["expr"] and "{{run}}" not in target["legendFormat"]:
+                problems.append(f"panel {panel['title']!r}: legend {target['legendFormat']!r} does not name the run")
+    assert not problems, "\n".join(problems)

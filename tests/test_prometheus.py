@@ -57,17 +57,24 @@ async def test_scrape_during_and_after_a_run(tmp_path):
     assert _value(text, "morph_links") == monitor.result.rows[-1]["links"]
     assert _value(text, "morph_tick") == config.steps - 1
     assert "# TYPE morph_bus_latency_seconds histogram" in text
-    assert _value(text, "morph_bus_latency_seconds_bucket", 'le="0.005",run="prom"') >= 0
-    inf = _value(text, "morph_bus_latency_seconds_bucket", 'le="+Inf",run="prom"')
-    assert inf == _value(text, "morph_bus_latency_seconds_count") > 0
-    assert _value(text, "morph_bus_latency_seconds_sum") > 0  # wall stamps here: a real, non-zero wall latency
+    # wall stamps here (LocalBus services stamp wall time): a real, non-zero wall latency, labelled with its clock
+    wall = 'clock="wall",run="prom"'
+    assert _value(text, "morph_bus_latency_seconds_bucket", 'clock="wall",le="0.005",run="prom"') >= 0
+    inf = _value(text, "morph_bus_latency_seconds_bucket", 'clock="wall",le="+Inf",run="prom"')
+    assert inf == _value(text, "morph_bus_latency_seconds_count", wall) > 0
+    assert _value(text, "morph_bus_latency_seconds_sum", wall) > 0
     # per key class, as the link meter reports every k ticks: what the dashboard's drop and latency panels query
     assert _value(text, "morph_faults_active") == 0
     sent = dict(re.findall(r'^morph_link_messages_total\{key="([^"]+)",outcome="sent",receiver="monitor",run="prom"\} '
                            r'(\S+)$', text, re.M))
     assert 0 < float(sent["agent/*/ack"]) <= monitor.stats.by_kind["ack"]  # reported every k ticks
-    assert re.search(r'^morph_link_latency_seconds\{key="agent/\*/ack",receiver="monitor",run="prom",stat="p99"\} '
-                     r'\S+$', text, re.M)
+    # the link latency is a summary: quantiles of the last messages, and a count that is the delivered counter
+    ack = 'key="agent/*/ack",receiver="monitor",run="prom"'
+    assert "# TYPE morph_link_latency_seconds summary" in text
+    assert _value(text, "morph_link_latency_seconds", ack.replace('receiver=', 'quantile="0.99",receiver=')) >= 0
+    assert _value(text, "morph_link_latency_seconds_count", ack) == \
+        _value(text, "morph_link_messages_total", ack.replace('receiver=', 'outcome="delivered",receiver='))
+    assert _value(text, "morph_link_latency_max_seconds", ack) >= 0
     assert _value(text, "morph_dispatch_delay_seconds_count") > 0
     assert _value(text, "morph_messages_total", 'kind="ack",run="prom"') >= config.n_agents * config.steps
     assert _value(text, "morph_dropped_messages_total", 'reason="sequence_gap",run="prom"') == 0

@@ -133,7 +133,7 @@ _NOT_GLYPHS = {"background", "rack_floor", "grid", "header", "text", "outline", 
 
 
 def _colours(pixels: np.ndarray) -> set[str]:
-    from services.sim.world.render import COLORS
+    from services.world.render import COLORS
 
     name = {(r << 16) | (g << 8) | b: key for key, (r, g, b) in COLORS.items()}
     rgb = pixels.reshape(-1, 3).astype(np.int64)
@@ -146,8 +146,8 @@ def test_the_report_names_each_runs_network_and_hand_overs_and_the_gif_legend_na
     import re
 
     from morph_sim.cli import main
-    from services.sim.world.layout import layout_for, named_sizes
-    from services.sim.world.render import image_size
+    from services.world.layout import layout_for, named_sizes
+    from services.world.render import image_size
 
     said = {}
     for name, flags in (("wifi", ["--network", "wifi-legacy-roaming"]), ("ideal", [])):

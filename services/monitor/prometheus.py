@@ -3,20 +3,27 @@
 A custom collector reads the monitor's latest metric samples and message statistics at scrape time, in its own
 ``CollectorRegistry`` (no process-global state, so tests and several monitors in one process do not collide).
 Names follow the conventions: base units in the name, counters end in ``_total``, histograms expose ``_bucket``,
-``_sum`` and ``_count`` (latency with prometheus_client's default buckets, dispatch delay in sim seconds).
+``_sum`` and ``_count`` (latency with prometheus_client's default buckets, dispatch delay in sim seconds), and
+quantiles are a summary's ``quantile`` label. One name per quantity whatever the run's settings, so a dashboard's
+query finds it in every run: the bus latency's clock (sim seconds under virtual fault time, wall seconds under wall
+time) is its ``clock`` label, as on the ``latency_seconds`` stream.
 """
 
 from __future__ import annotations
 
 from prometheus_client import CollectorRegistry, start_http_server
-from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, SummaryMetricFamily
+from prometheus_client.samples import Sample
 
+from services.faults.linkstats import QUANTILES
 from services.metrics import catalogue
 
 #: exported from the monitor's message statistics (labels per kind or reason, histograms), not from a stream's value
 FROM_STATS = ("messages_total", "drops_total", "latency_seconds", "dispatch_delay")
 #: the streams exported as one gauge or counter each, with the catalogue's name and help
 EXPORTED = tuple(m for m in catalogue.CATALOGUE if m.prometheus and m.name not in FROM_STATS)
+#: the link meter's quantile streams (``link/latency/p50`` …) as a summary's ``quantile`` label values
+LINK_QUANTILES = {f"p{round(q * 100)}": str(q) for q in QUANTILES}
 
 
 class MonitorCollector:
@@ -61,25 +68,45 @@ class MonitorCollector:
         # per key class (request, ack, tick, …) and receiver, as the monitor's link meter reports every k ticks
         links = CounterMetricFamily("morph_link_messages", "Messages per key class by outcome (sent, delivered, "
                                     "dropped, duplicated, late)", labels=["run", "key", "receiver", "outcome"])
-        latency = GaugeMetricFamily("morph_link_latency_seconds", "Observed latency per key class (mean, max: since the "
-                                    "start; p50, p90, p99: its last 4096 messages)",
-                                    labels=["run", "key", "receiver", "stat"])
+        # a summary: quantiles over the key class's last messages, sum and count since the start (every delivered
+        # message is one latency observation, so the count is the delivered counter and the sum its mean × count)
+        latency = SummaryMetricFamily("morph_link_latency_seconds", "Observed latency per key class (quantiles: its "
+                                      "last 4096 messages; sum and count: since the start)",
+                                      labels=["run", "key", "receiver"])
+        latency_max = GaugeMetricFamily("morph_link_latency_max_seconds", "Largest observed latency per key class "
+                                        "since the start", labels=["run", "key", "receiver"])
+        stats_of: dict[tuple[str, str], dict[str, float]] = {}
         for s in list(mon.latest_links):
             key, receiver = s.labels.get("key", ""), s.labels.get("receiver", "")
             if s.name.startswith("link/latency/"):
-                latency.add_metric([run, key, receiver, s.name.rsplit("/", 1)[1]], s.value)
+                stats_of.setdefault((key, receiver), {})[s.name.rsplit("/", 1)[1]] = s.value
             else:
-                links.add_metric([run, key, receiver, s.name.split("/", 1)[1]], s.value)
+                outcome = s.name.split("/", 1)[1]
+                links.add_metric([run, key, receiver, outcome], s.value)
+                if outcome == "delivered":
+                    stats_of.setdefault((key, receiver), {})["count"] = s.value
+        for (key, receiver), st in sorted(stats_of.items()):
+            if "mean" not in st or "count" not in st:
+                continue
+            # the client's summary family takes count and sum; its quantile samples are added as the format has them
+            for stat, quantile in LINK_QUANTILES.items():
+                latency.samples.append(Sample(latency.name, {"run": run, "key": key, "receiver": receiver,
+                                                             "quantile": quantile}, st[stat]))
+            latency.add_metric([run, key, receiver], count_value=st["count"], sum_value=st["mean"] * st["count"])
+            latency_max.add_metric([run, key, receiver], st["max"])
         yield links
         yield latency
-        for hist, stream, doc in ((stats.latency, "latency_seconds", "Publish to monitor latency"),
-                                  (stats.dispatch, "dispatch_delay",
-                                   "Sim seconds from an AGV's first help request to a picker's commit")):
-            name = by[stream].prometheus
-            if stream == "latency_seconds" and stats.clock == "sim":  # the latency's clock is in the name
-                name, doc = name.replace("_seconds", "_sim_seconds"), doc + ", sim seconds (virtual time)"
-            family = HistogramMetricFamily(name, doc, labels=["run"])
-            family.add_metric([run], hist.cumulative(), sum_value=hist.sum)
+        yield latency_max
+        # the bus latency is measured in the clock its messages are stamped with: before the first one arrives, the
+        # clock the run's fault time stamps them with
+        clock = stats.clock if stats.latency.count else ("sim" if mon.config.fault_time == "virtual" else "wall")
+        for hist, stream, doc, labels, values in (
+                (stats.latency, "latency_seconds", "Publish to monitor latency (clock: sim seconds under virtual "
+                 "fault time, wall seconds under wall time)", ["run", "clock"], [run, clock]),
+                (stats.dispatch, "dispatch_delay", "Sim seconds from an AGV's first help request to a picker's "
+                 "commit", ["run"], [run])):
+            family = HistogramMetricFamily(by[stream].prometheus, doc, labels=labels)
+            family.add_metric(values, hist.cumulative(), sum_value=hist.sum)
             yield family
 
 
