@@ -15,7 +15,8 @@ from services.bus.base import Bus
 from services.bus.local import LocalNetwork
 from services.monitor.service import MonitorResult, MonitorService
 from services.runconfig import RunConfig
-from services.sim.service import SimResult, SimService
+from services.sim.result import SimResult
+from services.sim.service import SimService
 
 
 @dataclass

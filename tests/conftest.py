@@ -30,7 +30,7 @@ KINDS: dict[str, tuple[str, ...]] = {
         "test_bus_faults", "test_bus_local", "test_dependencies", "test_deploy_manifests", "test_errors",
         "test_faults_vtime", "test_hot_codec", "test_keys", "test_layout", "test_metrics", "test_network_model",
         "test_plasticity", "test_protocol", "test_repo_text",
-        "test_figures", "test_layers", "test_policies", "test_render", "test_schemas",
+        "test_figures", "test_layers", "test_policies", "test_render", "test_schemas", "test_tick_step",
     ),
     "fidelity": (
         "test_astar", "test_audit", "test_cta", "test_faults_experiment", "test_heuristic", "test_lab", "test_morph_reference",

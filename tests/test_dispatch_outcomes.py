@@ -93,7 +93,7 @@ def test_forged_or_corrupt_outcome_counts_are_refused_naming_the_field():
     from schemas.base import DecodeError
     from schemas.codec import decode, encode_fields
     from schemas.tick import decode_tick, encode_tick_body, tick_fields
-    from services.sim.service import make_controller, world_fields
+    from services.sim.wire import make_controller, world_fields
 
     ctl = make_controller(RunConfig(run_id="x", scale="tiny", steps=5))
     obs = ctl.begin_tick()

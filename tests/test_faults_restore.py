@@ -11,7 +11,7 @@ from services.bus import LocalNetwork
 from services.faults.restore import restore_brains
 from services.protocol.tick import first_in_mission_order
 from services.runconfig import RunConfig
-from services.sim.service import make_controller
+from services.sim.wire import make_controller
 
 
 def trained_agents(config: RunConfig, net: LocalNetwork):

@@ -29,7 +29,7 @@ from services.bus.base import pack_header
 from services.bus.zenoh_bus import endpoint, free_port, zenoh_config
 from services.monitor.recorder import read_metrics
 from services.runconfig import RunConfig
-from services.sim.service import make_controller, world_fields
+from services.sim.wire import make_controller, world_fields
 
 # isort: split
 import zenoh  # noqa: E402  (after zenoh_bus set the runtime environment)

@@ -29,7 +29,7 @@ from schemas.tick import (
     tick_number,
 )
 from services.runconfig import RunConfig
-from services.sim.service import make_controller, world_fields
+from services.sim.wire import make_controller, world_fields
 
 
 def _ticks(steps: int = 40) -> list[tuple[object, dict]]:

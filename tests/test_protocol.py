@@ -238,7 +238,7 @@ def test_an_agent_service_whose_fleet_broadcast_is_lost_for_k_ticks_learns_from_
     from morph_sim.local import run_local
     from services.monitor.recorder import read_metrics
     from services.runconfig import RunConfig
-    from services.sim.service import make_controller
+    from services.sim.wire import make_controller
 
     k, start, victim, steps = 4, 10, 1, 24
     sched = tmp_path / "blackout.toml"

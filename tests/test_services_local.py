@@ -18,7 +18,7 @@ from services.bus.local import LocalNetwork
 from services.metrics.catalogue import COLUMNS
 from services.monitor.recorder import read_metrics, read_snapshots
 from services.runconfig import RunConfig, add_config_arguments, config_from_args
-from services.sim.service import make_controller, world_fields
+from services.sim.wire import make_controller, world_fields
 from services.supervisor.graph import PROGRAM, process_graph
 
 

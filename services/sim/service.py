@@ -30,22 +30,21 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-
-import numpy as np
 
 from schemas import Ack, Commit, Event, OnBoard, Phase, Refusal, Resolve, Stop
 from schemas.codec import encode_fields
 from schemas.keys import RunKeys
 from schemas.tick import TickObservation, encode_tick_body, onboard_fields, tick_fields
-from services.bus.base import Bus, LivelinessEvent, Sample
+from services.bus.base import Bus, Sample
 from services.bus.registry import mount_registry
+from services.intake import Intake
 from services.protocol import dispatch as protocol
 from services.protocol.tick import TickStep
-from services.rejects import Rejects
 from services.runconfig import RunConfig
-from services.world.cta import CTAController
-from services.world.warehouse import Warehouse, WarehouseConfig
+from services.sim.phases import PhaseBarrier, PhaseCollection
+from services.sim.presence import MONITOR, Presence
+from services.sim.result import SimResult
+from services.sim.wire import make_controller, world_fields
 
 log = logging.getLogger("morph_sim.sim")
 
@@ -54,165 +53,9 @@ LEAVE_TIMEOUT = 2.0  # seconds the sim waits, after its stop, for the other part
 # on a loaded machine: several seconds). The sim hosts the endpoint: closing it earlier loses what is still on the way
 # to the monitor, and the record would end before the run did (seen: 51 of 60 rows).
 MONITOR_LEAVE_TIMEOUT = 20.0
-PROBE_INTERVAL = 0.25  # seconds between readiness probes
-MONITOR = "monitor"
-# Lockstep: the sim runs at most this many ticks ahead of the rows the monitor has written (it reports them every
-# PROGRESS_EVERY rows). The monitor takes in every message of the run and is not part of the tick's barrier; without
-# this bound a monitor slower than the run builds an unbounded backlog (memory, a record that ends long after the
-# run, live streams that lag by minutes). Larger than PROGRESS_EVERY plus the rows a monitor may hold back.
-MONITOR_WINDOW = 200
 
 
-def world_fields(ctl: CTAController, obs: TickObservation) -> dict:
-    """The Tick fields that describe the world beyond the observation (monitor, live views)."""
-    wh = ctl.wh
-    queue = set(wh.queue)
-    partner = [-1] * ctl.n
-    by_cell = {m.cell: p for p, m in ctl.picker_missions.items()}
-    for agv, m in ctl.agv_missions.items():
-        p = by_cell.get(m.cell)
-        if p is not None:
-            partner[agv] = int(p)  # plain ints: the sim packs this map without the model (encode_tick_body)
-            partner[p] = int(agv)
-    loads, unloads = handling_pairs(obs, wh.carrying)
-    return dict(
-        heading=[int(d) for d in wh.dir], busy=[bool(b) for b in wh.busy],
-        carrying=[bool(c) for c in wh.carrying], carrying_requested=[bool(c) and c in queue for c in wh.carrying],
-        partner=partner, request_queue=[int(q) for q in wh.queue], loads=loads, unloads=unloads,
-        deliveries_total=int(ctl.deliveries),
-    )
-
-
-def handling_pairs(obs: TickObservation, carrying) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
-    """(AGV, picker) pairs that loaded / unloaded in step t−1, from the observation's ``handled`` robots.
-
-    A load or unload always has the AGV and one picker on the same cell (cta.py), so the pairs carry ``handled``
-    exactly; an unpaired handled robot would be a controller bug and is logged.
-    """
-    handled = getattr(obs, "handled", None)
-    if handled is None:
-        return [], []
-    cells = obs.cells
-    pickers = {(int(cells[p, 0]), int(cells[p, 1])): p for p in np.flatnonzero(handled[obs.n_agvs:]) + obs.n_agvs}
-    loads, unloads, paired = [], [], set()
-    for agv in np.flatnonzero(handled[: obs.n_agvs]):
-        p = pickers.get((int(cells[agv, 0]), int(cells[agv, 1])))
-        if p is None:
-            continue
-        (loads if carrying[agv] else unloads).append((int(agv), int(p)))
-        paired.update((int(agv), int(p)))
-    missing = set(np.flatnonzero(handled).tolist()) - paired
-    if missing:
-        log.error("sim: handled robots %s have no load/unload partner; agents will not see them", sorted(missing))
-    return loads, unloads
-
-
-def make_controller(config: RunConfig) -> CTAController:
-    """The world of a run: a warehouse of the configured size and fleet, reset with the run's seed."""
-    wh_cfg = WarehouseConfig.named(config.scale, config.n_agvs, config.n_pickers,
-                                   max_steps=max(config.steps + 1, 500))
-    ctl = CTAController(Warehouse(wh_cfg))
-    ctl.reset(config.seed)
-    return ctl
-
-
-@dataclass
-class Pace:
-    """When the ticks of a paced run started (wall clock): what the fleet saw of its real-time period."""
-
-    period: float = 0.0
-    ticks: int = 0
-    interval_max: float = 0.0  # wall seconds between two tick starts, at most
-    interval_min: float = float("inf")  # ... and at least
-    interval_sum: float = 0.0
-    late: int = 0  # intervals longer than 1.5 periods
-    early: int = 0  # intervals shorter than half a period (a tick after one that overran its period)
-    rescheduled: int = 0  # times the sim was more than a period behind and started again from the present
-    worst: list[tuple[int, float]] = field(default_factory=list)  # the 5 longest intervals: (tick, seconds)
-    _last: float | None = None
-
-    def started(self, t: int, now: float) -> None:
-        if self._last is not None:
-            gap = now - self._last
-            self.interval_sum += gap
-            self.interval_max = max(self.interval_max, gap)
-            self.interval_min = min(self.interval_min, gap)
-            self.late += gap > 1.5 * self.period
-            self.early += gap < 0.5 * self.period
-            self.worst = sorted([*self.worst, (t, gap)], key=lambda w: -w[1])[:5]
-        self._last = now
-        self.ticks += 1
-
-    def summary(self) -> dict:
-        n = max(1, self.ticks - 1)
-        return {"period": self.period, "ticks": self.ticks, "interval_mean": round(self.interval_sum / n, 4),
-                "interval_min": round(self.interval_min, 4) if self.ticks > 1 else None,
-                "interval_max": round(self.interval_max, 4), "late": self.late, "early": self.early, "rescheduled": self.rescheduled,
-                "worst": [[t, round(g, 4)] for t, g in self.worst]}
-
-
-@dataclass
-class SimResult:
-    steps: int = 0
-    deliveries: int = 0
-    per_tick_deliveries: list[int] = field(default_factory=list)
-    commits_applied: int = 0
-    rejected: int = 0
-    absences: int = 0
-    wall_seconds: float = 0.0
-    stopped_early: str | None = None
-    protocol: dict[str, int] = field(default_factory=dict)  # the dispatch protocol's outcome counters (sim + robots)
-    network_stops: int = 0  # robot-steps a network profile's silence stop held a robot in place
-    pace: Pace = field(default_factory=Pace)  # paced mode: the tick starts' intervals
-    # wall seconds spent per part of the tick (where a distributed tick's time goes)
-    phase_seconds: dict[str, float] = field(default_factory=lambda: {
-        "controller": 0.0, "tick_phase": 0.0, "resolve_phase": 0.0, "step": 0.0})
-
-    @property
-    def ticks_per_s(self) -> float:
-        return self.steps / self.wall_seconds if self.wall_seconds > 0 else 0.0
-
-
-class _Phase:
-    """Who must still answer in the current phase, and a future that resolves when nobody is left.
-
-    Answers arrive on the transport's receive thread (inline handlers) or on the loop; ``lock`` guards ``waiting``
-    and the answers recorded with it, and ``close`` (on the loop, when the phase ends) makes later answers stale.
-    """
-
-    def __init__(self, t: int, phase: int, waiting: set[int]):
-        self.t = t
-        self.phase = phase
-        self.waiting = set(waiting)
-        self.held: set[int] = set()  # answers held by the fault layer (virtual time): accepted if released in time
-        # RESOLVE: a picker's ack names the AGV it committed to; it has answered once that Commit has arrived too
-        # (delivered, or held / lost by the network: either way nothing more is coming from it this phase)
-        self.commit_wanted: dict[int, int] = {}
-        self.commit_arrived: set[int] = set()
-        self.lock = threading.Lock()
-        self.closed = False
-        self._loop = asyncio.get_running_loop()
-        self.done = self._loop.create_future()
-        if not self.waiting:
-            self.done.set_result(None)
-
-    def answered(self, agent: int) -> None:
-        """Call with ``lock`` held, from any thread."""
-        if agent in self.waiting:
-            self.waiting.discard(agent)
-            if not self.waiting:
-                self._loop.call_soon_threadsafe(self._finish)
-
-    def _finish(self) -> None:
-        if not self.done.done():
-            self.done.set_result(None)
-
-    def close(self) -> None:
-        with self.lock:
-            self.closed = True
-
-
-class SimService:
+class SimService(Presence, PhaseCollection):
     """Runs ``config.steps`` ticks over ``bus``. ``await run()`` returns a :class:`SimResult`."""
 
     def __init__(self, config: RunConfig, bus: Bus, *, wait_for_monitor: bool = True,
@@ -222,10 +65,9 @@ class SimService:
         # when every answer has *arrived* (delivered, held or dropped by the layer) and at each phase boundary the
         # runtime releases what is due, so a lost or late answer costs that agent its tick, never a hang.
         self.faults = faults
-        self._rejects = Rejects(log, "sim")
         self.bus = bus
-        bus.reject_hook = self._reject  # oversized messages refused on arrival count here
         self.keys = RunKeys(config.run_id)
+        self.intake = Intake(bus, self.keys, log, "sim", on_refused=self._count_refused)
         self.n = config.n_agents
         self._onboard_keys = [self.keys.onboard(robot) for robot in range(self.n)]  # named every tick
         self.wait_for_monitor = wait_for_monitor
@@ -239,7 +81,7 @@ class SimService:
         self._ready_changed = asyncio.Event()
         self._stop: str | None = None
         self._stop_event = asyncio.Event()
-        self._phase: _Phase | None = None
+        self._phase: PhaseBarrier | None = None
         self._requests: dict[int, list[int]] = {}  # AGV -> pickers asked, this tick
         self._commits: dict[int, int] = {}  # picker -> AGV committed, this tick
         self._expected: dict[int, list[int]] = {}  # picker -> requesters (the resolve)
@@ -259,76 +101,13 @@ class SimService:
         self._monitor_progress = asyncio.Event()
         self._monitor_gone_at: float | None = None  # when the monitor left mid-run (lockstep waits for its return)
 
-    # -- presence ----------------------------------------------------------------------------------------------------
-    def present(self) -> set[int]:
-        return {a for a in self.ready if isinstance(a, int) and a in self.alive}
-
-    def _reject(self, what: str, why: object) -> None:
-        self._rejects.count(what, why)
-        self.result.rejected = self._rejects.total
-
-    def _on_alive(self, event: LivelinessEvent) -> None:
-        try:
-            who = self.keys.alive_id(event.key)
-        except ValueError as exc:
-            self._reject(event.key, exc)
-            return
-        if isinstance(who, int) and not 0 <= who < self.n:
-            self._reject(event.key, f"agent id {who} outside 0..{self.n - 1}")
-            return
-        if event.alive:
-            self.alive.add(who)
-            if who == MONITOR:
-                self._monitor_gone_at = None
-                self._monitor_progress.set()
-        else:
-            self.alive.discard(who)
-            if who == MONITOR:
-                self._monitor_rows = None  # a restarted monitor starts at the live tick: no rows to wait for
-                if self._running and self._stop is None:
-                    self._monitor_gone_at = time.monotonic()
-                self._monitor_progress.set()
-            self.ready.discard(who)
-            self._absent(who, "liveliness token gone")
-        self._ready_changed.set()
-
-    def _absent(self, who: int | str, why: str) -> None:
-        if isinstance(who, int) and self._running and self._stop is None:
-            self.result.absences += 1
-            log.info("sim: agent %s absent (%s)", who, why)
-            ph = self._phase
-            if ph is not None:
-                with ph.lock:
-                    ph.answered(who)
-
-    def _on_event(self, sample: Sample) -> None:
-        try:
-            msg = sample.decode(Event)
-        except ValueError as exc:
-            self._reject(sample.key, exc)
-            return
-        if msg.kind == "record.progress":
-            if self.keys.sender_of(sample.key) != MONITOR or msg.t is None:
-                self._reject(sample.key, "record progress from another participant than the monitor")
-                return
-            self._monitor_rows = max(self._monitor_rows or 0, msg.t)
-            self._monitor_progress.set()
-            return
-        if msg.kind != "ready.ack":
-            return
-        who = msg.source
-        if self.keys.sender_of(sample.key) != who:
-            self._reject(sample.key, f"ready ack of {who!r} on the key of another participant")
-            return
-        if who in self.alive and who not in self.ready:
-            self.ready.add(who)
-            self._ready_changed.set()
+    # -- control ------------------------------------------------------------------------------------------------------
+    def _count_refused(self, total: int) -> None:
+        self.result.rejected = total
 
     def _on_stop(self, sample: Sample) -> None:
-        try:
-            msg = sample.decode(Stop)
-        except ValueError as exc:
-            self._reject(sample.key, exc)
+        msg = self.intake.decode(sample, Stop)
+        if msg is None:
             return
         if sample.sender == self.bus.identity:
             return
@@ -369,32 +148,8 @@ class SimService:
                 ph.held.add(who)
             ph.answered(who)
 
-    @staticmethod
-    def _commit_arrived(ph: _Phase, picker: int) -> None:
-        """With ``ph.lock`` held."""
-        ph.commit_arrived.add(picker)
-        if ph.commit_wanted.pop(picker, None) is not None:
-            ph.answered(picker)
-
-    def _boundary(self, t: int, phase: int) -> None:
-        """Virtual time: reach the boundary that closes ``phase`` of tick ``t`` (releases held answers)."""
-        if self.faults is not None:
-            from services.faults.vtime import boundaries
-
-            self.faults.advance(boundaries(t, self.config.dt)[1 if phase == Phase.TICK else 2])
-
-    def _decode_own(self, sample: Sample, model: type, author: str, what: str):
-        """Decode an answer and check that its author sent it under its own key; a bad one is counted and None."""
-        try:
-            msg = sample.decode(model)
-            self.keys.check_author(sample.key, getattr(msg, author), what)
-        except ValueError as exc:
-            self._reject(sample.key, exc)
-            return None
-        return msg
-
     def _on_ack(self, sample: Sample) -> None:
-        msg = self._decode_own(sample, Ack, "agent", "ack of agent")
+        msg = self.intake.decode(sample, Ack, "agent", "ack of agent")
         if msg is None:
             return
         if msg.outcomes is not None and msg.phase == Phase.TICK:
@@ -424,11 +179,11 @@ class SimService:
             ph.answered(msg.agent)
 
     def _on_commit(self, sample: Sample) -> None:
-        msg = self._decode_own(sample, Commit, "picker", "commit of picker")
+        msg = self.intake.decode(sample, Commit, "picker", "commit of picker")
         if msg is None:
             return
         if not (self.config.n_agvs <= msg.picker < self.n and 0 <= msg.agv < self.config.n_agvs):
-            self._reject(sample.key, f"commit of robot {msg.picker} to robot {msg.agv}: not a picker and an AGV")
+            self.intake.refuse(sample.key, f"commit of robot {msg.picker} to robot {msg.agv}: not a picker and an AGV")
             return
         # never discarded for being late: it waits on the desk for the next step boundary, where it is applied if
         # still valid (else refused, and both sides told)
@@ -539,101 +294,6 @@ class SimService:
         await self.bus.publish(self.keys.event("sim"), Event(
             kind=kind, source="sim", t=t, sim_time=t * self.config.dt, wall_time=time.time(), details=details))
 
-    async def _probe_loop(self) -> None:
-        while True:
-            if any(a not in self.ready and (isinstance(a, int) or a == MONITOR) for a in self.alive):
-                self._probe_round += 1
-                await self.bus.publish(self.keys.event("sim"), Event(
-                    kind="ready.probe", source="sim", details={"round": self._probe_round}))
-            await asyncio.sleep(PROBE_INTERVAL)
-
-    def _everyone_ready(self) -> bool:
-        need_monitor = self.wait_for_monitor and MONITOR not in self.ready
-        return len(self.present()) >= self.n and not need_monitor
-
-    async def _wait_ready(self) -> None:
-        deadline = time.monotonic() + self.config.ready_timeout
-        while not self._everyone_ready():
-            if self._stop is not None:
-                return
-            left = deadline - time.monotonic()
-            if left <= 0:
-                missing = sorted(set(range(self.n)) - self.present())
-                raise TimeoutError(
-                    f"ready_timeout: {len(missing)} of {self.n} agents not ready after "
-                    f"{self.config.ready_timeout:.0f} s (missing: {missing[:20]})"
-                    + ("" if MONITOR in self.ready or not self.wait_for_monitor else "; monitor not ready"))
-            self._ready_changed.clear()
-            try:
-                await asyncio.wait_for(self._ready_changed.wait(), min(left, PROBE_INTERVAL))
-            except asyncio.TimeoutError:
-                pass
-
-    def _deadline(self, started: float, phase: int) -> float:
-        if self.config.mode == "paced":
-            # a phase gets a share of the period; a late answer means no action this tick
-            share = 0.45 if phase == Phase.TICK else 0.9
-            return started + share * self.config.period
-        return time.monotonic() + self.config.phase_timeout
-
-    async def _collect(self, ph: _Phase, deadline: float) -> None:
-        self._phase = ph
-        if self._stop is not None:  # the run is ending: take what is already in, wait for nobody
-            deadline = min(deadline, time.monotonic() + 0.2)
-        left = deadline - time.monotonic()
-        try:
-            if left > 0:
-                await asyncio.wait_for(asyncio.shield(ph.done), left)
-        except asyncio.TimeoutError:
-            pass
-        finally:
-            self._boundary(ph.t, ph.phase)
-            ph.close()
-            self._phase = None
-        if ph.waiting and self.config.mode == "lockstep" and self._stop is None:
-            for who in sorted(ph.waiting):
-                self.ready.discard(who)  # silent past the timeout: absent until it answers a probe again
-                self._absent(who, f"no answer in phase {ph.phase} of tick {ph.t} within {self.config.phase_timeout} s")
-
-    async def _keep_monitor_window(self, t: int) -> None:
-        """Before tick ``t``: wait while the monitor's record is more than MONITOR_WINDOW ticks behind, and while a
-        monitor that left mid-run is away (a supervisor restarts it; a run that went on at full speed could end
-        before it is back, and close the endpoint on it: the record would then not even say what it lost). A monitor
-        that makes no progress, or stays away, for a phase timeout is not waited for any more (until it reports or
-        returns): the record then says what it lost, and the run goes on."""
-        started, waited = time.monotonic(), False
-        while self._stop is None and self._monitor_gone_at is not None:
-            if time.monotonic() - self._monitor_gone_at > self.config.phase_timeout:
-                log.warning("sim: the monitor left %.0f s ago and is not back; the run goes on without it",
-                            self.config.phase_timeout)
-                self._monitor_gone_at = None
-                break
-            await self._monitor_news(0.25)
-            waited = True
-        rows = self._monitor_rows
-        if rows is not None and t - rows > MONITOR_WINDOW:
-            progressed = time.monotonic()
-            while self._stop is None and self._monitor_rows is not None and t - self._monitor_rows > MONITOR_WINDOW:
-                if self._monitor_rows > rows:
-                    rows, progressed = self._monitor_rows, time.monotonic()
-                elif time.monotonic() - progressed > self.config.phase_timeout:
-                    log.warning("sim: the monitor's record is stuck at row %d (tick %d); not waiting for it", rows, t)
-                    self._monitor_rows = None
-                    break
-                await self._monitor_news(0.5)
-                waited = True
-        if waited:
-            self.result.phase_seconds["monitor_wait"] = (
-                self.result.phase_seconds.get("monitor_wait", 0.0) + time.monotonic() - started)
-
-    async def _monitor_news(self, timeout: float) -> None:
-        """Wait up to ``timeout`` seconds for the monitor to report rows, leave or come back."""
-        self._monitor_progress.clear()
-        try:
-            await asyncio.wait_for(self._monitor_progress.wait(), timeout)
-        except asyncio.TimeoutError:
-            pass
-
     async def _loop(self) -> None:
         self._running = True
         try:
@@ -678,7 +338,7 @@ class SimService:
             self._requests = {}
             self._commits = {}
             self._expected = {}
-            ph = _Phase(t, Phase.TICK, self.present())
+            ph = PhaseBarrier(t, Phase.TICK, self.present())
             t1 = time.monotonic()
             spent["controller"] += t1 - started
             self._phase = ph  # before the tick goes out: inline acks may arrive before _collect starts
@@ -692,7 +352,7 @@ class SimService:
             if self._requests or more:
                 self._expected = expected = self.step.decision_plan(obs, self._requests, more)
                 pickers = sorted(expected)
-                ph = _Phase(t, Phase.RESOLVE, {p for p in pickers if p in self.present()})
+                ph = PhaseBarrier(t, Phase.RESOLVE, {p for p in pickers if p in self.present()})
                 self._phase = ph
                 await self.bus.publish(k.resolve, Resolve(t=t, pickers=pickers,
                                                           requesters=[expected[p] for p in pickers]))
@@ -716,7 +376,7 @@ class SimService:
         obs = self.step.final()
         if self.faults is not None:
             self.faults.advance(obs.t * cfg.dt)  # its boundary, as every tick: stamps and releases like the others
-        ph = _Phase(obs.t, Phase.TICK, self.present())
+        ph = PhaseBarrier(obs.t, Phase.TICK, self.present())
         self._phase = ph
         self._publish_tick(obs)
         wait = 0.5 if self._stop is not None else cfg.phase_timeout if cfg.mode == "lockstep" else cfg.period

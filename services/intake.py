@@ -1,0 +1,50 @@
+"""What every service does with a message before it reads it: decode it, check that its author sent it under its own
+key, and count what it refuses, with the reason.
+
+The sim, each agent and the monitor open the same way, so the rules live here once: a message the bus refused on
+arrival (oversized, undecodable envelope) and one a service refuses after decoding (a bad field, another author's
+key) are counted together, and the first of them and then one in every thousand are logged (:class:`Rejects`).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+from schemas.keys import RunKeys
+from services.rejects import Rejects
+
+
+class Intake:
+    """The opening of one service's receive path over ``bus`` (``owner`` names the service in log lines).
+
+    ``on_refused(total)`` is called after every refusal, for a service that reports the count in its own result."""
+
+    def __init__(self, bus, keys: RunKeys, log: logging.Logger, owner: str,
+                 on_refused: Callable[[int], None] | None = None):
+        self.keys = keys
+        self.rejects = Rejects(log, owner)
+        self.on_refused = on_refused
+        bus.reject_hook = self.refuse  # what the bus refuses on arrival counts here too
+
+    @property
+    def refused(self) -> int:
+        return self.rejects.total
+
+    def refuse(self, what: str, why: object) -> None:
+        """Count (and maybe log) one refused message: ``what`` is its key, ``why`` the reason."""
+        self.rejects.count(what, why)
+        if self.on_refused is not None:
+            self.on_refused(self.rejects.total)
+
+    def decode(self, sample, model: type, author: str | None = None, what: str = ""):
+        """``sample`` decoded as ``model``, or None (counted) when it does not decode or, with ``author`` (the field
+        that names who sent it), when that author is not the owner of the key it came on."""
+        try:
+            msg = sample.decode(model)
+            if author is not None:
+                self.keys.check_author(sample.key, getattr(msg, author), what)
+        except ValueError as exc:
+            self.refuse(sample.key, exc)
+            return None
+        return msg
