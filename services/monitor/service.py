@@ -438,9 +438,9 @@ class MonitorService:
             raise ValueError(f"run.finished from {chunk}: only the sim ends a run")
         if event.kind in QUIET_EVENTS:
             if event.kind == "ready.probe":
-                self.bus._spawn(self.bus.publish(self.keys.event("monitor"), Event(
-                    kind="ready.ack", source="monitor", details={"round": event.details.get("round", 0)})),
-                    "probe")
+                # answered at once, as every participant does (the sim waits for the answers)
+                self.bus.put(self.keys.event("monitor"), Event(
+                    kind="ready.ack", source="monitor", details={"round": event.details.get("round", 0)}))
             return
         self.fault_windows.add({"kind": event.kind, "t": event.t, "details": event.details})
         if event.kind == "run.finished":
@@ -540,7 +540,7 @@ class MonitorService:
         if due:
             self._build_samples(values)
             self._last_publish = now
-            self.bus._spawn(self._publish_pending(), "metrics")
+            self.bus.spawn(self._publish_pending(), "metrics")
 
     def _build_samples(self, values: dict) -> None:
         """The pending MetricSamples of the rows noted since the last build; ``values`` is the newest row."""
