@@ -169,7 +169,7 @@ class Subscription(Generic[T]):
             try:
                 result = self._handler(item)
                 if result is not None and inspect.isawaitable(result):  # a sync function returning an awaitable
-                    self._bus._spawn(result, self.key_expr)
+                    self._bus.spawn(result, self.key_expr)
             except Exception:
                 self._bus._handler_failed(self.key_expr)
             return
@@ -591,7 +591,9 @@ class Bus(ABC):
                 sub._push(sample)
         return deliver
 
-    def _spawn(self, awaitable: Awaitable[Any], what: str) -> asyncio.Task:
+    def spawn(self, awaitable: Awaitable[Any], what: str) -> asyncio.Task:
+        """Run ``awaitable`` on the loop in the background of this session: cancelled when the session closes, its
+        failure counted and logged as a failed handler of ``what`` (the bus carries on)."""
         async def run() -> None:
             try:
                 await awaitable

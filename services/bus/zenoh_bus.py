@@ -466,7 +466,7 @@ class ZenohBus(Bus):
                 except Exception:
                     pass
 
-        self._spawn(run(), "queryable")
+        self.spawn(run(), "queryable")
 
     async def _get(self, key_expr: str, parameters: str, payload: bytes | None, timeout: float) -> list[Reply]:
         replies: list[Reply] = []

@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
             # The monitor is the run's measuring instrument: no fault layer (it records what was sent and what the
             # sim decided, docs/decisions.md), but it stamps sim time like every process of a virtual-time run:
             # the start of the last tick it saw.
-            bus.set_clock(lambda: max(getattr(svc, "_last_tick", 0), 0) * config.dt)
+            bus.set_clock(lambda: max(svc.last_tick, 0) * config.dt)
         if port is not None:
             from services.monitor.prometheus import PrometheusExporter
 

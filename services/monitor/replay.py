@@ -135,12 +135,12 @@ async def replay(path: Path, output_dir: Path, run_id: str | None = None):
     monitor = MonitorService(config, bus, max_rate=0.0)
     try:
         for s in samples:
-            if monitor._done:
+            if monitor.done:
                 break
             if config.run_id != header["run_id"]:
                 s = s._replace(key=monitor.keys._k(*original.relative(s.key)))
-            monitor._on_sample(s)
-        monitor._finish()
+            monitor.on_sample(s)
+        monitor.finish()
         await asyncio.sleep(0)  # let the probes' answers (published into the void) finish
     finally:
         await bus.close()

@@ -1,4 +1,4 @@
-"""The monitor's metric streams: the per-message statistics, and subscriber helpers.
+"""The monitor's metric streams: the per-message statistics, their publication, and subscriber helpers.
 
 Every stream is published on ``morph/<run>/metrics/<name>`` as a :class:`~schemas.MetricSample` (a
 versioned wire message carrying the tick ``t`` and the sim time), at most ``--max-rate`` updates per second per stream
@@ -6,7 +6,7 @@ versioned wire message carrying the tick ``t`` and the sim time), at most ``--ma
 
 Names, units and meanings are in :mod:`services.metrics.catalogue`. The row streams come from the monitor's per-tick
 rows (``metrics.csv``); :class:`MessageStats` adds the statistics that come from the messages themselves (counts,
-drops by sequence gaps, latency, dispatch delay).
+drops by sequence gaps, latency, dispatch delay); :class:`StreamPublisher` decimates and publishes them all.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from collections.abc import Awaitable, Callable
 import numpy as np
 
 from schemas import MetricSample
-from services.metrics.catalogue import RATE_WINDOW, sample
+from services.metrics.catalogue import CATALOGUE, RATE_WINDOW, ROW, sample
 
 #: Histogram bucket boundaries (seconds): prometheus_client's defaults, also OTel's for messaging durations.
 LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.075, 0.1, 0.25, 0.5, 0.75, 1.0, 2.5, 5.0, 7.5, 10.0)
@@ -148,6 +148,131 @@ class MessageStats:
         if all(math.isfinite(x) for x in q):
             out.append(sample("latency_seconds", t, sim_time, values=q, labels={"quantiles": "0.5,0.9,0.99", "clock": self.clock}))
         return out
+
+
+NET_STREAMS = tuple(m.name.split("/", 1)[1] for m in CATALOGUE if m.source == "network")
+HEARTBEAT = 0.5  # seconds: no stream goes longer than about this plus its decimation without a sample
+PUBLISH_BURST, PUBLISH_PAUSE = 256, 0.005  # metric samples published back to back at most, then a pause (s)
+
+
+class StreamPublisher:
+    """The monitor's metric streams going out on ``bus``: the rows' values, the message statistics ``stats``, the
+    link statistics of ``link_meter`` every ``state_every`` ticks and the ``network`` model's counters (if any),
+    decimated to ``max_rate`` publications per second (0: every row), and the latest sample of each stream
+    (``latest_metric``, ``latest_links``) for late joiners and Prometheus."""
+
+    def __init__(self, bus, keys, stats: MessageStats, link_meter, network, *, dt: float, state_every: int,
+                 max_rate: float):
+        self.bus = bus
+        self.keys = keys
+        self.stats = stats
+        self.link_meter = link_meter
+        self.network = network
+        self.dt = dt
+        self.state_every = state_every
+        self.max_rate = max_rate
+        self.latest_metric: dict[str, MetricSample] = {}
+        self.latest_links: list[MetricSample] = []
+        self.last_values: dict = {}  # the newest row's values
+        self._last_publish = 0.0
+        self._pending: list[MetricSample] = []
+        self._publishing = False  # a publication of metric samples is under way
+        self._fresh: dict[str, tuple[int, float, float]] = {}  # stream -> newest (t, sim time, value) unpublished
+        self._unbuilt = False  # rows noted since the metric samples were last built
+        self._links_due = False
+
+    def row(self, values: dict) -> None:
+        """Note the row's stream values; build and publish MetricSamples only when a publication is due.
+
+        Streams are decimated to ``max_rate`` updates per second, so building ~15 samples (and the latency quantiles)
+        for every row would be work nobody reads: per stream the newest value since the last publication is kept
+        (a sparse stream, e.g. the W block means every k ticks, is not lost) and turned into a sample when due.
+        ``latest_metric`` (late joiners, Prometheus) is refreshed then, and at the end of the run.
+        """
+        self.last_values = values
+        t = values["t"]
+        sim_time = values["sim_time"] or t * self.dt
+        for name in ROW:
+            v = values.get(name)
+            if v is not None and not (isinstance(v, float) and not math.isfinite(v)):
+                self._fresh[name] = (t, sim_time, float(v))
+        if self.network is not None:
+            net = self.network.counters(sim_time)
+            for name in NET_STREAMS:
+                self._fresh[f"net/{name}"] = (t, sim_time, net[name])
+        self.stats.row(values)
+        self._unbuilt = True
+        if t % self.state_every == 0:
+            # one sample per (counter, key class): kept apart from latest_metric (one value per name), and carried
+            # to the next decimated publish so a k-tick snapshot is never skipped
+            self.latest_links = self.link_meter.metrics(t, sim_time, self.bus.identity)
+            self._links_due = True
+        now = time.monotonic()
+        due = self.max_rate <= 0 or now - self._last_publish >= 1.0 / self.max_rate  # 0: every row
+        if due:
+            self._build(values)
+            self._last_publish = now
+            self.bus.spawn(self.publish_pending(), "metrics")
+
+    def finish(self) -> None:
+        """The last rows' samples: ``latest_metric`` ends on the run's final values."""
+        if self._unbuilt:
+            self._build(self.last_values)
+
+    def _build(self, values: dict) -> None:
+        """The pending MetricSamples of the rows noted since the last build; ``values`` is the newest row."""
+        self._unbuilt = False
+        samples = [sample(name, t, sim_time, value=v) for name, (t, sim_time, v) in self._fresh.items()]
+        self._fresh = {}
+        samples += self.stats.samples(values)
+        for s in samples:
+            self.latest_metric[s.name] = s
+        if self._links_due:
+            samples += self.latest_links
+            self._links_due = False
+        if self.max_rate <= 0:  # every row's samples, in order
+            self._pending += samples
+            return
+        # per stream the newest sample since the last publication: a sparse stream (dispatch_delay) is not lost
+        pending = {s.name: s for s in self._pending}
+        pending.update((s.name, s) for s in samples)
+        self._pending = list(pending.values())
+
+    async def heartbeat(self, done: Callable[[], bool]) -> None:
+        """Every stream gets a sample at least once a second, even while the run makes no new row (a loaded machine,
+        a phase waiting for a late agent): the newest values, or the latest ones again. A live view never goes
+        silent while the run is alive (until ``done()``)."""
+        while True:
+            await asyncio.sleep(HEARTBEAT)
+            now = time.monotonic()
+            if done() or now - self._last_publish < HEARTBEAT:
+                continue
+            if self._unbuilt:
+                self._build(self.last_values)  # rows noted since the last publication
+            elif not self._pending:  # (else a publication is on its way)
+                self._pending = list(self.latest_metric.values()) + list(self.latest_links)
+            self._last_publish = now
+            await self.publish_pending()
+
+    async def publish_pending(self, force: bool = False) -> None:
+        """Publish the pending samples. One publication at a time, which takes whatever is queued meanwhile too, so
+        each stream's samples go out in tick order; ``force`` (the end of the run) waits for the one under way."""
+        while self._publishing:
+            if not force:
+                return  # the publication under way takes these too
+            await asyncio.sleep(0.01)
+        self._publishing = True
+        try:
+            while self._pending:
+                samples, self._pending = self._pending, []
+                for i, s in enumerate(samples, 1):
+                    await self.bus.publish(self.keys.metric(s.name), s, droppable=True)
+                    if i % PUBLISH_BURST == 0 and i < len(samples):
+                        # a backlog (every row of a monitor that fell behind, --max-rate 0) goes out in bursts the
+                        # transport can queue: droppable samples beyond its queue would be lost for every subscriber
+                        await asyncio.sleep(PUBLISH_PAUSE)
+        finally:
+            self._publishing = False
 
 
 # -- subscribers --------------------------------------------------------------------------------------------------

@@ -1,0 +1,116 @@
+"""What reaches the monitor, counted and checked: one sample of ``morph/<run>/**`` in, one message out.
+
+:class:`Ingest` counts every sample by kind (messages and payload bytes), feeds the message statistics (sequence
+gaps, latency) and the link meter from its header, decodes its payload and checks it against the run (sender, ids,
+ticks, sizes). What it gives back is true of the run as far as the monitor can tell; what it refuses raises
+``ValueError`` (the monitor counts it as rejected).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING, Union
+
+from schemas import Ack, AgentState, Commit, Event, Phase, Stop
+from schemas.keys import RunKeys
+from schemas.tick import TickArrays, decode_tick
+from services.bus.base import Sample
+from services.metrics.rows import RowReducer
+from services.monitor.streams import MessageStats
+from services.runconfig import RunConfig
+
+if TYPE_CHECKING:
+    from services.faults.linkstats import LinkMeter
+
+#: what the monitor acts on: the sim's tick, an agent's ack (phase TICK), commit or state, an event, a stop
+Checked = Union[TickArrays, Ack, Commit, AgentState, Event, Stop]
+
+
+class Ingest:
+    """The checked messages of the run of ``config``; ``rows`` holds the newest tick seen (the monitor's sim clock),
+    ``counts`` the messages and ``sizes`` the payload bytes per kind."""
+
+    def __init__(self, config: RunConfig, keys: RunKeys, rows: RowReducer, stats: MessageStats,
+                 link_meter: LinkMeter, counts: dict[str, int], sizes: dict[str, int]):
+        self.config = config
+        self.keys = keys
+        self.n = config.n_agents
+        self.rows = rows
+        self.stats = stats
+        self.link_meter = link_meter
+        self.counts = counts
+        self.sizes = sizes
+        self._robot_copies = (keys.fleet, keys.onboard(0).rsplit("/", 1)[0] + "/")
+
+    def take(self, sample: Sample) -> Checked | None:
+        """The message ``sample`` carries, checked; None for one the monitor does not act on."""
+        if sample.key.startswith(self._robot_copies):
+            # the fleet broadcast and the on-board states repeat the world record (sim/tick) for the robots: the
+            # one subscription to the whole run (which keeps its arrival order) brings them, nothing records them
+            return None
+        rel = self.keys.relative(sample.key)
+        head = rel[0]
+        kind = head if head != "agent" or len(rel) < 3 else rel[2]
+        self.counts[kind] = self.counts.get(kind, 0) + 1
+        self.sizes[kind] = self.sizes.get(kind, 0) + len(sample.payload)
+        # Latency in the clock of the stamp: a wall stamp (wall fault time) against our wall clock; a sim-time stamp
+        # (virtual time) against our sim clock, the start of the last tick we saw: sim seconds that passed while
+        # the message travelled (never time.time() minus sim seconds). The stream says which (label "clock").
+        wall = sample.sent_at > 1e8
+        if not self.stats.observe(kind, sample.key, sample.sender, sample.seq, sample.sent_at,
+                                  None if wall else max(self.rows.last_tick, 0) * self.config.dt,
+                                  clock="wall" if wall else "sim"):
+            raise ValueError(f"sequence number {sample.seq} of {sample.sender!r} jumps too far ahead")
+        if sample.sender:
+            # the link meter's latency in the same clock as the stamp (see above)
+            sent = sample.sent_at
+            self.link_meter.record(sample.key, sample.sender, sample.seq, sent,
+                                   time.time() if wall else max(self.rows.last_tick, 0) * self.config.dt)
+        if head == "sim" and rel[1:] == ["tick"]:
+            if sample.sender != "sim":
+                raise ValueError(f"tick published by {sample.sender!r}, not the sim")
+            tick = decode_tick(sample.payload)  # validated, as arrays (schemas/tick.py)
+            if tick.n != self.n:
+                raise ValueError(f"tick has {tick.n} robots, this fleet {self.n}")
+            return tick
+        if head == "agent" and len(rel) == 3:
+            if rel[2] == "ack":
+                ack = sample.decode(Ack)
+                self._check_sender(rel[1], ack.agent)
+                return ack if ack.phase == Phase.TICK else None
+            if rel[2] == "commit":
+                return self._commit(sample.decode(Commit), rel[1])
+            if rel[2] == "state":
+                state = sample.decode(AgentState)
+                self._check_sender(rel[1], state.agent)
+                if len(state.w_row) != self.n:
+                    raise ValueError(f"state row of {len(state.w_row)} entries, fleet of {self.n}")
+                return state
+            return None
+        if head == "events" and len(rel) == 2:
+            return self._event(sample.decode(Event), rel[1])
+        if head == "ctl" and rel[1:] == ["stop"]:
+            return sample.decode(Stop)
+        return None
+
+    def _check_sender(self, chunk: str, agent: int) -> None:
+        if chunk != str(agent):
+            raise ValueError(f"message of agent {agent} on the key of {chunk}")
+        if not 0 <= agent < self.n:
+            raise ValueError(f"agent id {agent} outside 0..{self.n - 1}")
+
+    def _commit(self, commit: Commit, chunk: str) -> Commit:
+        self._check_sender(chunk, commit.picker)
+        if commit.picker < self.config.n_agvs or not 0 <= commit.agv < self.config.n_agvs:
+            raise ValueError(f"commit of robot {commit.picker} to robot {commit.agv}: a picker commits to an AGV")
+        if not 0 <= commit.t <= self.rows.last_tick + 1:
+            raise ValueError(f"commit of tick {commit.t}, the run is at tick {self.rows.last_tick}")
+        return commit
+
+    @staticmethod
+    def _event(event: Event, chunk: str) -> Event:
+        if str(event.source) != chunk:
+            raise ValueError(f"event of {event.source!r} on the key of {chunk}")
+        if event.kind == "run.finished" and chunk != "sim":
+            raise ValueError(f"run.finished from {chunk}: only the sim ends a run")
+        return event
