@@ -16,7 +16,7 @@ PAPER_ABLATIONS = ("v1", "no_threshold", "no_reward", "no_neuromod")
 
 def _outcome(result):
     """What an episode produced: when each delivery happened and when each picker was sent."""
-    return np.concatenate([result.ticks["deliveries"], result.ticks["committed"]])
+    return np.concatenate([result.ticks["deliveries"], result.ticks["commits"]])
 
 
 def _behaviour(result):
@@ -43,7 +43,7 @@ def test_per_agent_streams_give_common_random_numbers():
     kw["condition"] = "morph"
     own = run_episode(EpisodeSpec(shared_stream=False, **kw))
     shared = run_episode(EpisodeSpec(shared_stream=True, **kw))
-    assert not np.array_equal(own.ticks["committed"], shared.ticks["committed"])
+    assert not np.array_equal(own.ticks["commits"], shared.ticks["commits"])
 
 
 def test_same_seed_same_trajectory():
