@@ -128,7 +128,7 @@ def test_suite_writes_records_tables_and_plots(tmp_path):
     ep = run / "episodes" / "tiny_morph_s42"
     rows = list(csv.DictReader(open(ep / "ticks.csv")))
     assert len(rows) == 120 and "links" in rows[0]
-    assert json.loads((ep / "summary.json").read_text())["deliveries"] == int(float(rows[-1]["deliveries"]))
+    assert json.loads((ep / "summary.json").read_text())["deliveries"] == int(float(rows[-1]["deliveries_total"]))
     table = list(csv.DictReader(open(run / "summary.csv")))
     assert {r["condition"] for r in table} == set(cfg.conditions)
     full = next(r for r in table if r["condition"] == "full")
