@@ -255,8 +255,9 @@ class Record:
 
     @cached_property
     def ticks(self):
-        """Study records: every episode's per-tick series, long form: ``episode`` (its key), ``step`` and the
-        lab's columns (``deliveries`` cumulative, ``links``, …)."""
+        """Study records: every episode's per-tick series, long form: ``episode`` (its key), ``t`` and the
+        lab's tick table (the catalogue's names and meanings: ``deliveries`` per tick, ``deliveries_total``,
+        ``links``, …)."""
         if self.kind in ("run", "sweep"):
             raise KeyError(f"ticks: a {self.kind} record has {', '.join(self.tables)}")
         cols: dict[str, list] = {"episode": []}
@@ -267,8 +268,8 @@ class Record:
                     for k, v in row.items():
                         cols.setdefault(k, []).append(float(v) if v != "" else np.nan)
         out = {k: (_objects(v) if k == "episode" else np.asarray(v, dtype=float)) for k, v in cols.items()}
-        if "step" in out:
-            out["step"] = out["step"].astype(np.int64)
+        if "t" in out:
+            out["t"] = out["t"].astype(np.int64)
         return _table(out)
 
     @cached_property
@@ -421,8 +422,10 @@ def up(base: RunConfig | Mapping[str, Any] | None = None, *, overwrite: bool = F
 
 @dataclass
 class Episode:
-    """One lab episode: its ``summary`` (deliveries, mean_links, …) and per-tick ``ticks`` table (``step``,
-    ``deliveries`` cumulative, ``links``, ``alg_conn`` (λ₂), ``eta``, …)."""
+    """One lab episode: its ``summary`` (deliveries, mean_links, …) and per-tick ``ticks`` table: ``t`` and the
+    catalogue's row metrics under their names and meanings, as in a run's ``metrics`` (``deliveries`` per tick,
+    ``deliveries_total``, ``requests``, ``commits``, ``links``, ``lambda2``, ``eta``, …), then the lab's own columns
+    (``catalogue.LAB_TICKS``)."""
 
     config: RunConfig
     summary: dict[str, Any]
@@ -443,7 +446,7 @@ def episode(base: RunConfig | Mapping[str, Any] | None = None, *, loss: float = 
     plan = SweepPlan.build(seeds=[cfg.seed], base={**fixed, **({"faults.loss": loss} if loss else {})},
                            fiedler_every=1)
     res = run_episode(plan.episode_spec({}, cfg.seed))
-    ticks = {"step": np.arange(res.spec.steps, dtype=np.int64), **{k: v.copy() for k, v in res.ticks.items()}}
+    ticks = {"t": np.arange(res.spec.steps, dtype=np.int64), **{k: v.copy() for k, v in res.ticks.items()}}
     return Episode(cfg, dict(res.summary), _table(ticks))
 
 

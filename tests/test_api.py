@@ -59,12 +59,12 @@ def test_the_worked_example_runs_and_its_tables_have_the_documented_columns(tmp_
     assert (tmp_path / "deliveries.png").stat().st_size > 5000
     sw = ns["sw"]
     assert list(sw.episodes.columns) == ["policy", "faults.loss.percent", "seed", "deliveries", "mean_links",
-                                         "committed", "dispatch_decisions", "mean_p_respond", "median_lifetime",
-                                         "eta_mean"]
+                                         "requests", "commits", "lab_gate_decisions", "lab_mean_p_respond",
+                                         "median_lifetime", "eta_mean"]
     assert len(sw.episodes) == 3 * 2 * 3
     # common random numbers: every condition ran the same seeds
     assert all(sorted(g) == [1, 2, 3] for _, g in sw.episodes.groupby(["policy", "faults.loss.percent"])["seed"])
-    assert ns["ep"].summary["deliveries"] == ns["ep"].ticks["deliveries"].iloc[-1]
+    assert ns["ep"].summary["deliveries"] == ns["ep"].ticks["deliveries_total"].iloc[-1]
 
 
 def test_a_study_record_loads_as_episodes_ticks_and_summary(tmp_path):
@@ -76,8 +76,8 @@ def test_a_study_record_loads_as_episodes_ticks_and_summary(tmp_path):
     assert rec.kind == "scale" and rec.tables == ("episodes", "ticks", "summary")
     eps = rec.episodes
     assert sorted(zip(eps["condition"], eps["seed"])) == [("full", 1), ("full", 2), ("morph", 1), ("morph", 2)]
-    assert len(rec.ticks) == 4 * 30 and {"episode", "step", "deliveries", "links"} <= set(rec.ticks.columns)
-    last = rec.ticks.groupby("episode")["deliveries"].last()
+    assert len(rec.ticks) == 4 * 30 and {"episode", "t", "deliveries", "deliveries_total", "links"} <= set(rec.ticks.columns)
+    last = rec.ticks.groupby("episode")["deliveries_total"].last()
     assert sorted(last.astype(int)) == sorted(eps["deliveries"])
     assert set(rec.summary["condition"]) == {"morph", "full"}
     with pytest.raises(KeyError, match="metrics"):

@@ -65,7 +65,7 @@ def test_outcome_columns_of_the_lab_and_of_a_run_are_equal_tick_for_tick_under_l
     run = asyncio.run(run_local(config))
     rows = read_metrics(tmp_path / "oc")
     assert len(rows) == steps
-    np.testing.assert_array_equal([float(r["deliveries_total"]) for r in rows], lab.ticks["deliveries"])
+    np.testing.assert_array_equal([float(r["deliveries_total"]) for r in rows], lab.ticks["deliveries_total"])
     for name in OUTCOME_COLUMNS:
         np.testing.assert_array_equal([int(r[name]) for r in rows], lab.ticks[name].astype(int), err_msg=name)
     # every kind of outcome happened (the check can fail), and the record ends on the run's own totals

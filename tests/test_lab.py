@@ -16,7 +16,7 @@ PAPER_ABLATIONS = ("v1", "no_threshold", "no_reward", "no_neuromod")
 
 def _outcome(result):
     """What an episode produced: when each delivery happened and when each picker was sent."""
-    return np.concatenate([result.ticks["deliveries"], result.ticks["committed"]])
+    return np.concatenate([result.ticks["deliveries"], result.ticks["commits"]])
 
 
 def _behaviour(result):
@@ -43,7 +43,7 @@ def test_per_agent_streams_give_common_random_numbers():
     kw["condition"] = "morph"
     own = run_episode(EpisodeSpec(shared_stream=False, **kw))
     shared = run_episode(EpisodeSpec(shared_stream=True, **kw))
-    assert not np.array_equal(own.ticks["committed"], shared.ticks["committed"])
+    assert not np.array_equal(own.ticks["commits"], shared.ticks["commits"])
 
 
 def test_same_seed_same_trajectory():
@@ -128,7 +128,7 @@ def test_suite_writes_records_tables_and_plots(tmp_path):
     ep = run / "episodes" / "tiny_morph_s42"
     rows = list(csv.DictReader(open(ep / "ticks.csv")))
     assert len(rows) == 120 and "links" in rows[0]
-    assert json.loads((ep / "summary.json").read_text())["deliveries"] == int(float(rows[-1]["deliveries"]))
+    assert json.loads((ep / "summary.json").read_text())["deliveries"] == int(float(rows[-1]["deliveries_total"]))
     table = list(csv.DictReader(open(run / "summary.csv")))
     assert {r["condition"] for r in table} == set(cfg.conditions)
     full = next(r for r in table if r["condition"] == "full")

@@ -90,7 +90,7 @@ def test_tsg_equals_constant_quarter_gate(scale):
             kw = dict(scale=scale, seed=seed, steps=800, dispatch=dispatch, shared_stream=shared)
             tsg = run_episode(EpisodeSpec(condition="tsg", **kw))
             const = run_episode(EpisodeSpec(condition="constant", **kw))
-            np.testing.assert_array_equal(tsg.ticks["deliveries"], const.ticks["deliveries"])
+            np.testing.assert_array_equal(tsg.ticks["deliveries_total"], const.ticks["deliveries_total"])
             assert tsg.summary["dispatch_decisions"] == const.summary["dispatch_decisions"]
         if seed == 42 and scale == "tiny":
             assert tsg.summary["deliveries"] == 54 or not shared
@@ -126,7 +126,7 @@ def test_per_step_traces_equal_the_reference_code():
     for key, trace in data["episodes"].items():
         scale, cond = key.split("_", 1)
         res = run_episode(_ref(scale, {"morph_v2": "morph", "tsg": "tsg"}[cond], 42))
-        np.testing.assert_array_equal(res.ticks["deliveries"], trace["deliveries"])
+        np.testing.assert_array_equal(res.ticks["deliveries_total"], trace["deliveries"])
         np.testing.assert_array_equal(res.ticks["links"], trace["links"])
         if cond == "morph_v2":
             np.testing.assert_allclose(res.ticks["mean_w_links"], trace["w_mean"], rtol=0, atol=1e-12)

@@ -303,7 +303,7 @@ def check_lab_equals_run(tmp_path, scale: str, steps: int, policy: str = "morph"
                                   network="wifi-legacy-roaming"))
     with open(cfg.record_dir / "metrics.csv") as f:
         rows = list(csv.DictReader(f))
-    np.testing.assert_array_equal([float(r["deliveries_total"]) for r in rows], lab.ticks["deliveries"])
+    np.testing.assert_array_equal([float(r["deliveries_total"]) for r in rows], lab.ticks["deliveries_total"])
     np.testing.assert_array_equal([float(r["links"]) for r in rows], lab.ticks["links"])
 
 

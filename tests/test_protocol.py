@@ -165,7 +165,7 @@ def test_zero_effect_fleet_fault_gives_the_team_episode():
     for preset in ("reference", "paper"):
         kw = dict(scale="tiny", condition="morph", preset=preset, seed=42, steps=150, fiedler_every=1000)
         team, own = run_episode(EpisodeSpec(**kw)), run_episode(EpisodeSpec(faults=noop, **kw))
-        for col in ("deliveries", "committed", "gate_p_sum", "links"):
+        for col in ("deliveries", "commits", "gate_p_sum", "links"):
             np.testing.assert_array_equal(team.ticks[col], own.ticks[col], err_msg=f"{preset} {col}")
         np.testing.assert_allclose(team.final_weights, own.final_weights)
         assert own.summary["view_age_mean"] == 0.0
@@ -176,7 +176,7 @@ def test_same_seed_and_faults_same_run():
         model="gilbert_elliott", percent=20, burst_length=4))), *fleet_faults(FaultSpec(loss=Loss(percent=20), seed=3)))
     spec = EpisodeSpec(scale="tiny", condition="morph", seed=7, steps=200, fiedler_every=1000, faults=faults)
     a, b = run_episode(spec), run_episode(spec)
-    for col in ("deliveries", "committed", "gate_p_sum", "links"):
+    for col in ("deliveries", "commits", "gate_p_sum", "links"):
         np.testing.assert_array_equal(a.ticks[col], b.ticks[col])
     assert {k: v for k, v in a.summary.items() if k != "wall_s"} == {k: v for k, v in b.summary.items()
                                                                       if k != "wall_s"}

@@ -191,7 +191,7 @@ def test_message_loss_drops_dispatches_and_costs_deliveries():
     lossy = run_episode(EpisodeSpec(loss_percent=40.0, **base))
     assert lossy.summary["committed"] < clean.summary["committed"]
     again = run_episode(EpisodeSpec(loss_percent=40.0, **base))
-    assert np.array_equal(again.ticks["committed"], lossy.ticks["committed"])  # seeded, reproducible
+    assert np.array_equal(again.ticks["commits"], lossy.ticks["commits"])  # seeded, reproducible
     with pytest.raises(ValueError, match="loss_percent"):
         run_episode(EpisodeSpec(loss_percent=10.0, dispatch="sequential", **base))
 

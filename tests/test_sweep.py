@@ -128,7 +128,8 @@ def test_acceptance_sweep_interrupted_and_resumed_at_full_length(tmp_path):
 def _check_tidy(run_dir: Path, stdout: str) -> None:
     rows = list(csv.DictReader(open(run_dir / "results.csv")))
     assert list(rows[0]) == ["policy", "faults.loss.percent", "scale", "seed", "deliveries", "mean_links",
-                             "committed", "dispatch_decisions", "mean_p_respond", "median_lifetime", "eta_mean"]
+                             "requests", "commits", "lab_gate_decisions", "lab_mean_p_respond", "median_lifetime",
+                             "eta_mean"]
     by: dict = {}
     for r in rows:
         by.setdefault((r["policy"], r["faults.loss.percent"], r["scale"]), []).append(int(r["seed"]))

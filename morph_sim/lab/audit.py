@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from services.policies.conditions import AUDIT_STUDY, select
 from services.policies.presets import load_preset
 
 #: variant -> (departure, what it changes, overrides of the paper preset's params)
@@ -40,7 +41,7 @@ VARIANTS: dict[str, tuple[str, str, dict]] = {
                         {"expected_delivery_rate": {"tiny": 0.07, "small": 0.09, "medium": 0.12, "large": 0.14}}),
 }
 #: conditions of the paper preset's own run (the other variants run MORPH only)
-PAPER_CONDITIONS = ("morph", "v1", "v1_paper", "tsg", "full", "proximity")
+PAPER_CONDITIONS = tuple(select(AUDIT_STUDY))
 
 
 def _toml_value(v) -> str:

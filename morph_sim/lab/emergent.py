@@ -81,7 +81,7 @@ def analyse_episode(args: tuple[EmergentConfig, str, int]) -> dict:
     T = spec.steps
     core, periphery = res.tracker.core_periphery(T // 2)
     blocks = measures.mean_w_by_block(W, is_agv)
-    lam_ref, lam_alg = res.ticks["fiedler_ref"], res.ticks["alg_conn"]
+    lam_ref, lam_alg = res.ticks["fiedler_ref"], res.ticks["lambda2"]
     at = [min(t, T) - 1 for t in LAMBDA_TICKS if t <= T]
     return {
         "preset": preset, "seed": seed, "steps": T, "n_agvs": n_agv, "n_agents": n,
@@ -104,7 +104,7 @@ def analyse_episode(args: tuple[EmergentConfig, str, int]) -> dict:
         "lambda_ref_max": float(lam_ref.max()),
         # "declines monotonically": the rank correlation of λ₂ with time over the second half of the episode
         "lambda_ref_trend_2nd_half": _trend(lam_ref[T // 2:]),
-        "series": {k: res.ticks[k].tolist() for k in ("deliveries", "links", "eta", "fiedler_ref", "alg_conn")},
+        "series": {k: res.ticks[k].tolist() for k in ("deliveries_total", "links", "eta", "fiedler_ref", "lambda2")},
         "snapshots": {str(t): w.tolist() for t, w in res.snapshots.items()},
         "wall_s": res.wall_s,
     }
@@ -286,7 +286,7 @@ def plot_emergent(res: EmergentResult, out_dir: Path) -> list[Path]:
         eps = [e for e in res.episodes if e["preset"] == preset]
         for i, (k, label) in enumerate((("links", "active links"), ("eta", "η (neuromodulation)"),
                                         ("fiedler_ref", "λ₂ reference (normalised L)"),
-                                        ("alg_conn", "λ₂ algebraic connectivity"))):
+                                        ("lambda2", "λ₂ algebraic connectivity"))):
             ax = axes[i][j]
             ys = np.array([e["series"][k] for e in eps])
             for y in ys:

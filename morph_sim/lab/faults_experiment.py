@@ -26,25 +26,19 @@ import numpy as np
 from morph_sim.lab.network import dispatch_faults, fleet_faults
 from morph_sim.lab.runner import EpisodeSpec, run_episode
 from schemas.faults import FaultSpec, Latency, Loss
+from services.metrics import catalogue
+from services.policies.conditions import DEFAULT_RADIUS, FAULT_STUDY, by_label, command_line_keys
 
 DT = 1.0
 
-#: condition label -> (lab condition, MORPH preset)
-CONDITIONS: dict[str, tuple[str, str]] = {
-    "MORPH (reference)": ("morph", "reference"),
-    "MORPH (paper)": ("morph", "paper"),
-    "Full-Graph": ("full", "reference"),
-    "TSG": ("tsg", "reference"),
-    "Proximity": ("proximity", "reference"),
-}
+#: the study's conditions by label (its records name a condition by its label)
+CONDITIONS = by_label(FAULT_STUDY)
 #: short names of the conditions on the command line
-CONDITION_KEYS = {"morph": "MORPH (reference)", "morph-paper": "MORPH (paper)", "full": "Full-Graph", "tsg": "TSG",
-                  "proximity": "Proximity"}
+CONDITION_KEYS = {k: c.label for k, c in command_line_keys(FAULT_STUDY).items()}
 LOSS_PCT = (0, 10, 20, 30, 40, 50)
 LATENCY_TICKS = (0.0, 0.1, 0.25, 0.5, 1.0, 2.0, 5.0, 10.0)
 TARGETS = ("dispatch", "fleet", "both")
 BURST = 4.0  # Gilbert–Elliott mean burst length, messages
-PROXIMITY_RADIUS = 4  # RunConfig's default
 
 
 def fault_spec(kind: str, level: float, seed: int) -> FaultSpec | None:
@@ -98,9 +92,8 @@ class FaultEpisode:
 
 def run_fault_episode(condition: str, kind: str, level: float, seed: int, *, scale: str = "tiny",
                       steps: int = 500, target: str = "dispatch") -> FaultEpisode:
-    lab_condition, preset = CONDITIONS[condition]
-    spec = EpisodeSpec(scale=scale, condition=lab_condition, preset=preset, seed=seed, steps=steps,
-                       radius=PROXIMITY_RADIUS if lab_condition == "proximity" else None, fiedler_every=10**9,
+    spec = EpisodeSpec(scale=scale, seed=seed, steps=steps,
+                       **CONDITIONS[condition].episode_fields(radius=DEFAULT_RADIUS), fiedler_every=10**9,
                        faults=scoped(fault_spec(kind, level, seed), target))
     ep = run_episode(spec)
     s = ep.summary
@@ -165,8 +158,7 @@ def run_fault_task(task: FaultTask) -> dict:
 #: fault-kind labels of the tables
 KIND_LABEL = {"bernoulli": "Bernoulli loss, %", "bursty": f"Gilbert–Elliott loss (mean burst {BURST:g}), %",
               "latency": "latency, ticks (normal, jitter ¼ of the mean)"}
-METRICS = ("deliveries", "mean_links", "dispatch_delay", "messages_per_delivery", "bytes_per_delivery",
-           "view_age_mean")
+METRICS = catalogue.COST_METRICS
 
 
 def summarize(episodes: list[FaultEpisode]) -> list[dict]:

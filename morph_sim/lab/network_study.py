@@ -22,17 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-#: condition label -> (lab condition, MORPH preset, Proximity radius)
-CONDITIONS: dict[str, tuple[str, str, int | None]] = {
-    "MORPH (reference)": ("morph", "reference", None),
-    "MORPH (paper)": ("morph", "paper", None),
-    "Full-Graph": ("full", "reference", None),
-    "Full-Graph (broadcast)": ("full-broadcast", "reference", None),
-    "TSG": ("tsg", "reference", None),
-    "Proximity": ("proximity", "reference", 4),  # RunConfig's default radius
-}
-CONDITION_KEYS = {"morph": "MORPH (reference)", "morph-paper": "MORPH (paper)", "full": "Full-Graph",
-                  "full-broadcast": "Full-Graph (broadcast)", "tsg": "TSG", "proximity": "Proximity"}
+from services.metrics import catalogue
+from services.policies.conditions import DEFAULT_RADIUS, NETWORK_STUDY, by_label, command_line_keys
+
+#: the study's conditions by label (its records name a condition by its label); Proximity at RunConfig's radius
+CONDITIONS = by_label(NETWORK_STUDY)
+#: the command line's names of the conditions
+CONDITION_KEYS = {k: c.label for k, c in command_line_keys(NETWORK_STUDY).items()}
 PROFILES = ("lan", "wifi-fast-roaming", "wifi-legacy-roaming", "congested", "lossy-mesh")
 SCALES = ("tiny", "small", "medium", "large")
 #: fresh seeds: neither the tuning seeds 1–10 nor the reference's 42, 7, 123, 999, 2024, nor the audit's 11–15
@@ -40,15 +36,13 @@ SEEDS = tuple(range(301, 311))
 #: the default grid's episode length per scale, chosen so that the whole default grid runs within 15 minutes on two
 #: cores (per-agent brains make MORPH's cost grow with the fleet; measured in docs/results.md)
 STEPS = {"tiny": 800, "small": 800, "medium": 600, "large": 400}
-METRICS = ("deliveries", "dispatch_delay", "messages_per_delivery", "bytes_per_delivery", "view_age_mean",
-           "mean_links", "network_handovers", "network_outage_seconds", "network_stops", "messages_dropped")
+METRICS = (*catalogue.COST_METRICS, *catalogue.episode_metrics(
+    "network_handovers", "network_outage_seconds", "network_stops", "messages_dropped"))
 
 
 def available_conditions() -> tuple[str, ...]:
     """The study's policies this lab can run (the broadcast Full-Graph needs the lab's ``full-broadcast``)."""
-    from morph_sim.lab.runner import CONDITIONS as LAB
-
-    return tuple(c for c, (lab, _, _) in CONDITIONS.items() if lab in LAB)
+    return tuple(CONDITIONS)
 
 
 def all_to_all() -> str:
@@ -73,10 +67,10 @@ def run_network_task(task: NetworkTask) -> dict:
     """One episode -> its run-record line (module level: pickled to the worker processes)."""
     from morph_sim.lab.runner import EpisodeSpec, run_episode
 
-    lab, preset, radius = CONDITIONS[task.condition]
     t0, c0 = time.perf_counter(), time.process_time()
-    s = run_episode(EpisodeSpec(scale=task.scale, condition=lab, preset=preset, seed=task.seed, steps=task.steps,
-                                radius=radius, fiedler_every=10**9, network=task.profile)).summary
+    s = run_episode(EpisodeSpec(scale=task.scale, seed=task.seed, steps=task.steps,
+                                **CONDITIONS[task.condition].episode_fields(radius=DEFAULT_RADIUS),
+                                fiedler_every=10**9, network=task.profile)).summary
     d = s["deliveries"]
     ep = {"scale": task.scale, "profile": task.profile, "condition": task.condition, "seed": task.seed,
           "steps": task.steps, "deliveries": int(d), "dispatch_delay": s.get("dispatch_delay"),
@@ -103,8 +97,8 @@ def grid_plan(*, scales=SCALES, profiles=PROFILES, conditions=None, seeds=SEEDS,
         if c not in CONDITIONS:
             raise ValueError(f"conditions: unknown {c!r}; choose from {', '.join(CONDITION_KEYS)}")
         if c not in available_conditions():
-            raise ValueError(f"conditions: {c!r} needs the lab condition {CONDITIONS[c][0]!r}, which this version "
-                             "does not have")
+            raise ValueError(f"conditions: {c!r} needs the lab condition {CONDITIONS[c].key!r}, which this "
+                             "version does not have")
     for sc in scales:
         if sc not in named_sizes():
             raise ValueError(f"scales: unknown scale {sc!r} (choose from {', '.join(named_sizes())})")

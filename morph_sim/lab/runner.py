@@ -29,13 +29,12 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from morph_sim.lab.network import FLEET_KEY, EventNetwork, LabDispatch, Team, dispatch_faults
 from schemas.faults import FaultSpec
 from services.metrics import catalogue, measures
-from services.policies.coordinators import (
-    CoordinationPolicy,
-    Fleet,
-    MorphPolicy,
-    ProximityPolicy,
-    make_policy,
+from services.policies.conditions import (  # noqa: F401 - the lab's names for the one condition table
+    CONDITIONS,
+    SCALE_STUDY,
+    make_condition_policy,
 )
+from services.policies.coordinators import CoordinationPolicy, Fleet, MorphPolicy
 from services.protocol.dispatch import DEFAULT_REQUEST_TIMEOUT
 from services.protocol.tick import (
     DemandShift,
@@ -50,26 +49,10 @@ from services.world.warehouse import Warehouse, WarehouseConfig
 SCALES = ("tiny", "small", "medium", "large")
 REFERENCE_SEEDS = (42, 7, 123, 999, 2024)
 DT = 1.0  # Δ, sim seconds per step
+#: the catalogue's row metrics the lab's tick table has (with the dispatch protocol also the dispatch outcomes and the
+#: fleet view's age), each meaning what it means in a run's metrics.csv
+LAB_ROW_COLUMNS = ("deliveries", "deliveries_total", "requests", "commits", "links", "lambda2", "eta")
 BURST_LENGTH = 4.0  # mean burst of the loss_percent shorthand's Gilbert–Elliott loss, messages
-
-#: condition key -> (label, policy kind, MORPH ablation); the scale study's nine, in the reference's order
-CONDITIONS: dict[str, tuple[str, str, str | None]] = {
-    "none": ("No coordination", "none", None),
-    "proximity": ("Proximity", "proximity", None),
-    "tsg": ("TSG", "tsg", None),
-    "v1": ("MORPH v1", "morph", "v1"),
-    "v1_paper": ("MORPH v1 (paper: −R4)", "morph", "v1_paper"),
-    "no_threshold": ("v2 − threshold", "morph", "no_threshold"),
-    "no_reward": ("v2 − reward", "morph", "no_reward"),
-    "no_neuromod": ("v2 − neuromod", "morph", "no_neuromod"),
-    "morph": ("MORPH", "morph", None),
-    "full": ("Full-Graph", "full", None),
-    "full-broadcast": ("Full-Graph (broadcast)", "full-broadcast", None),
-    "constant": ("Constant 0.25", "constant", None),
-    "reset_at_boundary": ("MORPH-reset", "morph", "reset_at_boundary"),
-}
-SCALE_STUDY = ("none", "proximity", "tsg", "v1", "no_threshold", "no_reward", "no_neuromod", "morph", "full")
-
 
 def check_choices(values, known, what: str):
     """A settings validator's check that every value is one of ``known``; the error names the bad value."""
@@ -84,21 +67,6 @@ def check_nonempty(values, what: str):
     if not values:
         raise ValueError(f"at least one {what}")
     return values
-
-
-def make_condition_policy(condition: str, preset: str = "reference", radius: int | None = None,
-                          reset_every: int | None = None, steps: int | None = None) -> CoordinationPolicy:
-    if condition not in CONDITIONS:
-        raise ValueError(f"condition: unknown {condition!r} (known: {', '.join(CONDITIONS)})")
-    _, kind, ablation = CONDITIONS[condition]
-    if kind == "morph":
-        return MorphPolicy(preset=preset, ablation=ablation,
-                           reset_every=reset_every if ablation == "reset_at_boundary" else None, episode_steps=steps)
-    if kind == "proximity":
-        if radius is None:
-            raise ValueError("radius: the proximity condition needs a radius (or calibration)")
-        return ProximityPolicy(radius=radius)
-    return make_policy(kind)
 
 
 class EpisodeSpec(BaseModel):
@@ -252,13 +220,11 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
     tracker = measures.LinkTracker(n, directed=directed)
     stats = DispatchStats()
 
-    cols = {
-        name: np.zeros(T)
-        for name in (
-            "deliveries", "dispatched", "committed", "gate_p_sum", "links", "links_directed", "mean_w_links", "fiedler_ref", "alg_conn",
-            "eta", "h_mean", "formed", "pruned",
-        )
-    }
+    # the tick table: the catalogue's row metrics under their names and meanings, then the lab's own columns
+    # (catalogue.LAB_TICKS); NaN where a value is not measured, as the monitor leaves the cell empty
+    cols = {name: np.zeros(T) for name in (*LAB_ROW_COLUMNS, *catalogue.LAB_TICKS)}
+    for name in ("lambda2", "fiedler_ref", "eta", "h_mean", "formed", "pruned"):
+        cols[name][:] = np.nan
     if driver is not None:  # the dispatch outcomes by the end of each step, as the monitor's rows have them
         cols.update((name, np.zeros(T)) for name in catalogue.outcome_values({}))
     dist_sum = np.zeros((n, n))
@@ -276,7 +242,7 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
             cols["mean_w_links"][step] = 1.0 if policy.name in ("full", "full-broadcast") else 0.0
         if step % spec.fiedler_every == 0:
             cols["fiedler_ref"][step] = measures.reference_normalized_fiedler(A)
-            cols["alg_conn"][step] = measures.algebraic_connectivity(A)
+            cols["lambda2"][step] = measures.algebraic_connectivity(A)
         for k, v in brains.extra_metrics().items():
             if k in cols:
                 cols[k][step] = v
@@ -284,6 +250,7 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
     snaps = set(snapshot_ticks)
     snapshots: dict[int, np.ndarray] = {}
     step = TickStep(cta, dt=DT, demand=spec.demand_shift())
+    delivered = requested = 0
     for t in range(T):
         obs = step.begin()
         if driver is not None:
@@ -302,6 +269,7 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
         dist_sum += np.abs(c[:, None, 0] - c[None, :, 0]) + np.abs(c[:, None, 1] - c[None, :, 1])
         if driver is not None:
             driver.dispatch(obs, step.settle, stats, draw)
+            sent = driver.sent_commits
             if not faults and driver.team_brain is not None:
                 draws = driver.last_draws
                 other = sequential_commits(obs, brains, lambda agv, draws=draws: draws.get(agv, float("inf")))
@@ -316,13 +284,16 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
                 return draws[agv]
 
             commits = sequential_commits(obs, brains, live, stats.count)
+            sent = commits
             other = concurrent_commits(obs, brains, lambda agv, draws=draws: draws.get(agv, float("inf")))
             stats.divergent_ticks += distinct_cells(obs, commits) != distinct_cells(obs, other)
             step.commit_now(commits)
         step.finish(radio=model)
-        cols["deliveries"][t] = cta.deliveries
-        cols["dispatched"][t] = stats.dispatched  # gate successes (requests sent)
-        cols["committed"][t] = step.commits_applied  # pickers actually sent
+        cols["deliveries_total"][t] = cta.deliveries
+        cols["deliveries"][t] = cta.deliveries - delivered
+        cols["requests"][t] = stats.dispatched - requested  # gate successes: the help requests sent in tick t
+        cols["commits"][t] = len(sent)  # the commitments the pickers sent in tick t
+        delivered, requested = cta.deliveries, stats.dispatched
         cols["gate_p_sum"][t] = stats.p_sum  # Σ P(respond) over the gate decisions so far
         if driver is not None:
             for name, v in catalogue.outcome_values(driver.outcomes.as_dict()).items():

@@ -33,16 +33,10 @@ from morph_sim.lab.runner import (
 )
 from morph_sim.lab.suite import _git_revision, _jsonable, _num, _versions
 from services.metrics import measures
+from services.policies.conditions import SHIFT_STUDY, select
 
-#: shift condition key -> (label, lab condition, MORPH preset)
-SHIFT_CONDITIONS: dict[str, tuple[str, str, str]] = {
-    "morph_reference": ("MORPH (reference)", "morph", "reference"),
-    "reset_reference": ("MORPH-reset (reference)", "reset_at_boundary", "reference"),
-    "morph_paper": ("MORPH (paper)", "morph", "paper"),
-    "reset_paper": ("MORPH-reset (paper)", "reset_at_boundary", "paper"),
-    "proximity": ("Proximity", "proximity", "reference"),
-    "tsg": ("TSG", "tsg", "reference"),
-}
+#: the shift study's conditions: MORPH and MORPH-reset at both presets, Proximity and TSG
+SHIFT_CONDITIONS = select(SHIFT_STUDY)
 #: 20 seeds: the reference's five, then 1…15 (the paper does not list its seeds)
 SHIFT_SEEDS = REFERENCE_SEEDS + tuple(range(1, 16))
 #: the paper's Table 4 (Medium, 20 seeds): P1…P6, Δ6−3, r3…r6
@@ -88,10 +82,9 @@ class ShiftConfig(BaseModel):
         return v
 
     def spec(self, key: str, seed: int) -> EpisodeSpec:
-        _, condition, preset = SHIFT_CONDITIONS[key]
         return EpisodeSpec(
-            scale=self.scale, condition=condition, seed=seed, preset=preset,
-            steps=len(self.phases) * self.phase_steps, radius=self.radius if condition == "proximity" else None,
+            scale=self.scale, seed=seed, **SHIFT_CONDITIONS[key].episode_fields(radius=self.radius),
+            steps=len(self.phases) * self.phase_steps,
             demand_phases=self.phases, phase_steps=self.phase_steps, demand_mode=self.demand_mode,
             loss_percent=self.loss_percent,
             fiedler_every=self.phase_steps,  # λ₂ plays no part here; keep the eigen-solves out of the budget
@@ -124,7 +117,7 @@ def summarise_shift(cfg: ShiftConfig, episodes: list[dict]) -> list[dict]:
     rows = []
     for key in cfg.conditions:
         eps = [e for e in episodes if e["shift_condition"] == key]
-        row = {"condition": key, "label": SHIFT_CONDITIONS[key][0], "n": len(eps)}
+        row = {"condition": key, "label": SHIFT_CONDITIONS[key].label, "n": len(eps)}
         for col in table_columns(cfg):
             ms = measures.mean_std([e[col] for e in eps])
             row[col] = ms.mean
@@ -197,10 +190,10 @@ def run_shift(cfg: ShiftConfig, out_root: Path | None = Path("runs"), run_id: st
         per = []
         for seed in cfg.seeds:
             res = done[(key, seed)]
-            m = episode_shift_metrics(res.ticks["deliveries"], cfg)
+            m = episode_shift_metrics(res.ticks["deliveries_total"], cfg)
             episodes.append({"shift_condition": key, "seed": seed, "deliveries": res.summary["deliveries"],
                              "mean_links": res.summary["mean_links"], "wall_s": res.wall_s, **m})
-            per.append(measures.rolling_rate(np.diff(res.ticks["deliveries"], prepend=0.0), cfg.window))
+            per.append(measures.rolling_rate(res.ticks["deliveries"], cfg.window))
         rates[key] = np.mean(per, axis=0)
     rows = summarise_shift(cfg, episodes)
     result = ShiftResult(cfg, episodes, rows, rates, wall, None)
@@ -223,10 +216,10 @@ def _write_records(result: ShiftResult, done: dict, root: Path, run_id: str | No
         d.mkdir(exist_ok=True)
         (d / "manifest.json").write_text(json.dumps({"spec": ep.spec.model_dump(), **common}, indent=2))
         (d / "summary.json").write_text(json.dumps(_jsonable({**ep.summary, **by_key[(key, seed)]}), indent=2))
-        names = ["deliveries", "links"]
+        names = ["deliveries", "deliveries_total", "links"]
         with open(d / "ticks.csv", "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(["step", *names])
+            w.writerow(["t", *names])
             for t in range(ep.spec.steps):
                 w.writerow([t, *(_num(ep.ticks[k][t]) for k in names)])
     manifest = {"run_id": run_id, "kind": "shift", "config": cfg.model_dump(), "wall_s": result.wall_s, **common}
@@ -271,7 +264,7 @@ def plot_shift(result: ShiftResult, out_dir: Path) -> list[Path]:
             ax.axvline(p * L, color="k", lw=0.6, ls="--")
     for key in cfg.conditions:
         r = result.rates[key]
-        ax.plot(np.arange(r.size), r * cfg.window, lw=1.2, color=_COLOURS.get(key), label=SHIFT_CONDITIONS[key][0])
+        ax.plot(np.arange(r.size), r * cfg.window, lw=1.2, color=_COLOURS.get(key), label=SHIFT_CONDITIONS[key].label)
     ax.set_xlabel("step")
     ax.set_ylabel(f"deliveries per {cfg.window} steps (trailing window)")
     ax.set_xlim(0, len(cfg.phases) * L)

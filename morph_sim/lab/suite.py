@@ -38,9 +38,8 @@ from morph_sim.lab.runner import (
     run_episode,
 )
 from services.metrics import measures
+from services.policies.conditions import ABLATION_STUDY  # noqa: F401 - the CLI's default ablation study
 from services.policies.coordinators import PROXIMITY_RADII
-
-ABLATION_STUDY = ("v1", "no_threshold", "no_reward", "no_neuromod", "reset_at_boundary", "morph")
 
 
 class SuiteConfig(BaseModel):
@@ -172,7 +171,7 @@ def _scheduler(jobs: int, executor: str, scheduler) -> _Scheduler | _DaskSchedul
 
 def _cost(spec: EpisodeSpec) -> float:
     size = {"tiny": 1.0, "small": 1.4, "medium": 2.0, "large": 2.8}.get(spec.scale, 2.0)
-    plastic = 1.6 if CONDITIONS[spec.condition][1] == "morph" else 1.0
+    plastic = 1.6 if CONDITIONS[spec.condition].plastic else 1.0
     return size * plastic * spec.steps
 
 
@@ -258,7 +257,7 @@ def run_suite(cfg: SuiteConfig, out_root: Path | None = Path("runs"), run_id: st
         for c in cfg.conditions:
             group = [r for r in results if r.spec.scale == s and r.spec.condition == c]
             series[(s, c)] = {
-                k: np.mean([r.ticks[k] for r in group], axis=0) for k in ("deliveries", "links", "links_directed")
+                k: np.mean([r.ticks[k] for r in group], axis=0) for k in ("deliveries_total", "links", "links_directed")
             }
     result = SuiteResult(cfg, [r.summary for r in results], radii, calib, wall, None, series)
     if out_root is not None:
@@ -285,7 +284,7 @@ def summarise(cfg: SuiteConfig, episodes: list[dict]) -> list[dict]:
             max_links = eps[0]["max_links"]
             rows.append({
                 "condition": c,
-                "label": CONDITIONS[c][0],
+                "label": CONDITIONS[c].label,
                 "scale": s,
                 "n_agents": eps[0]["n_agents"],
                 "mean": ms.mean,
@@ -338,7 +337,7 @@ def markdown_table(cfg: SuiteConfig, rows: list[dict], wall_s: float | None = No
             if c != "morph" and r["p_vs_morph"] == r["p_vs_morph"]:
                 cell += f"; p={_fmt_p(r['p_vs_morph'])}"
             cells.append(cell)
-        lines.append(f"| {CONDITIONS[c][0]} | " + " | ".join(cells) + " |")
+        lines.append(f"| {CONDITIONS[c].label} | " + " | ".join(cells) + " |")
     notes = [
         "",
         f"preset `{cfg.preset}`, dispatch `{cfg.dispatch}`, gate stream "
@@ -398,7 +397,7 @@ def write_records(result: SuiteResult, episodes: list[EpisodeResult], root: Path
         names = list(ep.ticks)
         with open(d / "ticks.csv", "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(["step", *names])
+            w.writerow(["t", *names])
             for t in range(ep.spec.steps):
                 w.writerow([t, *(_num(ep.ticks[k][t]) for k in names)])
     rows = summarise(cfg, result.episodes)

@@ -44,13 +44,15 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from morph_sim.lab.faults_experiment import BURST as LAB_BURST  # the lab's bursty loss: mean burst, messages
 from morph_sim.lab.grid import RecordMismatch, count_done, read_done as _read_done, run_grid  # noqa: F401 - API
+from services.metrics import catalogue
 from services.runconfig import RunConfig
 
 FAULTS = "faults."
 ENGINES = ("lab", "services")
-#: the metrics of an episode, columns of the tidy table after the condition and the seed
-METRICS = ("deliveries", "mean_links", "committed", "dispatch_decisions", "mean_p_respond", "median_lifetime",
-           "eta_mean")
+#: the metrics of an episode, columns of the tidy table after the condition and the seed (the catalogue's
+#: per-episode metrics: the same meaning on both engines; ``lab_*`` are measured inside the gates, by the lab alone)
+METRICS = catalogue.episode_metrics("deliveries", "mean_links", "requests", "commits", "lab_gate_decisions",
+                                    "lab_mean_p_respond", "median_lifetime", "eta_mean")
 #: RunConfig fields the lab engine models; others change nothing on the pure core and are refused there
 LAB_FIELDS = ("scale", "policy", "preset", "ablation", "radius", "seed", "steps", "network")
 #: fields the sweep sets itself (per episode or per sweep)
@@ -275,17 +277,13 @@ class SweepPlan(BaseModel):
 
     def episode_spec(self, condition: Mapping[str, Any], seed: int):
         """The lab's EpisodeSpec of one episode (lab engine); refuses what the pure core does not model."""
-        from morph_sim.lab.runner import CONDITIONS, EpisodeSpec
+        from morph_sim.lab.runner import EpisodeSpec
+        from services.policies.conditions import key_of
 
         cfg = self.config(condition, seed)
-        if cfg.policy == "morph":
-            lab_condition = cfg.ablation if cfg.ablation not in (None, "full") else "morph"
-        else:
-            lab_condition = cfg.policy
-            if cfg.policy == "constant" and cfg.p != 0.25:
-                raise ValueError("p: the lab engine's constant policy gates at 0.25; use --engine services")
-        if lab_condition not in CONDITIONS:
-            raise ValueError(f"ablation: the lab has no condition {lab_condition!r}")
+        if cfg.policy == "constant" and cfg.p != 0.25:
+            raise ValueError("p: the lab engine's constant policy gates at 0.25; use --engine services")
+        lab_condition = key_of(cfg.policy, cfg.ablation if cfg.policy == "morph" else None)
         loss = 0.0
         for name, value in self.fault_params(condition).items():
             if name == "faults.loss.percent":
@@ -318,8 +316,8 @@ def run_task(task: EpisodeTask) -> dict[str, Any]:
     if plan.engine == "lab":
         from morph_sim.lab.runner import run_episode
 
-        summary = run_episode(plan.episode_spec(task.condition, task.seed)).summary
-        values = {m: summary.get(m) for m in METRICS}
+        res = run_episode(plan.episode_spec(task.condition, task.seed))
+        values = episode_values(res.summary, res.ticks)
     else:
         values = _run_services(plan, task)
     return {"key": task.key, "metrics": {k: _clean(v) for k, v in values.items()}, "wall_s": time.perf_counter() - t0}
@@ -348,10 +346,40 @@ def _run_services(plan: SweepPlan, task: EpisodeTask) -> dict[str, Any]:
     summary = json.loads((cfg.record_dir / "summary.json").read_text())
     rows = result.monitor.rows
     return {"deliveries": result.sim.deliveries, "mean_links": summary.get("mean_links"),
-            "committed": sum(int(r.get("commits") or 0) for r in rows),
-            "dispatch_decisions": sum(int(r.get("requests") or 0) for r in rows),
-            "mean_p_respond": None, "median_lifetime": None,
-            "eta_mean": _mean([r.get("eta") for r in rows])}
+            "requests": sum(int(r.get("requests") or 0) for r in rows),
+            "commits": sum(int(r.get("commits") or 0) for r in rows),
+            "lab_gate_decisions": None, "lab_mean_p_respond": None,
+            "median_lifetime": _median_lifetime(cfg, rows), "eta_mean": _mean([r.get("eta") for r in rows])}
+
+
+def episode_values(summary: Mapping[str, Any], ticks: Mapping[str, np.ndarray]) -> dict[str, Any]:
+    """The sweep's metrics of one lab episode (its summary and tick table), as the services engine has them."""
+    return {"deliveries": summary["deliveries"], "mean_links": summary["mean_links"],
+            "requests": int(ticks["requests"].sum()), "commits": int(ticks["commits"].sum()),
+            "lab_gate_decisions": summary["dispatch_decisions"], "lab_mean_p_respond": summary["mean_p_respond"],
+            "median_lifetime": summary.get("median_lifetime"), "eta_mean": summary.get("eta_mean")}
+
+
+def _median_lifetime(cfg: RunConfig, rows: Sequence[Mapping[str, Any]]) -> float | None:
+    """The median link lifetime of a services run from its record's links of every row, as the lab measures it:
+    plastic policies only; the paper rules' directed links are not in the record (it keeps undirected pairs)."""
+    from services.metrics.measures import LinkTracker
+    from services.policies.presets import load_preset
+
+    if cfg.policy != "morph" or load_preset(cfg.preset).rules == "paper":
+        return None
+    n = cfg.n_agvs + cfg.n_pickers
+    tracker = LinkTracker(n)
+    path = cfg.record_dir / "links.csv"
+    for line in path.read_text(encoding="utf-8").splitlines():
+        tick, _, pairs = line.partition(",")
+        A = np.zeros((n, n), dtype=bool)
+        for pair in pairs.split():
+            i, j = map(int, pair.split("-"))
+            A[i, j] = True
+        tracker.update(A, int(tick))
+    life, _ = tracker.lifetimes()
+    return float(np.median(life)) if life.size else None
 
 
 def _schedule_toml(spec) -> str:

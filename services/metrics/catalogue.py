@@ -110,6 +110,65 @@ COLUMNS: tuple[str, ...] = ("t", "sim_time", *ROW)
 W_BLOCKS: tuple[str, ...] = ("w_agv_agv", "w_agv_picker", "w_picker_picker")
 
 
+#: Lab-only columns of the lab's tick table (``EpisodeResult.ticks``, ``ms.episode(...).ticks``, a study's
+#: ``ticks.csv``), one value per step t like the rows. The lab's other columns are the row metrics above, under their
+#: names and meanings; these have no counterpart in a run record and names no row metric uses.
+LAB_TICK_METRICS: tuple[Metric, ...] = (
+    Metric("links_directed", "links", "directed coordination links (i→j) after the update of step t", "lab"),
+    Metric("mean_w_links", "1", "mean W over the linked pairs after the update of step t (1 for Full-Graph, 0 for "
+           "the other memoryless policies)", "lab"),
+    Metric("fiedler_ref", "1", "the reference code's λ₂: Fiedler value of the normalised Laplacian of the link graph "
+           "(NaN between the steps it is computed at)", "lab"),
+    Metric("gate_p_sum", "1", "cumulative Σ P(respond) over the gate decisions up to step t", "lab"),
+    Metric("h_mean", "1", "mean homeostatic threshold h over the agents (MORPH)", "lab"),
+    Metric("formed", "links", "mean links formed per agent in the update of step t (MORPH)", "lab"),
+    Metric("pruned", "links", "mean links pruned per agent in the update of step t (MORPH)", "lab"),
+)
+LAB_TICKS: tuple[str, ...] = tuple(m.name for m in LAB_TICK_METRICS)
+
+#: Per-episode metrics: the columns of the sweep's tidy table and of the studies' episode tables, one value per
+#: episode, each the episode's aggregate of the row metric of the same name where there is one (``deliveries``: the
+#: episode's deliveries, the last row's ``deliveries_total``; ``commits``: Σ of the rows' ``commits``).
+EPISODE_METRICS: tuple[Metric, ...] = (
+    Metric("deliveries", "deliveries", "shelves delivered in the episode (Σ deliveries = the last deliveries_total)",
+           "episode"),
+    Metric("mean_links", "links", "mean over the steps of links", "episode"),
+    Metric("requests", "messages", "help requests sent in the episode (Σ requests)", "episode"),
+    Metric("commits", "messages", "picker commitments in the episode (Σ commits)", "episode"),
+    Metric("eta_mean", "1", "mean over the steps of eta (plastic policies)", "episode"),
+    Metric("median_lifetime", "steps", "median lifetime of a link event (a pair linked without a break)", "episode"),
+    Metric("dispatch_delay", "s", "mean sim seconds (= ticks: the lab's step is 1 s) from an AGV's first help "
+           "request to a picker's commitment", "episode"),
+    Metric("messages_per_delivery", "messages", "dispatch messages sent per delivery", "episode"),
+    Metric("bytes_per_delivery", "bytes", "dispatch bytes sent per delivery", "episode"),
+    Metric("view_age_mean", "s", "mean over the steps of view_age_mean", "episode"),
+    Metric("messages_dropped", "messages", "dispatch messages lost in the episode", "episode"),
+    Metric("network_handovers", "hand-overs", "with a network profile: access-point hand-overs of all robots",
+           "episode"),
+    Metric("network_outage_seconds", "s", "with a network profile: hand-over outage, all robots", "episode"),
+    Metric("network_stops", "robot-steps", "with a network profile: steps robots were held, silent too long",
+           "episode"),
+    # measured inside the agents' gates: only the lab's in-process episode sees them
+    Metric("lab_gate_decisions", "decisions", "lab only: gate evaluations (a request that reached a candidate)",
+           "episode"),
+    Metric("lab_mean_p_respond", "1", "lab only: mean P(respond) over the gate decisions", "episode"),
+)
+EPISODE_BY_NAME: dict[str, Metric] = {m.name: m for m in EPISODE_METRICS}
+
+
+def episode_metrics(*names: str) -> tuple[str, ...]:
+    """A study's per-episode metric columns, checked against :data:`EPISODE_METRICS` (KeyError naming an unknown)."""
+    for name in names:
+        if name not in EPISODE_BY_NAME:
+            raise KeyError(f"{name}: not a per-episode metric of the catalogue")
+    return names
+
+
+#: what every study of dispatch under faults measures per episode (the fault and network studies)
+COST_METRICS = episode_metrics("deliveries", "mean_links", "dispatch_delay", "messages_per_delivery",
+                               "bytes_per_delivery", "view_age_mean")
+
+
 def unit(name: str) -> str | None:
     """The unit of stream ``name`` (None for a name outside the catalogue)."""
     metric = BY_NAME.get(name)
