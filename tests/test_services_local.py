@@ -77,7 +77,7 @@ async def test_services_equal_the_lab(tmp_path, policy, preset):
     lab = run_episode(spec)
     run = await run_local(cfg(tmp_path, policy=policy, preset=preset, seed=7, steps=steps, radius=4), record=False)
     cum = np.array([r["deliveries_total"] for r in run.monitor.rows], dtype=float)
-    np.testing.assert_array_equal(cum, lab.ticks["deliveries"])
+    np.testing.assert_array_equal(cum, lab.ticks["deliveries_total"])
     np.testing.assert_array_equal(run.monitor.snapshots[steps][0], lab.final_weights)
     links = np.array([r["links"] for r in run.monitor.rows], dtype=float)
     np.testing.assert_array_equal(links, lab.ticks["links"])
