@@ -41,8 +41,9 @@ def scrape(request, tmp_path_factory):
     fault_time = request.param
     run_id, port = f"dash-{fault_time}", free_port()
     flags = () if fault_time == "virtual" else ("--fault-time", "wall")
+    # no grace after the run: the scrapes that count are taken while it runs
     run = LiveRun(tmp_path_factory.mktemp(run_id), run_id, "--steps", str(STEPS), "--prometheus-port", str(port),
-                  *FLEET, *flags)
+                  "--prometheus-grace", "0", *FLEET, *flags)
     try:
         run.start()
         mid = None

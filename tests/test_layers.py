@@ -125,3 +125,11 @@ def test_the_checks_see_an_up_import():
     planted = ast.parse("from morph_sim.cli import main\n")
     (node,) = planted.body
     assert _package("services.sim.service")[1] < _package(node.module)[1]
+
+
+def test_the_fork_server_preloads_only_the_running_system():
+    # imported by name (importlib), so the import reading above cannot see them: the processes of a run are services
+    from services.supervisor.forkserver import PRELOAD
+
+    ours = [name for name in PRELOAD if _package(name) is not None]
+    assert ours and all(_package(name)[1] < _package("services.supervisor")[1] for name in ours), PRELOAD

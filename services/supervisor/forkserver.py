@@ -36,15 +36,16 @@ from services.supervisor.parent import signal_on_parent_death
 PRELOAD = (
     "numpy",
     "zenoh",
-    "morph_sim.cli",
-    "morph_sim.commands.sim",
-    "morph_sim.commands.agent",
-    "morph_sim.commands.monitor",
+    "services.sim.command",
+    "services.agent.command",
+    "services.monitor.command",
     "services.process",
     "services.bus.zenoh_bus",
     "services.faults.runtime",
     "services.sim.service",
     "services.agent.service",
+    "services.agent.agv",
+    "services.agent.picker",
     "services.monitor.service",
 )
 #: the service processes a request may start: ``[python, "-m", "services.<name>", flags...]`` (``ProcessSpec.command()``)
