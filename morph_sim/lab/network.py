@@ -20,7 +20,6 @@ import heapq
 import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -43,14 +42,26 @@ from services.protocol.dispatch import (
     with_own_state,
 )
 
-if TYPE_CHECKING:  # the runner imports this module; its statistics type is only named here
-    from morph_sim.lab.runner import DispatchStats
-
 RUN = "lab"
 #: the fleet broadcast's key (relative to morph/<run>/), the services' own (schemas.keys)
 FLEET_KEY = FLEET
 #: the dispatch protocol's keys (relative to morph/<run>/), the scope of "faults on dispatch messages"
 DISPATCH_KEYS = ("agent/*/request/*", "agent/*/reply/*", "agent/*/commit", "sim/refusal/*")
+
+
+@dataclass
+class DispatchStats:
+    decisions: int = 0  # gate evaluations (a request that reached a candidate)
+    dispatched: int = 0
+    p_sum: float = 0.0
+    w_positive: int = 0  # decisions where the gate was above its floor
+    divergent_ticks: int = 0  # ticks where the other dispatch mode would have committed differently
+
+    def count(self, ask: bool, p: float) -> None:
+        self.decisions += 1
+        self.dispatched += int(ask)
+        self.p_sum += p
+        self.w_positive += int(p > 0.25 + 1e-12)
 
 
 @dataclass(frozen=True, slots=True)

@@ -26,7 +26,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from morph_sim.lab.network import FLEET_KEY, EventNetwork, LabDispatch, Team, dispatch_faults
+from morph_sim.lab.network import FLEET_KEY, DispatchStats, EventNetwork, LabDispatch, Team, dispatch_faults
 from schemas.faults import FaultSpec
 from services.metrics import catalogue, measures
 from services.policies.conditions import (  # noqa: F401 - the lab's names for the one condition table
@@ -134,21 +134,6 @@ class EpisodeSpec(BaseModel):
     @property
     def key(self) -> str:
         return f"{self.scale}_{self.condition}_s{self.seed}"
-
-
-@dataclass
-class DispatchStats:
-    decisions: int = 0  # gate evaluations (a request that reached a candidate)
-    dispatched: int = 0
-    p_sum: float = 0.0
-    w_positive: int = 0  # decisions where the gate was above its floor
-    divergent_ticks: int = 0  # ticks where the other dispatch mode would have committed differently
-
-    def count(self, ask: bool, p: float) -> None:
-        self.decisions += 1
-        self.dispatched += int(ask)
-        self.p_sum += p
-        self.w_positive += int(p > 0.25 + 1e-12)
 
 
 def episode_faults(spec: EpisodeSpec) -> list[FaultSpec]:
