@@ -47,13 +47,12 @@ def test_a_paced_run_keeps_its_period_while_an_agent_is_stopped(tmp_path, live_r
     # ROW_GRACE_TICKS before it resumed)
     stopped = [r for r in metrics if AT + 2 <= int(r["t"]) < AT + PAUSE_TICKS - ROW_GRACE_TICKS - 2]
     assert stopped and all(int(r["acks"]) == 7 for r in stopped), [r["acks"] for r in stopped]
-    # the others kept dispatching meanwhile: the AGVs kept asking, and what they asked of the stopped picker (the
-    # nearest free one as the fleet sees it: its robot has no mission) went unanswered and expired at the AGVs'
-    # timeout. How many of their requests went elsewhere and became commitments depends on where the robots were
-    # when the picker stopped and on the machine's load (a real-time fleet acts on what it has in time): 1 to 4 of
-    # 12 to 17 requests in four runs of this window, so a commitment in the window is not a property to test.
+    # the others kept dispatching meanwhile: the AGVs kept asking. What became of their requests depends on where
+    # the robots were when the picker stopped and on the machine's load (a real-time fleet acts on what it has in
+    # time): an AGV whose nearest free picker, as the fleet sees it, is the stopped one asks it and waits out its
+    # timeout. Four runs of this window here gave 1 to 4 commitments and 5 to 11 expiries from 12 to 17 requests;
+    # runs elsewhere gave no commitment, or no expiry, so neither is a property of the system to test.
     assert sum(int(r["requests"]) for r in stopped) > 0
-    assert int(stopped[-1]["dispatch_expired"]) > int(metrics[AT]["dispatch_expired"])
     # and it answers again after SIGCONT
     assert all(int(r["acks"]) == 8 for r in metrics[-20:])
     final = int(metrics[-1]["deliveries_total"])
