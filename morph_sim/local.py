@@ -10,7 +10,8 @@ import asyncio
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from services.agent.service import AgentCounters, AgentService
+from services.agent.roles import make_agent
+from services.agent.service import AgentCounters
 from services.bus.base import Bus
 from services.bus.local import LocalNetwork
 from services.monitor.service import MonitorResult, MonitorService
@@ -52,7 +53,7 @@ async def run_local(config: RunConfig, *, record: bool = True, network: LocalNet
         return bus
 
     monitor = MonitorService(config, session("monitor"), record=record)
-    agents = [AgentService(config, session(f"agent-{i}"), i, faults=None if faults is None else faults.like())
+    agents = [make_agent(config, session(f"agent-{i}"), i, faults=None if faults is None else faults.like())
               for i in range(config.n_agents)]
     sim = SimService(config, session("sim"), faults=faults,
                      on_tick=None if progress is None else lambda t, obs: progress(t, sim.ctl.deliveries))

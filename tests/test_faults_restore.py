@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.agent.service import AgentService
+from services.agent.roles import make_agent
 from services.bus import LocalNetwork
 from services.faults.restore import restore_brains
 from services.protocol.tick import first_in_mission_order
@@ -15,7 +15,7 @@ from services.sim.wire import make_controller
 
 
 def trained_agents(config: RunConfig, net: LocalNetwork):
-    agents = [AgentService(config, net.session(str(i)), i) for i in range(config.n_agents)]
+    agents = [make_agent(config, net.session(str(i)), i) for i in range(config.n_agents)]
     ctl = make_controller(config)
     for _ in range(120):  # every agent learns from every tick and each AGV decides with its own brain, as over the bus
         obs = ctl.begin_tick()
@@ -40,7 +40,7 @@ def test_restored_state_equals_the_last_published(preset: str) -> None:
     published = {a.id: a.state_message(t) for a in agents}
     victim = 2
     assert any(published[victim].w_row)  # a state worth restoring
-    fresh = AgentService(config, net.session("2b"), victim)
+    fresh = make_agent(config, net.session("2b"), victim)
     assert not any(fresh.state_message(t).w_row)
     assert restore_brains(fresh.brains, victim, published) == t
     restored = fresh.state_message(t)
@@ -69,7 +69,7 @@ async def test_restart_restores_from_the_real_monitor_over_the_bus() -> None:
         for a in agents:
             await a.bus.publish(a.keys.agent_state(a.id), a.state_message(t))
         await asyncio.sleep(0.05)
-        restarted = AgentService(config, net.session("4-restarted"), 4)
+        restarted = make_agent(config, net.session("4-restarted"), 4)
         states = await fetch_states(restarted.bus, config.run_id, timeout=1.0)
         assert sorted(states) == list(range(config.n_agents))
         assert restore_brains(restarted.brains, 4, states) == t

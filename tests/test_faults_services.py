@@ -45,7 +45,7 @@ async def test_agent_killed_every_100_ticks_rejoins_with_its_state_and_no_tick_i
     SIGKILL); a new agent with the same id starts at once, restores its state from the real monitor and rejoins."""
     import asyncio
 
-    from services.agent.service import AgentService
+    from services.agent.roles import make_agent
     from services.bus import LocalNetwork
     from services.monitor.service import MonitorService
     from services.sim.service import SimService
@@ -55,11 +55,11 @@ async def test_agent_killed_every_100_ticks_rejoins_with_its_state_and_no_tick_i
     net = LocalNetwork()
     victim = 6
     monitor = MonitorService(config, net.session("monitor"), record=False)
-    agents = {i: AgentService(config, net.session(f"agent-{i}"), i) for i in range(config.n_agents)}
+    agents = {i: make_agent(config, net.session(f"agent-{i}"), i) for i in range(config.n_agents)}
     tasks = {i: asyncio.create_task(a.run()) for i, a in agents.items()}
     mon_task = asyncio.create_task(monitor.run())
     kills: list[tuple[int, object]] = []  # (tick, last state the monitor held for the victim)
-    restarted: list[AgentService] = []
+    restarted: list = []
     pending: list[asyncio.Task] = []
 
     async def kill_and_restart(t: int) -> None:
@@ -67,7 +67,7 @@ async def test_agent_killed_every_100_ticks_rejoins_with_its_state_and_no_tick_i
         task.cancel()
         await old.bus.close()  # the token goes: the sim marks the agent absent, its robot idles
         kills.append((t, monitor.latest_state.get(victim)))
-        new = AgentService(config, net.session(f"agent-{victim}-r{len(kills)}"), victim)
+        new = make_agent(config, net.session(f"agent-{victim}-r{len(kills)}"), victim)
         agents[victim], tasks[victim] = new, asyncio.create_task(new.run())
         restarted.append(new)
 

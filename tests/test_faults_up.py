@@ -136,7 +136,7 @@ async def test_the_monitor_publishes_per_link_counters_every_k_ticks() -> None:
     """F3: the monitor's link/* metrics (sent, delivered, dropped … per key class) come from the samples' headers;
     a 30 % loss of acks on the monitor's own ingress shows up as dropped acks, every other class loses nothing."""
     from schemas import FaultSpec, Loss, MetricSample, Scope
-    from services.agent.service import AgentService
+    from services.agent.roles import make_agent
     from services.bus import LocalNetwork
     from services.faults.layer import FaultLayer, install
     from services.monitor.service import MonitorService
@@ -154,7 +154,7 @@ async def test_the_monitor_publishes_per_link_counters_every_k_ticks() -> None:
     observer = net.session("observer")
     await observer.subscribe(f"morph/{config.run_id}/metrics/link/**",
                              lambda s: published.append(s.decode(MetricSample)))
-    agents = [AgentService(config, net.session(f"agent-{i}"), i) for i in range(config.n_agents)]
+    agents = [make_agent(config, net.session(f"agent-{i}"), i) for i in range(config.n_agents)]
     tasks = [asyncio.create_task(a.run()) for a in agents] + [asyncio.create_task(monitor.run())]
     try:
         result = await asyncio.wait_for(SimService(config, net.session("sim")).run(), 60)

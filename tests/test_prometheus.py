@@ -29,7 +29,7 @@ def _value(text: str, name: str, labels: str = 'run="prom"') -> float:
 
 
 async def test_scrape_during_and_after_a_run(tmp_path):
-    from services.agent.service import AgentService
+    from services.agent.roles import make_agent
     from services.sim.service import SimService
 
     config = RunConfig(run_id="prom", scale="tiny", steps=120, policy="morph", output_dir=tmp_path)
@@ -37,7 +37,7 @@ async def test_scrape_during_and_after_a_run(tmp_path):
     monitor = MonitorService(config, net.session("monitor"))
     exporter = PrometheusExporter(monitor, free_port())
     try:
-        agents = [AgentService(config, net.session(f"agent-{i}"), i) for i in range(config.n_agents)]
+        agents = [make_agent(config, net.session(f"agent-{i}"), i) for i in range(config.n_agents)]
         tasks = [asyncio.create_task(monitor.run())] + [asyncio.create_task(a.run()) for a in agents]
         sim = asyncio.create_task(SimService(config, net.session("sim")).run())
         mid = None

@@ -119,12 +119,12 @@ async def test_absent_agent_does_not_stall_the_run(tmp_path):
     """An agent that leaves (its liveliness token goes) is absent: the sim stops waiting for it and goes on."""
     config = cfg(tmp_path, steps=40, phase_timeout=30.0)
     net = LocalNetwork()
-    from services.agent.service import AgentService
+    from services.agent.roles import make_agent
     from services.monitor.service import MonitorService
     from services.sim.service import SimService
 
     monitor = MonitorService(config, net.session("monitor"), record=False)
-    agents = [AgentService(config, net.session(f"agent-{i}"), i) for i in range(config.n_agents)]
+    agents = [make_agent(config, net.session(f"agent-{i}"), i) for i in range(config.n_agents)]
     ticks_seen = []
     sim = SimService(config, net.session("sim"), on_tick=lambda t, obs: ticks_seen.append(t))
     tasks = [asyncio.create_task(s.run()) for s in (monitor, *agents)]

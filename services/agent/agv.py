@@ -12,7 +12,7 @@ from services.protocol import dispatch as protocol
 
 
 class AgvService(AgentService):
-    """The agent of AGV ``agent_id`` (build it as ``AgentService(...)``)."""
+    """The agent of AGV ``agent_id`` (build it with :func:`services.agent.roles.make_agent`)."""
 
     is_agv = True
     role = "agv"

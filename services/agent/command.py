@@ -42,7 +42,8 @@ class ClaimingAgent:
 
     async def run(self):
         from schemas.keys import RunKeys
-        from services.agent.service import AgentCounters, AgentService
+        from services.agent.roles import make_agent
+        from services.agent.service import AgentCounters
         from services.bus.registry import claim_id, default_instance
 
         if self.agent_id is None:
@@ -67,7 +68,7 @@ class ClaimingAgent:
         from services.faults.runtime import FaultRuntime
 
         # its own fault runtime: ingress faults, ctl/faults, the clock of the run's fault time (docs/faults.md)
-        self.service = AgentService(self.config, self.bus, self.agent_id, restore=not self.config.cold_restart,
+        self.service = make_agent(self.config, self.bus, self.agent_id, restore=not self.config.cold_restart,
                                     faults=FaultRuntime.for_service(self.config, "agent"))
         if self._stopped:
             return AgentCounters()

@@ -14,7 +14,7 @@ from services.protocol import dispatch as protocol
 
 
 class PickerService(AgentService):
-    """The agent of picker ``agent_id`` (build it as ``AgentService(...)``)."""
+    """The agent of picker ``agent_id`` (build it with :func:`services.agent.roles.make_agent`)."""
 
     is_agv = False
     role = "picker"

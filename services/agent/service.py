@@ -19,8 +19,8 @@ Bad input never stops the agent: rejected messages are counted and logged.
 
 This module is the shell both roles share: the subscriptions and the run loop, the tick's decision point and the
 refusals. What a decision point waits for is pure protocol code (:mod:`services.protocol.readiness`); the roles are
-:class:`~services.agent.agv.AgvService` and :class:`~services.agent.picker.PickerService` (``AgentService(...)``
-builds the one its id names); the crash restore is :mod:`services.agent.restore`, the fault layer's arrival hook
+:class:`~services.agent.agv.AgvService` and :class:`~services.agent.picker.PickerService`
+(:func:`services.agent.roles.make_agent` builds the one a robot id names); the crash restore is :mod:`services.agent.restore`, the fault layer's arrival hook
 :mod:`services.agent.arrivals`.
 """
 
@@ -69,20 +69,13 @@ class AgentCounters:
 class AgentService:
     """Agent ``agent_id`` of the run of ``config`` over ``bus``. ``await run()`` until stop.
 
-    ``AgentService(...)`` is the robot's role: an :class:`~services.agent.agv.AgvService` for an AGV's id, a
-    :class:`~services.agent.picker.PickerService` for a picker's; both override the few steps where the roles
-    differ (their subscriptions, what a decision point waits for and does, the refusal's effect)."""
+    What both roles share; a robot's agent is an :class:`~services.agent.agv.AgvService` or a
+    :class:`~services.agent.picker.PickerService` (:func:`services.agent.roles.make_agent`), each overriding the few
+    steps where the roles differ (their subscriptions, what a decision point waits for and does, the refusal's
+    effect)."""
 
     is_agv: bool
     role: str
-
-    def __new__(cls, config: RunConfig, bus: Bus, agent_id: int, **_):
-        if cls is AgentService:
-            # imported here: the roles' modules import this one for their base class
-            from services.agent.agv import AgvService
-            from services.agent.picker import PickerService
-            cls = AgvService if agent_id < config.n_agvs else PickerService
-        return super().__new__(cls)
 
     def __init__(self, config: RunConfig, bus: Bus, agent_id: int, *, restore: bool = True, faults=None):
         # this process's FaultRuntime (ingress faults on what this agent receives, its ctl/faults
@@ -356,8 +349,4 @@ class AgentService:
         return sample.due if sample.due >= 0.0 else sent
 
 
-async def run_agent(config: RunConfig, bus: Bus, agent_id: int) -> AgentCounters:
-    return await AgentService(config, bus, agent_id).run()
-
-
-__all__ = ["AgentCounters", "AgentService", "run_agent"]
+__all__ = ["AgentCounters", "AgentService"]

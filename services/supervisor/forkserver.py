@@ -43,9 +43,7 @@ PRELOAD = (
     "services.bus.zenoh_bus",
     "services.faults.runtime",
     "services.sim.service",
-    "services.agent.service",
-    "services.agent.agv",
-    "services.agent.picker",
+    "services.agent.roles",
     "services.monitor.service",
 )
 #: the service processes a request may start: ``[python, "-m", "services.<name>", flags...]`` (``ProcessSpec.command()``)
