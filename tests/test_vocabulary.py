@@ -91,14 +91,14 @@ def test_the_sweep_engines_fill_shared_columns_with_the_same_meaning(tmp_path):
 
 
 def test_every_study_draws_its_conditions_from_the_one_table():
-    from morph_sim.lab import audit, faults_experiment, network_study, shift, suite
-    from services.policies.conditions import CONDITIONS, key_of
+    from morph_sim.lab import audit, faults_experiment, network_study, shift
+    from services.policies.conditions import ABLATION_STUDY, CONDITIONS, key_of
 
     table = {c.label: c for c in CONDITIONS.values()}
     for study in (faults_experiment.CONDITIONS, network_study.CONDITIONS):
         assert all(study[label] is table[label] for label in study)
     assert all(shift.SHIFT_CONDITIONS[k] is CONDITIONS[k] for k in shift.SHIFT_CONDITIONS)
-    assert set(audit.PAPER_CONDITIONS) | set(suite.ABLATION_STUDY) <= set(CONDITIONS)
+    assert set(audit.PAPER_CONDITIONS) | set(ABLATION_STUDY) <= set(CONDITIONS)
     # the command lines' keys and labels as docs/results.md shows them
     assert faults_experiment.CONDITION_KEYS == {"morph": "MORPH (reference)", "morph-paper": "MORPH (paper)",
                                                 "full": "Full-Graph", "tsg": "TSG", "proximity": "Proximity"}

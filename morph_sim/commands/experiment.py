@@ -339,8 +339,8 @@ def run(args) -> int:
     if args.suite == "network":
         return _run_network(args)
     started = time.perf_counter()
-    from morph_sim.lab.runner import SCALE_STUDY
-    from morph_sim.lab.suite import ABLATION_STUDY, SuiteConfig, markdown_table, run_suite, summarise
+    from morph_sim.lab.suite import SuiteConfig, markdown_table, run_suite, summarise
+    from services.policies.conditions import ABLATION_STUDY, SCALE_STUDY
 
     preset = args.preset or ("reference" if args.suite == "scale" else "paper")
     default_conditions = SCALE_STUDY if args.suite == "scale" else ABLATION_STUDY

@@ -29,11 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from morph_sim.lab.network import FLEET_KEY, DispatchStats, EventNetwork, LabDispatch, Team, dispatch_faults
 from schemas.faults import FaultSpec
 from services.metrics import catalogue, measures
-from services.policies.conditions import (  # noqa: F401 - the lab's names for the one condition table
-    CONDITIONS,
-    SCALE_STUDY,
-    make_condition_policy,
-)
+from services.policies.conditions import make_condition_policy
 from services.policies.coordinators import CoordinationPolicy, Fleet, MorphPolicy
 from services.protocol.dispatch import DEFAULT_REQUEST_TIMEOUT
 from services.protocol.tick import (

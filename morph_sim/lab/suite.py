@@ -27,9 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from morph_sim.lab.executors import episode_pool
 from morph_sim.lab.runner import (
-    CONDITIONS,
     REFERENCE_SEEDS,
-    SCALE_STUDY,
     SCALES,
     EpisodeResult,
     EpisodeSpec,
@@ -38,7 +36,7 @@ from morph_sim.lab.runner import (
     run_episode,
 )
 from services.metrics import measures
-from services.policies.conditions import ABLATION_STUDY  # noqa: F401 - the CLI's default ablation study
+from services.policies.conditions import CONDITIONS, SCALE_STUDY
 from services.policies.coordinators import PROXIMITY_RADII
 
 
