@@ -198,18 +198,17 @@ class SimService(Presence, PhaseCollection):
                 if not ph.closed and msg.picker in ph.waiting:
                     self._commit_arrived(ph, msg.picker)
 
-    async def _settle(self, obs: TickObservation) -> list[tuple[int, int]]:
-        """The step boundary: apply the commitments delivered by now (services/protocol), tell both sides of each
-        refused one."""
+    async def _settle(self, obs: TickObservation) -> None:
+        """The step boundary: apply the commitments delivered by now (the tick step counts them), tell both sides of
+        each refused one."""
         with self._desk_lock:
-            applied, refusals = self.step.settle(obs, self.desk, self.outcomes)
+            _, refusals = self.step.settle(obs, self.desk, self.outcomes)
         for r in refusals:
             refusal = Refusal(t=obs.t + 1, picker=r.picker, agv=r.agv, commit_seq=r.commit_seq)
             await self.bus.publish(self.keys.refusal(r.agv), refusal)
             await self.bus.publish(self.keys.refusal(r.picker), refusal)
             self._refused[r.agv] += 1
             self._refused[r.picker] += 1
-        return applied
 
     # -- main ----------------------------------------------------------------------------------------------------------
     async def run(self) -> SimResult:
