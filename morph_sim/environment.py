@@ -60,7 +60,12 @@ def env_to_argv(command: str, environ: Mapping[str, str]) -> list[str]:
         if value == "":
             continue
         field = known[name].field
-        if field is not None and is_switch(field):  # a switch: --flag or --no-flag, no value
+        if field == "policy_options":  # one flag per option
+            from services.runconfig import option_text, parse_policy_options
+
+            for key, option in parse_policy_options(value).items():
+                argv += [known[name].flag, f"{key}={option_text(option)}"]
+        elif field is not None and is_switch(field):  # a switch: --flag or --no-flag, no value
             flag = known[name].flag
             argv.append(flag if value.strip().lower() in ("1", "true", "yes", "on") else "--no-" + flag[2:])
         else:

@@ -32,6 +32,7 @@ from schemas.messages import (
     MissionType,
     OnBoard,
     Phase,
+    PolicyAnnouncement,
     Refusal,
     RegistrationReply,
     RegistrationRequest,
@@ -44,7 +45,8 @@ from schemas.messages import (
 __all__ = [
     "Ack", "AgentState", "Commit", "Crash", "DecodeError", "Distribution", "Duplicate", "Event", "FaultCommand",
     "FaultReply", "FaultSpec", "Heading", "HelpReply", "HelpRequest", "Latency", "Loss", "LossModel", "MESSAGES",
-    "MESSAGE_TYPES", "Message", "MetricSample", "MissionType", "OnBoard", "Partition", "PartitionDirection", "Phase", "Refusal",
+    "MESSAGE_TYPES", "Message", "MetricSample", "MissionType", "OnBoard", "Partition", "PartitionDirection", "Phase", "PolicyAnnouncement",
+    "Refusal",
     "RegistrationReply", "RegistrationRequest", "Reorder", "Resolve", "Role", "RunKeys", "Scope", "Stop", "Tick",
     "decode", "encode", "intersects", "matches", "register_upgrade", "to_payload", "validate_key_expr",
     "validate_run_id",

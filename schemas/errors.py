@@ -80,4 +80,4 @@ def invalid(exc: ValidationError | ValueError, where: str = "") -> ValueError:
 def _named(err: dict[str, Any]) -> str:
     """:func:`describe`, with ``config`` as the field of an error that names none (a whole-model check)."""
     line = describe(err)
-    return line if error_field(err) or re.match(r"^[\w.\[\]]+: ", line) else f"config: {line}"
+    return line if error_field(err) or re.match(r"^[\w.\[\]-]+( [\w.\[\]]+)?: ", line) else f"config: {line}"

@@ -318,6 +318,11 @@ class RunKeys:
     def registry(self) -> str:
         return self._k("registry")
 
+    @cached_property
+    def registry_policy(self) -> str:
+        """The sim's announcement of the run's policy (:class:`~schemas.messages.PolicyAnnouncement`)."""
+        return self._k("registry", "policy")
+
     def alive(self, agent: int | str) -> str:
         return self._k("alive", _agent_chunk(agent))
 

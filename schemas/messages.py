@@ -206,7 +206,9 @@ class AgentState(Message):
     d_hat: Finite = Field(default=0.0, description="delivery EMA behind eta")
     seq: Seq = 0
     scalars: dict[str, Finite] = Field(default_factory=dict, description="further per-agent scalars of a policy")
-    rows: dict[str, list[Finite]] = Field(default_factory=dict, description="further per-agent rows of a policy")
+    # integers stay integers on the wire (a row of labels or counts costs a byte or two a value, not nine)
+    rows: dict[str, list[int | Finite]] = Field(default_factory=dict,
+                                               description="further per-agent rows of a policy")
 
     @model_validator(mode="after")
     def _shape(self) -> AgentState:
@@ -338,15 +340,27 @@ class RegistrationReply(Message):
         return self
 
 
+class PolicyAnnouncement(Message):
+    """The run's coordination policy as its sim built it (``morph/<run>/registry/policy``): every agent builds the
+    same before it joins, and refuses to join with another."""
+
+    KIND = "policy_announcement"
+
+    policy: str = Field(min_length=1, max_length=256, description="the policy's name or package.module:Class")
+    options: dict[Annotated[str, Field(max_length=64)], str | int | float | bool | None] = Field(
+        default_factory=dict, max_length=64, description="the values of its parameters")
+
+
 MESSAGE_TYPES: tuple[type[Message], ...] = (
     Tick, OnBoard, Ack, Resolve, HelpRequest, HelpReply, Commit, Refusal, AgentState, MetricSample, Event, Stop,
-    FaultCommand, FaultReply, RegistrationRequest, RegistrationReply,
+    FaultCommand, FaultReply, RegistrationRequest, RegistrationReply, PolicyAnnouncement,
 )
 MESSAGES: dict[str, type[Message]] = {cls.KIND: cls for cls in MESSAGE_TYPES}
 
 __all__ = [
     "Ack", "AgentState", "Commit", "Event", "FaultCommand", "FaultReply", "Heading", "HelpReply", "HelpRequest",
-    "MESSAGES", "MESSAGE_TYPES", "MetricSample", "MissionType", "OnBoard", "Phase", "Refusal", "RegistrationReply",
+    "MESSAGES", "MESSAGE_TYPES", "MetricSample", "MissionType", "OnBoard", "Phase", "PolicyAnnouncement", "Refusal",
+    "RegistrationReply",
     "RegistrationRequest",
     "Resolve", "Role", "Stop", "Tick",
 ]

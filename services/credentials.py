@@ -84,7 +84,7 @@ def access_control(run_id: str, n_agents: int) -> dict:
          "messages": ["put", "delete", "reply", "query", "liveliness_token", "declare_queryable"],
          "key_exprs": [f"{run}/**"]},
         {"id": "ask", "flows": ["ingress"], "permission": "allow", "messages": ["query"],
-         "key_exprs": [f"{run}/registry", f"{run}/state/**"]},
+         "key_exprs": [f"{run}/registry", f"{run}/registry/policy", f"{run}/state/**"]},
         {"id": "answer-fault-queries", "flows": ["ingress"], "permission": "allow",
          "messages": ["declare_queryable", "reply"], "key_exprs": [f"{run}/ctl/faults"]},
         {"id": "monitor-publish", "flows": ["ingress"], "permission": "allow", "messages": pub,

@@ -25,17 +25,24 @@ from services.runconfig import ENV_PREFIX, RunConfig
 NOT_FROM_ENV = frozenset({"help", "version"})
 
 
+#: the one exception to the rule: a repeatable flag names one item, its variable holds them all
+REPEATED = {"--policy-option": ENV_PREFIX + "POLICY_OPTIONS"}
+
+
 def env_for_flag(flag: str) -> str:
     """``--prometheus-port`` -> ``MORPH_PROMETHEUS_PORT``."""
     if not flag.startswith("--") or len(flag) < 3:
         raise ValueError(f"flag {flag!r} is not a long option like --scale")
-    return ENV_PREFIX + flag[2:].replace("-", "_").upper()
+    return REPEATED.get(flag) or ENV_PREFIX + flag[2:].replace("-", "_").upper()
 
 
 def flag_for_env(name: str) -> str:
     """``MORPH_PROMETHEUS_PORT`` -> ``--prometheus-port``."""
     if not name.startswith(ENV_PREFIX) or len(name) <= len(ENV_PREFIX):
         raise ValueError(f"environment variable {name!r} does not start with {ENV_PREFIX}")
+    for flag, env in REPEATED.items():
+        if env == name:
+            return flag
     return "--" + name[len(ENV_PREFIX):].lower().replace("_", "-")
 
 
@@ -52,7 +59,9 @@ def config_variables() -> list[Variable]:
     """One variable per RunConfig field, in field order."""
     out = []
     for name, info in RunConfig.model_fields.items():
-        if info.default_factory is not None:
+        if name == "policy_options":
+            default = None  # none: the policy's own defaults
+        elif info.default_factory is not None:
             default = "generated"
         else:
             value = info.get_default(call_default_factory=False)

@@ -13,6 +13,7 @@ Invalid values raise ``ValueError`` naming the field (pydantic ``ValidationError
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import time
 from collections.abc import Mapping
@@ -23,9 +24,11 @@ from typing import Any, Literal, get_args
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from schemas.keys import validate_run_id
-from services.policies.coordinators import POLICY_NAMES
 
 ENV_PREFIX = "MORPH_"
+OptionValue = str | int | float | bool | None
+#: a policy's own fields that RunConfig also sets by a flag of its own (kept: the CLI is stable)
+POLICY_FLAGS = {"constant": ("p",), "proximity": ("radius",), "morph": ("preset", "ablation")}
 PRESETS = ("reference", "paper")
 
 
@@ -43,8 +46,12 @@ class RunConfig(BaseModel):
     scale: str = Field(default="tiny", description="warehouse size: tiny, small, medium, large, extralarge")
     agvs: int | None = Field(default=None, ge=1, le=2048, description="number of AGVs (default: the scale's)")
     pickers: int | None = Field(default=None, ge=1, le=2048, description="number of pickers (default: the scale's)")
-    policy: Literal[POLICY_NAMES] = Field(  # type: ignore[valid-type]
-        default="morph", description="coordination policy")
+    policy: str = Field(
+        default="morph", description="coordination policy: a shipped name (full, full-broadcast, constant, tsg, "
+        "proximity, none, morph), an installed one (entry point group morph_sim.policies) or package.module:Class")
+    policy_options: dict[str, OptionValue] = Field(
+        default_factory=dict, description="a parameter of the policy (`morph-sim policy show NAME` lists them); "
+        "in the environment KEY=VALUE,KEY=VALUE or a JSON object")
     preset: Literal["reference", "paper"] = Field(default="reference", description="MORPH preset")
     ablation: str | None = Field(default=None, description="MORPH ablation name (None = full model)")
     p: float = Field(default=0.25, ge=0.0, le=1.0, description="gate probability of the constant policy")
@@ -131,6 +138,11 @@ class RunConfig(BaseModel):
             raise ValueError(f"{value!r} is not a Zenoh endpoint like tcp/127.0.0.1:7447")
         return value
 
+    @field_validator("policy_options", mode="before")
+    @classmethod
+    def _policy_options(cls, value: Any) -> Any:
+        return parse_policy_options(value)
+
     @model_validator(mode="after")
     def _ablation(self) -> RunConfig:
         if self.ablation is not None and self.policy == "morph":
@@ -138,6 +150,17 @@ class RunConfig(BaseModel):
 
             if self.ablation != "full" and self.ablation not in ABLATIONS:
                 raise ValueError(f"ablation: unknown {self.ablation!r} (known: {', '.join(ABLATIONS)})")
+        return self
+
+    @model_validator(mode="after")
+    def _policy(self) -> RunConfig:
+        from services.policies.loading import check_name
+
+        check_name(self.policy)
+        for key in self.policy_options:
+            if key in POLICY_FLAGS.get(self.policy, ()) and key in self.model_fields_set:
+                raise ValueError(f"policy-option {key}: also given as {self.flag(key)}; give it once")
+        self.make_policy()  # one line naming the policy or the option when either is bad
         return self
 
     @model_validator(mode="after")
@@ -179,20 +202,25 @@ class RunConfig(BaseModel):
     def record_dir(self) -> Path:
         return Path(self.output_dir) / self.run_id
 
-    def policy_options(self) -> dict[str, Any]:
-        """Keyword options of :func:`services.policies.coordinators.make_policy`."""
-        if self.policy == "constant":
-            return {"p": self.p}
-        if self.policy == "proximity":
-            return {"radius": self.radius}
+    def policy_arguments(self) -> dict[str, Any]:
+        """The options the policy is built with: a shipped policy's own flags (``--radius``, ``--preset`` …), then
+        ``policy_options``; MORPH also takes the episode length."""
+        out: dict[str, Any] = {name: getattr(self, name) for name in POLICY_FLAGS.get(self.policy, ())}
         if self.policy == "morph":
-            return {"preset": self.preset, "ablation": self.ablation, "episode_steps": self.steps}
-        return {}
+            out["episode_steps"] = self.steps
+        out.update(self.policy_options)
+        return out
 
     def make_policy(self):
-        from services.policies.coordinators import make_policy
+        from services.policies.loading import make_policy
 
-        return make_policy(self.policy, **self.policy_options())
+        return make_policy(self.policy, self.policy_arguments())
+
+    def policy_announcement(self):
+        """The policy this configuration builds, as the sim announces it and an agent compares it."""
+        from schemas.messages import PolicyAnnouncement
+
+        return PolicyAnnouncement(policy=self.policy, options=self.make_policy().options())
 
     def role_of(self, agent: int) -> str:
         if not 0 <= agent < self.n_agents:
@@ -202,7 +230,8 @@ class RunConfig(BaseModel):
     # -- transports: CLI flags, environment, argv --------------------------------------------------------------------
     @staticmethod
     def flag(name: str) -> str:
-        return "--" + name.replace("_", "-")
+        # a repeatable flag names one item (--policy-option KEY=VALUE), its field holds them all
+        return "--policy-option" if name == "policy_options" else "--" + name.replace("_", "-")
 
     @staticmethod
     def env_name(name: str) -> str:
@@ -222,7 +251,10 @@ class RunConfig(BaseModel):
         """Environment variables (``MORPH_<FIELD>``) that reproduce this config through :meth:`from_env`."""
         out = {}
         for name, value in self.model_dump(mode="json").items():
-            if value is not None:
+            if name == "policy_options":
+                if value:
+                    out[self.env_name(name)] = json.dumps(value, sort_keys=True)
+            elif value is not None:
                 out[self.env_name(name)] = str(value)
         return out
 
@@ -245,11 +277,50 @@ class RunConfig(BaseModel):
             value = dumped[name]
             if value is None:
                 continue
+            if name == "policy_options":
+                for key, option in value.items():
+                    argv += [self.flag(name), f"{key}={option_text(option)}"]
+                continue
             if is_switch(name):
                 argv.append(self.flag(name) if value else "--no-" + self.flag(name)[2:])
             else:
                 argv += [self.flag(name), str(value)]
         return argv
+
+
+def option_text(value: Any) -> str:
+    """A policy option's value as ``--policy-option`` writes it (JSON's spelling of true, false and null)."""
+    return value if isinstance(value, str) else json.dumps(value)
+
+
+def parse_policy_options(value: Any) -> Any:
+    """Policy options from a mapping, ``KEY=VALUE`` strings (the repeated flag), or one string (the environment:
+    a JSON object, or KEY=VALUE pairs separated by commas); ValueError naming the option otherwise. Values given as
+    text stay text: the policy's own parameter model converts them."""
+    from services.policies.loading import parse_option
+
+    if value is None:
+        return {}
+    if isinstance(value, str):
+        text = value.strip()
+        if text.startswith("{"):
+            try:
+                value = json.loads(text)
+            except json.JSONDecodeError as exc:
+                raise ValueError(f"policy_options: not a JSON object: {exc.msg}") from None
+            if not isinstance(value, dict):
+                raise ValueError("policy_options: not a JSON object")
+            return value
+        value = [part for part in text.split(",") if part.strip()]
+    if isinstance(value, list | tuple):
+        out: dict[str, str] = {}
+        for item in value:
+            key, text = parse_option(str(item))
+            if key in out:
+                raise ValueError(f"policy-option {key}: given twice")
+            out[key] = text
+        return out
+    return value
 
 
 def field_choices(name: str) -> tuple[str, ...] | None:
@@ -284,6 +355,10 @@ def add_config_arguments(parser: argparse.ArgumentParser, *, skip: tuple[str, ..
         if is_switch(name):
             group.add_argument(RunConfig.flag(name), dest=f"cfg_{name}", default=None,
                                action=argparse.BooleanOptionalAction, help=f"{info.description} {where}")
+            continue
+        if name == "policy_options":
+            group.add_argument(RunConfig.flag(name), dest=f"cfg_{name}", default=None, action="append",
+                               metavar="KEY=VALUE", help=f"{info.description}; repeatable (env {RunConfig.env_name(name)})")
             continue
         choices = field_choices(name)  # shown in the usage as {a,b,…}
         group.add_argument(RunConfig.flag(name), dest=f"cfg_{name}", default=None, choices=choices,

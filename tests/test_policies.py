@@ -6,16 +6,15 @@ import pytest
 from morph_sim.lab.runner import EpisodeSpec, run_episode
 from services.policies.coordinators import (
     ConstantPolicy,
-    Fleet,
     FullPolicy,
     MorphPolicy,
     NonePolicy,
     ProximityPolicy,
     TSGPolicy,
-    agent_rng,
     calibrate_radius,
-    make_policy,
 )
+from services.policies.interface import Fleet, agent_rng
+from services.policies.loading import make_policy
 from services.policies.presets import load_preset
 from services.world.cta import CTAController
 from services.world.warehouse import Warehouse, WarehouseConfig

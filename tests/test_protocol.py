@@ -17,7 +17,8 @@ from morph_sim.lab.network import (
 )
 from morph_sim.lab.runner import DispatchStats, EpisodeSpec, run_episode
 from schemas.faults import FaultSpec, Latency, Loss, Scope
-from services.policies.coordinators import Fleet, MorphPolicy
+from services.policies.coordinators import MorphPolicy
+from services.policies.interface import Fleet
 from services.protocol.dispatch import (
     AgvEndpoint,
     Commitment,

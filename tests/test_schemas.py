@@ -25,6 +25,7 @@ from schemas import (
     MetricSample,
     OnBoard,
     Partition,
+    PolicyAnnouncement,
     Refusal,
     RegistrationReply,
     RegistrationRequest,
@@ -162,6 +163,10 @@ MESSAGE_STRATEGIES: dict[type, st.SearchStrategy] = {
                                  role=st.sampled_from(["agv", "picker"]), n_agvs=st.integers(0, 99),
                                  n_pickers=st.integers(0, 99))
     | st.builds(RegistrationReply, ok=st.just(False), reason=st.text(max_size=20)),
+    PolicyAnnouncement: st.builds(PolicyAnnouncement, policy=st.sampled_from(["morph", "proximity", "pkg.mod:Cls"]),
+                                  options=st.dictionaries(st.text(min_size=1, max_size=8),
+                                                          st.none() | st.booleans() | st.integers(-9, 9)
+                                                          | st.text(max_size=8), max_size=4)),
 }
 
 

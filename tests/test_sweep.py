@@ -240,8 +240,8 @@ def test_a_sweep_file_equals_the_same_grid_on_the_command_line(tmp_path, capsys)
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--grid", "policy=morph,bogus"], "policy: Input should be 'full', 'full-broadcast', 'constant', 'tsg', "
-                                       "'proximity', 'none' or 'morph'"),
+    (["--grid", "policy=morph,bogus"], "policy: unknown 'bogus' (known: full, full-broadcast, constant, tsg, "
+                                       "proximity, none, morph; or package.module:Class)"),
     (["--grid", "scale=tiny,huge"], "scale: unknown size 'huge'"),
     (["--grid", "faults.loss=0,abc"], "faults.loss.percent: Input should be a valid number"),
     (["--grid", "faults.loss=0,150"], "faults.loss.percent: Input should be less than or equal to 100"),
@@ -277,8 +277,8 @@ def test_a_bad_value_from_a_real_process_is_one_line_and_exit_2(tmp_path):
     res = _cli("--grid", "policy=morph,bogus", "--out", str(tmp_path))
     assert res.returncode == 2 and res.stdout == ""
     assert res.stderr.strip().splitlines() == [
-        "morph-sim sweep: error: policy: Input should be 'full', 'full-broadcast', 'constant', 'tsg', 'proximity', "
-        "'none' or 'morph'"]
+        "morph-sim sweep: error: policy: unknown 'bogus' (known: full, full-broadcast, constant, tsg, proximity, "
+        "none, morph; or package.module:Class)"]
 
 
 def test_a_record_of_another_sweep_is_not_resumed(tmp_path, capsys):

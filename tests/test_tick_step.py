@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from schemas.network import NetworkProfile
-from services.policies.coordinators import Fleet, make_policy
+from services.policies.interface import Fleet
+from services.policies.loading import make_policy
 from services.protocol.dispatch import Commitment, CommitmentDesk, Outcomes
 from services.protocol.tick import (
     DemandShift,

@@ -28,6 +28,7 @@ from schemas.keys import FLEET, RunKeys, matches
 from schemas.tick import TickObservation
 from services.faults.layer import FaultLayer
 from services.faults.network import NetworkModel
+from services.policies.interface import policy_choice
 from services.protocol.dispatch import (
     EPS,
     Commitment,
@@ -334,7 +335,9 @@ class LabDispatch:
             view = obs if self.views is None else self.views[picker].view
             order = view.request_order if view is not None else ()
             rank = {int(a): i for i, a in enumerate(order)}
-            commit, replies = endpoint.decide(s_pick, not obs.free_picker[picker], rank, out)
+            brain = self.team_brain if self.agent_brains is None else self.agent_brains[picker]
+            commit, replies = endpoint.decide(s_pick, not obs.free_picker[picker], rank, out,
+                                              policy_choice(brain, picker, view))
             if commit is not None:
                 self.sent_commits.append((picker, commit.agv))
                 net.send(k.commit(picker), picker, "sim", commit, s_pick)

@@ -29,8 +29,10 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from morph_sim.lab.network import FLEET_KEY, DispatchStats, EventNetwork, LabDispatch, Team, dispatch_faults
 from schemas.faults import FaultSpec
 from services.metrics import catalogue, measures
-from services.policies.conditions import make_condition_policy
-from services.policies.coordinators import CoordinationPolicy, Fleet, MorphPolicy
+from services.policies.conditions import make_condition_policy, select
+from services.policies.coordinators import MorphPolicy
+from services.policies.interface import CoordinationPolicy, Fleet
+from services.policies.loading import make_policy
 from services.protocol.dispatch import DEFAULT_REQUEST_TIMEOUT
 from services.protocol.tick import (
     DemandShift,
@@ -71,8 +73,18 @@ class EpisodeSpec(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     scale: str
+    #: a key of services.policies.conditions.CONDITIONS, or (with ``policy_name``) the episode's label
     condition: str
     seed: int
+    #: a policy by name, any ``--policy`` takes (shipped, installed, package.module:Class), built with
+    #: ``policy_options``; None: the condition's policy
+    policy_name: str | None = None
+    policy_options: dict[str, str | int | float | bool | None] = Field(default_factory=dict)
+    #: one brain per robot even where every robot holds the same view (the conformance kit compares the two)
+    per_robot_brains: bool = False
+    #: count the ticks where the other dispatch mode would have committed otherwise (it replays every gate: the
+    #: conformance kit, which watches each decision, turns it off)
+    compare_dispatch: bool = True
     steps: int = Field(default=800, ge=1)
     preset: str = "reference"
     radius: int | None = Field(default=None, ge=0)
@@ -115,7 +127,19 @@ class EpisodeSpec(BaseModel):
             raise ValueError(f"steps: {self.steps} != {len(self.demand_phases)} phases × {self.phase_steps} steps")
         return self
 
+    @model_validator(mode="after")
+    def _policy_known(self) -> EpisodeSpec:
+        if self.policy_name is None:
+            if self.policy_options:
+                raise ValueError("policy_options: options need policy_name")
+            select([self.condition])
+        else:
+            self.policy()  # one line naming the policy or the option
+        return self
+
     def policy(self) -> CoordinationPolicy:
+        if self.policy_name is not None:
+            return make_policy(self.policy_name, self.policy_options)
         # MORPH-reset clears its state at every phase boundary of a shift episode
         reset = self.phase_steps if self.demand_phases else None
         return make_condition_policy(self.condition, self.preset, self.radius, reset_every=reset, steps=self.steps)
@@ -156,8 +180,10 @@ class EpisodeResult:
     snapshots: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
 
 
-def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> EpisodeResult:
-    """Run one episode on the pure core. ``trace_hook(obs, brains)`` is called after each update.
+def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=(), policy: CoordinationPolicy | None = None
+                ) -> EpisodeResult:
+    """Run one episode on the pure core. ``trace_hook(obs, brains)`` is called after each update; ``policy``
+    replaces the spec's (the conformance kit runs a policy wrapped to watch its decisions).
 
     ``snapshot_ticks``: copies of the team's W after the update that opens each of these ticks (tick T: the
     final update), returned in ``EpisodeResult.snapshots``.
@@ -169,14 +195,14 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
     cta.reset(spec.seed)
     fleet = Fleet(cta.n_agvs, cta.n_pickers, spec.scale)
     n, T = fleet.n, spec.steps
-    policy = spec.policy()
+    policy = spec.policy() if policy is None else policy
     shared = cta.shared_rng if spec.shared_stream else None
     faults = episode_faults(spec)
     driver: LabDispatch | None = None
     model = _network_model(spec, wh)
     if spec.dispatch == "concurrent":
         net = EventNetwork(faults, seed=spec.seed, model=model)
-        if net.touches(FLEET_KEY):
+        if net.touches(FLEET_KEY) or spec.per_robot_brains:
             # the fleet broadcast can be late or lost: every agent learns and gates from its own view
             agent_brains = [policy.brains(fleet, [i], spec.seed) for i in range(n)]
             brains = Team(agent_brains)
@@ -251,7 +277,7 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=()) -> Episod
         if driver is not None:
             driver.dispatch(obs, step.settle, stats, draw)
             sent = driver.sent_commits
-            if not faults and driver.team_brain is not None:
+            if not faults and driver.team_brain is not None and spec.compare_dispatch:
                 draws = driver.last_draws
                 other = sequential_commits(obs, brains, lambda agv, draws=draws: draws.get(agv, float("inf")))
                 rank = {int(a): i for i, a in enumerate(obs.request_order)}

@@ -54,7 +54,7 @@ ENGINES = ("lab", "services")
 METRICS = catalogue.episode_metrics("deliveries", "mean_links", "requests", "commits", "lab_gate_decisions",
                                     "lab_mean_p_respond", "median_lifetime", "eta_mean")
 #: RunConfig fields the lab engine models; others change nothing on the pure core and are refused there
-LAB_FIELDS = ("scale", "policy", "preset", "ablation", "radius", "seed", "steps", "network")
+LAB_FIELDS = ("scale", "policy", "policy_options", "preset", "ablation", "p", "radius", "seed", "steps", "network")
 #: fields the sweep sets itself (per episode or per sweep)
 MANAGED_FIELDS = ("run_id", "seed", "output_dir", "fault_schedule", "endpoint", "listen")
 PARQUET_HINT = "pip install pyarrow (or 'morph-sim[data]') for results.parquet"
@@ -237,6 +237,11 @@ class SweepPlan(BaseModel):
             if self.engine == "lab" and name not in LAB_FIELDS:
                 raise ValueError(f"{name}: the lab engine does not model it (it models "
                                  f"{', '.join(LAB_FIELDS)}); use --engine services")
+            if name == "policy_options":  # a policy's options mean something only beside its policy: checked with it
+                from services.runconfig import parse_policy_options
+
+                out.append(parse_policy_options(v))
+                continue
             cfg = RunConfig.coerce({"run_id": "sweep", name: v})
             out.append(cfg.model_dump(mode="json")[name])
         if len(set(map(json.dumps, out))) != len(out):
@@ -281,9 +286,11 @@ class SweepPlan(BaseModel):
         from services.policies.conditions import key_of
 
         cfg = self.config(condition, seed)
-        if cfg.policy == "constant" and cfg.p != 0.25:
-            raise ValueError("p: the lab engine's constant policy gates at 0.25; use --engine services")
-        lab_condition = key_of(cfg.policy, cfg.ablation if cfg.policy == "morph" else None)
+        from services.policies.coordinators import POLICIES
+
+        # a policy from outside, or one with options of its own: built by name, as the services build it
+        by_name = cfg.policy not in POLICIES or bool(cfg.policy_options) or (cfg.policy == "constant" and cfg.p != 0.25)
+        lab_condition = cfg.policy if by_name else key_of(cfg.policy, cfg.ablation if cfg.policy == "morph" else None)
         loss = 0.0
         for name, value in self.fault_params(condition).items():
             if name == "faults.loss.percent":
@@ -294,7 +301,9 @@ class SweepPlan(BaseModel):
                 raise ValueError(f"{name}: the lab engine models message loss only (faults.loss, bursty); "
                                  "use --engine services")
         return EpisodeSpec(scale=cfg.scale, condition=lab_condition, seed=seed, steps=cfg.steps, preset=cfg.preset,
-                           radius=cfg.radius if lab_condition == "proximity" else None,
+                           policy_name=cfg.policy if by_name else None,
+                           policy_options=cfg.policy_arguments() if by_name else {},
+                           radius=cfg.radius if lab_condition == "proximity" and not by_name else None,
                            fiedler_every=min(self.fiedler_every, cfg.steps), loss_percent=loss,
                            network=cfg.network)
 

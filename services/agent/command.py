@@ -60,6 +60,13 @@ class ClaimingAgent:
                 raise ValueError(f"agvs/pickers: the sim's fleet is {reply.n_agvs}+{reply.n_pickers}, this agent's "
                                  f"configuration {self.config.n_agvs}+{self.config.n_pickers}")
             self.agent_id, self.role = reply.agent_id, reply.role
+        self._claim = asyncio.ensure_future(self._check_policy())  # a stop while it waits cancels it
+        try:
+            await self._claim
+        except asyncio.CancelledError:
+            if self._stopped:
+                return AgentCounters()
+            raise
         from services.process import announce
 
         announce("agent", f"agent {self.agent_id} ({self.config.role_of(self.agent_id)}) of run {self.config.run_id}, "
@@ -73,6 +80,17 @@ class ClaimingAgent:
         if self._stopped:
             return AgentCounters()
         return await self.service.run()
+
+    async def _check_policy(self) -> None:
+        """Join only a run whose sim built the same policy as this agent (ValueError naming both otherwise)."""
+        from schemas.keys import RunKeys
+        from services.bus.registry import fetch_policy
+        from services.protocol.registry import policy_mismatch
+
+        announced = await fetch_policy(self.bus, RunKeys(self.config.run_id), timeout=self.config.ready_timeout)
+        why = policy_mismatch(self.config.policy_announcement(), announced)
+        if why is not None:
+            raise ValueError(why)
 
     def stop(self) -> None:
         self._stopped = True

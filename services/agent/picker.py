@@ -10,6 +10,7 @@ import asyncio
 from schemas import Ack, Commit, HelpReply, HelpRequest, OnBoard, Phase, Resolve
 from services.agent.service import AgentService, check_from_sim
 from services.bus.base import Sample
+from services.policies.interface import policy_choice
 from services.protocol import dispatch as protocol
 
 
@@ -159,7 +160,8 @@ class PickerService(AgentService):
         now = t * self.config.dt + self.config.dt / 2  # the picker's decision point of step t
         view = self.fleet.view  # the mission order as this picker last heard it (the tie-break)
         rank = {int(a): i for i, a in enumerate(view.request_order)} if view is not None else {}
-        commit, replies = self.endpoint.decide(now, self._assigned, rank, self.outcomes)
+        commit, replies = self.endpoint.decide(now, self._assigned, rank, self.outcomes,
+                                               policy_choice(self.brains, self.id, view))
         # requests delivered later, or still held by the network, need this picker's next decision point too
         held = self._virtual and (self.faults.vtime.pending > 0 or self._holding)
         self._answer(t, commit, replies, bool(self.endpoint.inbox) or held)

@@ -31,8 +31,6 @@ import logging
 import threading
 from dataclasses import dataclass
 
-import numpy as np
-
 from schemas import Ack, AgentState, Event, OnBoard, Phase, Refusal, Stop
 from schemas.codec import encode_fields
 from schemas.keys import RunKeys
@@ -41,7 +39,8 @@ from services.agent.arrivals import ArrivalHook
 from services.agent.restore import restore_state
 from services.bus.base import Bus, Sample
 from services.intake import Intake
-from services.policies.coordinators import Fleet, MorphBrains
+from services.policies.coordinators import MorphBrains
+from services.policies.interface import Fleet, state_message
 from services.protocol import dispatch as protocol
 from services.protocol.readiness import Readiness
 from services.runconfig import RunConfig
@@ -297,24 +296,7 @@ class AgentService:
         raise NotImplementedError
 
     def state_message(self, t: int) -> AgentState:
-        b = self.brains
-        w = b.weight_rows()[0]
-        a = b.link_rows()[0]
-        n = len(w)
-        theta = np.zeros(n)
-        age = np.zeros(n, dtype=int)
-        h = eta = d_hat = 0.0
-        if isinstance(b, MorphBrains):
-            s = b.state
-            if b.preset == "reference":
-                theta, age = s.theta_bcm[0, self.id], s.age[0, self.id]
-            else:
-                theta, age = s.theta_bcm[0], s.age[0]
-            h, eta, d_hat = float(b.h()[0]), float(s.eta), float(s.dhat)
-        return AgentState(
-            agent=self.id, role=self.role, t=t, w_row=[float(v) for v in w], a_row=[bool(v) for v in a],
-            theta_row=[float(v) for v in theta], age_row=[int(v) for v in age], h=h, eta=eta, d_hat=d_hat,
-            seq=self._next_seq())
+        return state_message(self.brains, self.id, self.role, t, self._next_seq())
 
     # -- refusals (both roles) -------------------------------------------------------------------------------------
     def _on_refusal(self, sample: Sample) -> None:

@@ -15,7 +15,7 @@ from collections.abc import Callable
 
 from schemas.codec import decode
 from schemas.keys import RunKeys
-from schemas.messages import RegistrationReply, RegistrationRequest
+from schemas.messages import PolicyAnnouncement, RegistrationReply, RegistrationRequest
 from services.protocol.registry import (
     DEFAULT_HOLD,
     INVALID,
@@ -33,8 +33,9 @@ class Registry:
     """The sim side: serves ``morph/<run>/registry`` on a Bus and follows the agents' liveliness tokens."""
 
     def __init__(self, bus, keys: RunKeys, n_agvs: int, n_pickers: int, *, hold: float = DEFAULT_HOLD,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] = time.monotonic, policy: PolicyAnnouncement | None = None):
         self.bus = bus
+        self.policy = policy
         self.keys = keys
         self.allocator = IdAllocator(n_agvs, n_pickers, hold)
         self.alive: set[int] = set()
@@ -47,7 +48,12 @@ class Registry:
         self._entities.append(await self.bus.subscribe_liveliness(self.keys.alive_all, self._on_liveliness,
                                                                   history=True))
         self._entities.append(await self.bus.declare_queryable(self.keys.registry, self._on_query))
+        if self.policy is not None:
+            self._entities.append(await self.bus.declare_queryable(self.keys.registry_policy, self._on_policy_query))
         return self
+
+    def _on_policy_query(self, query) -> None:
+        query.reply(self.keys.registry_policy, self.policy)
 
     async def close(self) -> None:
         for entity in reversed(self._entities):
@@ -89,9 +95,33 @@ class Registry:
 
 
 async def mount_registry(bus, keys: RunKeys, n_agvs: int, n_pickers: int, *, hold: float = DEFAULT_HOLD,
-                         clock: Callable[[], float] = time.monotonic) -> Registry:
-    """Serve the registration queryable of ``keys.run`` on ``bus`` (the sim calls this before readiness)."""
-    return await Registry(bus, keys, n_agvs, n_pickers, hold=hold, clock=clock).start()
+                         clock: Callable[[], float] = time.monotonic,
+                         policy: PolicyAnnouncement | None = None) -> Registry:
+    """Serve the registration queryable of ``keys.run`` on ``bus`` (the sim calls this before readiness), and the
+    announcement of the run's ``policy``."""
+    return await Registry(bus, keys, n_agvs, n_pickers, hold=hold, clock=clock, policy=policy).start()
+
+
+async def fetch_policy(bus, keys: RunKeys, *, timeout: float = 60.0, query_timeout: float = 2.0
+                       ) -> PolicyAnnouncement:
+    """The run's policy as its sim announces it; retries until ``timeout`` seconds, then RegistrationError."""
+    deadline = time.monotonic() + timeout
+    delay, last = 0.1, "no answer (is the sim running and reachable?)"
+    while True:
+        remaining = deadline - time.monotonic()
+        for reply in await bus.get(keys.registry_policy, timeout=max(0.05, min(query_timeout, remaining))):
+            if not reply.ok:
+                last = f"error {reply.error!r}"
+                continue
+            try:
+                return reply.decode(PolicyAnnouncement)
+            except ValueError as exc:
+                last = f"undecodable announcement: {exc}"
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise RegistrationError(f"policy: the run's policy on {keys.registry_policy}: {last}")
+        await asyncio.sleep(min(delay, remaining))
+        delay = min(delay * 2, 1.0)
 
 
 def default_instance(environ: dict[str, str] | os._Environ = os.environ, pid: int | None = None) -> str:

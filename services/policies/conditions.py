@@ -13,7 +13,9 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from services.policies.coordinators import CoordinationPolicy, MorphPolicy, ProximityPolicy, make_policy
+from services.policies.coordinators import MorphPolicy, ProximityPolicy
+from services.policies.interface import CoordinationPolicy
+from services.policies.loading import make_policy
 
 #: RunConfig's default link radius of the proximity policy: the radius where a study does not calibrate one
 DEFAULT_RADIUS = 4

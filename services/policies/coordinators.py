@@ -17,122 +17,25 @@ dispatch with P = 1 or 0 and consume no random number, as in the reference.
 
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
+from pydantic import Field, field_validator
 
 from schemas.tick import NEEDS_PICKER, TickObservation
+from services.policies.interface import (
+    CoordinationPolicy,
+    Coordinator,
+    PolicyParams,
+    SavedState,
+    validate_options,
+)
 from services.policies.plasticity import PaperInputs, PaperState, ReferenceState
 from services.policies.presets import ABLATIONS, MorphParams, load_preset
 
 W_FLOOR = 0.25  # the reference's gate floor for the memoryless gates (TSG, Proximity)
-
-
-@dataclass(frozen=True)
-class Fleet:
-    """The fleet an agent belongs to: sizes (AGVs first) and the scale name (for d_exp)."""
-
-    n_agvs: int
-    n_pickers: int
-    scale: str | None = None
-
-    @property
-    def n(self) -> int:
-        return self.n_agvs + self.n_pickers
-
-
-def agent_rng(seed: int, agent: int) -> np.random.Generator:
-    """Agent ``agent``'s own gate stream: independent of the warehouse's and of the other agents'."""
-    return np.random.default_rng(np.random.SeedSequence(entropy=seed, spawn_key=(agent,)))
-
-
-class Coordinator(ABC):
-    """Coordination state and decisions of the agents in ``owners`` (indices into the fleet): one robot in an agent
-    service, the whole team in the lab."""
-
-    #: whether the gate consumes a uniform draw per request
-    draws: ClassVar[bool] = True
-    #: whether links are recomputed from the current tick (no memory): then the links of step t are
-    #: known after ``learn(obs_t)``; for plastic policies they are known after ``learn(obs_{t+1})``
-    memoryless: ClassVar[bool] = True
-    #: whether an AGV asks every free picker at once (services.protocol.dispatch.gate) instead of one
-    broadcast: ClassVar[bool] = False
-
-    def __init__(self, fleet: Fleet, owners, seed: int) -> None:
-        self.fleet = fleet
-        self.owners = np.asarray(list(owners), dtype=int)
-        if self.owners.size and (self.owners.min() < 0 or self.owners.max() >= fleet.n):
-            raise ValueError(f"owners: agent indices must lie in 0..{fleet.n - 1}")
-        self._slot = {int(a): k for k, a in enumerate(self.owners)}
-        self._rngs = [agent_rng(seed, int(a)) for a in self.owners]
-
-    def slot(self, agent: int) -> int:
-        try:
-            return self._slot[agent]
-        except KeyError:
-            raise ValueError(f"agent: {agent} is not owned by these brains") from None
-
-    def draw(self, agent: int) -> float:
-        """One uniform draw from the agent's own gate stream."""
-        return float(self._rngs[self.slot(agent)].random())
-
-    def learn(self, obs: TickObservation) -> None:  # noqa: B027 - memoryless default
-        """Apply the update for step ``obs.t - 1`` (and refresh per-tick topology)."""
-
-    def candidate(self, agv: int, obs: TickObservation, free: np.ndarray | None = None) -> int:
-        """The picker this AGV asks: the nearest free one to its target (the reference's rule)."""
-        return obs.nearest_free_picker(agv, free)
-
-    @abstractmethod
-    def probability(self, agv: int, picker: int, obs: TickObservation) -> float:
-        """P(respond) for this AGV asking this picker at this tick."""
-
-    @abstractmethod
-    def link_rows(self) -> np.ndarray:
-        """(B, n) 0/1 out-links of the owned agents (row k is agent owners[k])."""
-
-    def out_links(self, agent: int) -> list[int]:
-        """The robot ids owned agent ``agent`` links to (what its ack reports every tick)."""
-        return np.flatnonzero(self.link_rows()[self.slot(agent)]).tolist()
-
-    def weight_rows(self) -> np.ndarray:
-        """(B, n) preference weights of the owned agents (the gate's W)."""
-        return self.link_rows().astype(float)
-
-    # metrics helpers for a bank that owns the whole fleet
-    def team_links(self) -> np.ndarray:
-        """(n, n) the fleet's link matrix, row i from agent i's own state (needs all agents owned)."""
-        return self._team(self.link_rows())
-
-    def team_weights(self) -> np.ndarray:
-        return self._team(self.weight_rows())
-
-    def _team(self, rows: np.ndarray) -> np.ndarray:
-        n = self.fleet.n
-        if len(self.owners) != n:
-            raise ValueError("owners: the team view needs every agent of the fleet")
-        out = np.zeros((n, n))
-        out[self.owners] = rows
-        return out
-
-    def extra_metrics(self) -> dict[str, float]:
-        return {}
-
-
-class CoordinationPolicy(ABC):
-    """A named coordination policy; ``brains`` builds the per-agent state."""
-
-    name: str = ""
-    #: its AGVs send a request to every free picker at once (the sim then takes several requests per AGV a tick)
-    broadcast: ClassVar[bool] = False
-
-    @abstractmethod
-    def brains(self, fleet: Fleet, owners, seed: int) -> Coordinator: ...
-
-    def describe(self) -> dict:
-        return {"name": self.name}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -222,27 +125,23 @@ class _ProximityBrains(_TopologyBrains):
 
 
 class _SimplePolicy(CoordinationPolicy):
-    """A policy whose brains are ``BRAINS(fleet, owners, seed, *parameters)``; ``PARAMS`` names the parameter
-    fields, each checked on creation (:meth:`_problem`) and shown by :meth:`describe`."""
+    """A shipped policy whose brains are ``BRAINS(fleet, owners, seed, *parameters)``: a frozen dataclass whose
+    parameter fields are its ``Params`` model's (the model validates them on creation and names a bad one)."""
 
     BRAINS: ClassVar[type[Coordinator]]
-    PARAMS: ClassVar[tuple[str, ...]] = ()
 
     def __post_init__(self):
-        for param in self.PARAMS:
-            problem = self._problem(getattr(self, param))
-            if problem:
-                raise ValueError(f"{param}: {problem}")
+        validate_options(type(self), self.options())
 
-    def _problem(self, value) -> str | None:
-        """Why ``value`` is not a valid parameter, or None."""
-        return None
+    @classmethod
+    def from_params(cls, params):
+        return cls(**params.model_dump())
+
+    def options(self):
+        return {name: getattr(self, name) for name in self.Params.model_fields}
 
     def brains(self, fleet, owners, seed):
-        return self.BRAINS(fleet, owners, seed, *(getattr(self, param) for param in self.PARAMS))
-
-    def describe(self):
-        return {"name": self.name, **{param: getattr(self, param) for param in self.PARAMS}}
+        return self.BRAINS(fleet, owners, seed, *self.options().values())
 
 
 @dataclass(frozen=True)
@@ -264,15 +163,16 @@ class NonePolicy(_SimplePolicy):
     BRAINS: ClassVar[type[Coordinator]] = _NoneBrains
 
 
+class ConstantParams(PolicyParams):
+    p: float = Field(default=0.25, ge=0.0, le=1.0, description="gate probability of every request")
+
+
 @dataclass(frozen=True)
 class ConstantPolicy(_SimplePolicy):
     p: float = 0.25
     name: str = "constant"
+    Params: ClassVar[type[PolicyParams]] = ConstantParams
     BRAINS: ClassVar[type[Coordinator]] = _ConstantBrains
-    PARAMS: ClassVar[tuple[str, ...]] = ("p",)
-
-    def _problem(self, value):
-        return None if 0.0 <= value <= 1.0 else f"gate probability must lie in [0, 1], got {value}"
 
 
 @dataclass(frozen=True)
@@ -281,15 +181,16 @@ class TSGPolicy(_SimplePolicy):
     BRAINS: ClassVar[type[Coordinator]] = _TSGBrains
 
 
+class ProximityParams(PolicyParams):
+    radius: int = Field(default=4, ge=0, description="link radius: robots within this Manhattan distance link")
+
+
 @dataclass(frozen=True)
 class ProximityPolicy(_SimplePolicy):
     radius: int = 4
     name: str = "proximity"
+    Params: ClassVar[type[PolicyParams]] = ProximityParams
     BRAINS: ClassVar[type[Coordinator]] = _ProximityBrains
-    PARAMS: ClassVar[tuple[str, ...]] = ("radius",)
-
-    def _problem(self, value):
-        return None if value >= 0 else f"must be >= 0, got {value}"
 
 
 #: the radii the reference's calibration tries (docs/morph.md)
@@ -450,6 +351,58 @@ class MorphBrains(Coordinator):
     def weight_rows(self):
         return self._rows(self.state.W)
 
+    def save(self, agent):
+        s, k = self.state, self.slot(agent)
+        if self.preset == "reference":
+            r = self._rep[k]
+            theta, age, h = s.theta_bcm[r, agent], s.age[r, agent], s.h[r, agent]
+            # the previous step's co-assignment: the credit of the next update
+            scalars, rows = {}, {"j_prev": [float(v) for v in s.j_prev[r, agent]]}
+        else:
+            theta, age, h = s.theta_bcm[k], s.age[k], s.h[k]
+            # the task labels of the mutual-information window (small integers), and how far it is filled
+            scalars = {"filled": float(s.filled), "baseline": float(s.baseline)}
+            rows = {f"history_{i}": [int(v) for v in s.history[i]] for i in range(len(s.history))}
+        return SavedState(theta_row=[float(v) for v in theta], age_row=[int(v) for v in age], h=float(h),
+                          eta=float(s.eta), d_hat=float(s.dhat), scalars=scalars, rows=rows)
+
+    def restore(self, agent, states):
+        """Paper preset (directed rows): the robot's own row of W, A, BCM thresholds and link ages, its h, η, d̂.
+        Reference preset (each robot holds a replica of the symmetric state): every robot's row from that robot's
+        latest state (rows may come from different ticks: the replica is as fresh as the record), the own row last
+        so it wins where the symmetric halves disagree; the fleet-level d̂ and η from the own state. The step counter
+        is set to the state's tick, so structural updates stay in phase."""
+        own = states.get(agent)
+        if own is None:
+            return None
+        s = self.state
+        if self.preset == "reference":
+            r = self._rep[self.slot(agent)]
+            for j, st in sorted(states.items(), key=lambda kv: kv[0] == agent):  # own row last
+                s.W[r, j] = st.w_row
+                s.A[r, j] = np.asarray(st.a_row, dtype=float)
+                s.theta_bcm[r, j] = st.theta_row
+                s.age[r, j] = st.age_row
+                s.h[r, j] = st.h
+                if "j_prev" in st.rows:  # a state published before it was saved restarts it empty
+                    s.j_prev[r, j] = st.rows["j_prev"]
+        else:
+            k = self.slot(agent)
+            s.W[k] = own.w_row
+            s.A[k] = np.asarray(own.a_row, dtype=float)
+            s.theta_bcm[k] = own.theta_row
+            s.age[k] = own.age_row
+            s.h[k] = own.h
+            window = [own.rows.get(f"history_{i}") for i in range(len(s.history))]
+            if all(row is not None for row in window):
+                s.history[:] = np.asarray(window, dtype=np.int64)
+                s.filled = int(own.scalars.get("filled", s.filled))
+                s.baseline = float(own.scalars.get("baseline", s.baseline))
+        s.dhat = own.d_hat
+        s.eta = own.eta
+        s.t = own.t
+        return own.t
+
     def extra_metrics(self):
         s = self.state
         return {
@@ -469,6 +422,28 @@ class MorphBrains(Coordinator):
         return self._h_rows()
 
 
+class MorphOptions(PolicyParams):
+    preset: str = Field(default="reference", description="MORPH preset: reference, paper, or a preset .toml path")
+    ablation: str | None = Field(default=None, description="ablation of the preset (None or full: the whole model)")
+    reset_every: int | None = Field(default=None, ge=0, description="clear the links every this many ticks "
+                                    "(None: the preset's period)")
+    episode_steps: int | None = Field(default=None, ge=1, description="the episode length T, for a preset that "
+                                      "anneals its formation threshold over the episode (the run's --steps)")
+
+    @field_validator("preset")
+    @classmethod
+    def _preset(cls, value: str) -> str:
+        load_preset(value)
+        return value
+
+    @field_validator("ablation")
+    @classmethod
+    def _ablation(cls, value: str | None) -> str | None:
+        if value not in (None, "full") and value not in ABLATIONS:
+            raise ValueError(f"unknown ablation {value!r} (known: {', '.join(ABLATIONS)})")
+        return value
+
+
 @dataclass(frozen=True)
 class MorphPolicy(CoordinationPolicy):
     preset: str = "reference"
@@ -480,16 +455,18 @@ class MorphPolicy(CoordinationPolicy):
     reset_every: int | None = None
     #: the episode length T, for a preset that anneals θ_form over the episode (paper); None: the preset's fallback
     episode_steps: int | None = None
+    Params: ClassVar[type[PolicyParams]] = MorphOptions
 
     def __post_init__(self):
-        loaded = load_preset(self.preset)
-        if self.ablation not in (None, "full") and self.ablation not in ABLATIONS:
-            raise ValueError(f"ablation: unknown {self.ablation!r} (known: {', '.join(ABLATIONS)})")
-        if self.reset_every is not None and self.reset_every < 0:
-            raise ValueError(f"reset_every: must be >= 0, got {self.reset_every}")
-        if self.episode_steps is not None and self.episode_steps < 1:
-            raise ValueError(f"episode_steps: must be >= 1, got {self.episode_steps}")
-        loaded.resolve(self.ablation)
+        validate_options(type(self), self.options())
+        load_preset(self.preset).resolve(self.ablation)
+
+    @classmethod
+    def from_params(cls, params):
+        return cls(**params.model_dump())
+
+    def options(self):
+        return {name: getattr(self, name) for name in self.Params.model_fields}
 
     @property
     def params(self) -> MorphParams:
@@ -508,8 +485,7 @@ class MorphPolicy(CoordinationPolicy):
         return {"name": self.name, "preset": self.preset, "ablation": self.ablation or "full"}
 
 
-#: The coordination policies by name: the one list that the run configuration (and so every CLI's --policy and
-#: MORPH_POLICY), the lab's conditions and this factory read.
+#: The shipped coordination policies by name (services/policies/loading.py adds installed and importable ones).
 POLICIES: dict[str, type[CoordinationPolicy]] = {
     "full": FullPolicy,
     "full-broadcast": BroadcastPolicy,
@@ -520,13 +496,3 @@ POLICIES: dict[str, type[CoordinationPolicy]] = {
     "morph": MorphPolicy,
 }
 POLICY_NAMES = tuple(POLICIES)
-
-
-def make_policy(name: str, **options) -> CoordinationPolicy:
-    """A policy by name with its options (p for constant, radius for proximity, preset/ablation for morph)."""
-    if name not in POLICIES:
-        raise ValueError(f"policy: unknown {name!r} (known: {', '.join(POLICY_NAMES)})")
-    try:
-        return POLICIES[name](**options)
-    except TypeError as exc:
-        raise ValueError(f"policy.{name}: {exc}") from None

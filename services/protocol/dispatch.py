@@ -25,6 +25,7 @@ mission order.
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, fields, replace
 
@@ -306,12 +307,15 @@ class PickerEndpoint:
             self.pending = None
 
     def decide(self, now: float, assigned: bool, rank: Mapping[int, int],
-               outcomes: Outcomes) -> tuple[Commitment | None, list[Reply]]:
+               outcomes: Outcomes, choose: Callable[[list[int]], int] | None = None
+               ) -> tuple[Commitment | None, list[Reply]]:
         """At the picker's decision point ``now``: the commitment to send (or None) and the replies.
 
         ``assigned``: the picker's on-board state says it has a mission (then its commitment, if any, took effect).
         ``rank``: the fleet's mission order as the picker last saw it (AGV → position), the tie-break between
-        requests delivered at the same time. Requests delivered after ``now`` wait for the next decision point."""
+        requests delivered at the same time. Requests delivered after ``now`` wait for the next decision point.
+        ``choose(agvs)``: the policy's choice among the requesting AGVs when the picker may commit (an index into
+        ``agvs``, -1 for none; :meth:`services.policies.interface.Coordinator.choose`); default the first."""
         self.check_pending(now, assigned, outcomes)
         if not self.inbox:
             return None, []
@@ -323,8 +327,11 @@ class PickerEndpoint:
         ready.sort(key=lambda dr: (dr[0], rank.get(dr[1].agv, last), dr[1].agv, dr[1].seq))
         commit = None
         replies = []
-        for _, req in ready:
-            take = commit is None and not assigned and self.pending is None
+        chosen = 0
+        if choose is not None and not assigned and self.pending is None:
+            chosen = check_choice(choose([req.agv for _, req in ready]), len(ready), self.picker)
+        for k, (_, req) in enumerate(ready):
+            take = k == chosen and not assigned and self.pending is None
             if take:
                 self._seq = self._next_seq() if self._next_seq is not None else self._seq + 1
                 commit = Commitment(self.picker, req.agv, req.cell, now, self._seq)
@@ -333,6 +340,17 @@ class PickerEndpoint:
                 outcomes.declined += 1
             replies.append(Reply(self.picker, req.agv, take, now, req.seq))
         return commit, replies
+
+
+def check_choice(chosen, n: int, picker: int) -> int:
+    """A policy's choice among ``n`` requests as an index (-1: none); ValueError naming the picker otherwise."""
+    try:
+        k = operator.index(chosen)
+    except TypeError:
+        k = None
+    if k is None or not -1 <= k < n:
+        raise ValueError(f"choose: picker {picker} chose {chosen!r} of {n} requests (an index, or -1 for none)")
+    return k
 
 
 class CommitmentDesk:

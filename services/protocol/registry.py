@@ -150,3 +150,24 @@ class IdAllocator:
         self.owner[agent_id] = instance
         self.granted_at[agent_id] = now
         return Grant(agent_id, self.role_of(agent_id), returning)
+
+
+def policy_mismatch(own, announced) -> str | None:
+    """Why an agent whose policy is ``own`` may not join a run whose sim announced ``announced`` (both
+    :class:`~schemas.messages.PolicyAnnouncement`), or None when they agree: the same name and the same values of
+    every parameter."""
+    if own.policy == announced.policy and _canonical(own.options) == _canonical(announced.options):
+        return None
+    return (f"policy: this agent runs {_shown(own)}, the run's sim announces {_shown(announced)}; start the agent "
+            "with the run's --policy and --policy-option values")
+
+
+def _canonical(options) -> str:
+    import json
+
+    return json.dumps(options, sort_keys=True, default=str)
+
+
+def _shown(a) -> str:
+    options = ", ".join(f"{k}={v}" for k, v in sorted(a.options.items()))
+    return f"{a.policy!r} ({options})" if options else repr(a.policy)

@@ -226,7 +226,8 @@ class SimService(Presence, PhaseCollection):
         await bus.subscribe(k.stop, self._on_stop)
         await bus.subscribe_liveliness(k.alive_all, self._on_alive, history=True)
         # agents started without an id claim one here (morph/<run>/registry) before they declare their token
-        self.registry = await mount_registry(bus, k, self.config.n_agvs, self.config.n_pickers)
+        self.registry = await mount_registry(bus, k, self.config.n_agvs, self.config.n_pickers,
+                                             policy=self.config.policy_announcement())
         prober = asyncio.get_running_loop().create_task(self._probe_loop())
         try:
             await self._wait_ready()
