@@ -21,6 +21,7 @@ Each broken rule is one line: the rule, the robot and tick where it broke, and w
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import os
 import subprocess
@@ -146,16 +147,42 @@ class _WatchedBrains:
         return out
 
 
-class _Watched(CoordinationPolicy):
-    """A policy whose brains are watched."""
+def _isolated(name: str, options: Mapping[str, Any]) -> CoordinationPolicy:
+    """The policy built from a private copy of its module: what a robot in a process of its own would run. Module
+    state (a global a policy reads or writes) is then the robot's alone, as it is in a distributed run."""
+    cls = resolve(name)
+    spec = importlib.util.find_spec(cls.__module__)
+    if spec is None or spec.loader is None:
+        return cls.from_options(options)
+    copy = importlib.util.module_from_spec(spec)
+    original = sys.modules.get(cls.__module__)
+    sys.modules[cls.__module__] = copy  # while it runs: its dataclasses and pydantic models look themselves up there
+    try:
+        spec.loader.exec_module(copy)
+    finally:
+        if original is not None:
+            sys.modules[cls.__module__] = original
+        else:
+            sys.modules.pop(cls.__module__, None)
+    fresh = copy
+    for part in cls.__qualname__.split("."):
+        fresh = getattr(fresh, part)
+    return fresh.from_options(options)
 
-    def __init__(self, inner: CoordinationPolicy, watch: _Watch):
-        self.inner, self.watch = inner, watch
-        self.name = inner.name
-        self.broadcast = inner.broadcast
+
+class _Watched(CoordinationPolicy):
+    """A policy whose brains are watched; each ``brains`` call builds them from a private copy of the policy's
+    module (one for the fleet's brain, one per robot for per-robot brains)."""
+
+    def __init__(self, name: str, options: Mapping[str, Any], watch: _Watch):
+        self.inner = make_policy(name, options)
+        self.policy_name, self.options_given, self.watch = name, options, watch
+        self.name = self.inner.name
+        self.broadcast = self.inner.broadcast
 
     def brains(self, fleet, owners, seed):
-        return _WatchedBrains(self.inner.brains(fleet, owners, seed), self.watch)
+        inner = _isolated(self.policy_name, self.options_given)
+        return _WatchedBrains(inner.brains(fleet, owners, seed), self.watch)
 
 
 # -- the rules ----------------------------------------------------------------------------------------------------------
@@ -183,7 +210,7 @@ class _Setup:
 
         watch = _Watch(self.limit)
         try:
-            result = run_episode(self.spec(**fields), policy=_Watched(self.policy(), watch))
+            result = run_episode(self.spec(**fields), policy=_Watched(self.name, self.options, watch))
         except _Stop:
             return watch, None
         return watch, result
@@ -234,9 +261,10 @@ def _interface(setup: _Setup) -> list[Finding]:
 
 
 def _first_difference(a: list[tuple], b: list[tuple], rule: str, what: str) -> Finding | None:
+    """The first decision where ``a`` and ``b`` part; ``what`` says how they were run, with {a} and {b}."""
     for x, y in zip(a, b):
         if x != y:
-            return Finding(rule, f"{what}: {_shown(x)} then {_shown(y)}", x[1], x[0])
+            return Finding(rule, what.format(a=_shown(x), b=_shown(y)), x[1], x[0])
     if len(a) != len(b):
         longer = a if len(a) > len(b) else b
         x = longer[min(len(a), len(b))]
@@ -258,12 +286,11 @@ def _restore(setup: _Setup, watch: _Watch) -> list[Finding]:
     the brain that never stopped, on the same inputs after the cut."""
     from services.world.layout import named_sizes
 
-    policy = setup.policy()
     _, n_agvs, n_pickers = named_sizes()[setup.scale][:3]
     fleet = Fleet(n_agvs, n_pickers, setup.scale)
     # the cut: after the learn of this tick's view (a state is published after a decision point's learning)
     cut = max(1, setup.steps // 2)
-    running = {r: policy.brains(fleet, [r], setup.seed) for r in range(fleet.n)}
+    running = {r: _isolated(setup.name, setup.options).brains(fleet, [r], setup.seed) for r in range(fleet.n)}
     position: dict[int, int] = {}
     for r, events in watch.views.items():
         position[r] = len(events)
@@ -284,7 +311,7 @@ def _restore(setup: _Setup, watch: _Watch) -> list[Finding]:
         if size > bound:
             out.append(Finding("state-size", f"its state is {size} bytes, the bound is {bound}", r, cut))
     for r, events in watch.views.items():
-        restored = policy.brains(fleet, [r], setup.seed)
+        restored = _isolated(setup.name, setup.options).brains(fleet, [r], setup.seed)
         try:
             restored.restore(r, states)
         except Exception as exc:
@@ -295,10 +322,14 @@ def _restore(setup: _Setup, watch: _Watch) -> list[Finding]:
             got = _replay(restored, event)
             if event[0] != "learn" and not _same(want, got):
                 view = event[2] if event[0] == "candidate" else event[3]
-                out.append(Finding("restore", f"{event[0]}: {got!r} after the restore, {want!r} without", r,
-                                   _tick(view)))
+                out.append(Finding("restore", f"{event[0]} {_plain(got)} after restoring from the states of tick "
+                                   f"{cut}, {_plain(want)} without a restart", r, _tick(view)))
                 break
     return out
+
+
+def _plain(value) -> str:
+    return f"{float(value):.6g}" if isinstance(value, float | np.floating) else str(value)
 
 
 def _replay(brains: Coordinator, event: tuple):
@@ -379,12 +410,14 @@ def policy_findings(policy: str | type[CoordinationPolicy], options: Mapping[str
         return [first.error] if first.error else [Finding("robustness", "the episode stopped")]
     again, _ = setup.episode()
     found += [f for f in [again.error, _first_difference(first.decisions, again.decisions, "determinism",
-                                                         "the same seed decided")] if f]
+                                                         "the same seed decided {a} in one episode, {b} in the next")] if f]
     solo, solo_result = setup.episode(per_robot_brains=True)
     if solo_result is None:
         found.append(solo.error or Finding("robustness", "the episode stopped"))
     else:
-        diff = _first_difference(first.decisions, solo.decisions, "own-view", "one brain for the fleet decided")
+        diff = _first_difference(first.decisions, solo.decisions, "own-view",
+                                 "with one brain for the fleet it decided {a}, with a brain (and a copy of the policy's "
+                                 "module) of its own {b}")
         if diff:
             found.append(diff)
         found += _restore(setup, solo)

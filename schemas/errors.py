@@ -60,6 +60,8 @@ def describe(err: dict[str, Any], where: str = "") -> str:
     msg = message(err)
     if field and msg.startswith(f"{field}: "):
         msg = msg[len(field) + 2:]
+    elif field == "policy_options" and msg.startswith("policy-option"):  # names the flag and the option itself
+        field = ""
     elif field and msg.startswith(f"{field}."):
         field = ""
     return _under(where, f"{field}: {msg}" if field else msg)

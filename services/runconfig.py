@@ -157,9 +157,14 @@ class RunConfig(BaseModel):
         from services.policies.loading import check_name
 
         check_name(self.policy)
-        for key in self.policy_options:
-            if key in POLICY_FLAGS.get(self.policy, ()) and key in self.model_fields_set:
-                raise ValueError(f"policy-option {key}: also given as {self.flag(key)}; give it once")
+        for key, option in self.policy_options.items():
+            # a shipped policy's own flag and the option name one parameter: the option wins over the flag's default
+            # (as a child's command line carries both), two different values given are refused
+            if key in POLICY_FLAGS.get(self.policy, ()):
+                flag = getattr(self, key)
+                if flag != type(self).model_fields[key].default and option_text(flag) != option_text(option):
+                    raise ValueError(f"policy-option {key}: {option_text(option)} differs from "
+                                     f"{self.flag(key)} {option_text(flag)}; give it once")
         self.make_policy()  # one line naming the policy or the option when either is bad
         return self
 

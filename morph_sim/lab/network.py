@@ -199,8 +199,12 @@ class Team:
         rows = [b.extra_metrics() for b in self.brains]
         return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} if rows and rows[0] else {}
 
-    def h(self) -> np.ndarray:
-        return np.concatenate([b.h() for b in self.brains])
+    @property
+    def h(self):
+        """Every robot's homeostatic variable, for brains that have one (MORPH's); None otherwise."""
+        if not all(callable(getattr(b, "h", None)) for b in self.brains):
+            return None
+        return lambda: np.concatenate([b.h() for b in self.brains])
 
 
 class LabDispatch:

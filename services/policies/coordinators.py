@@ -146,12 +146,16 @@ class _SimplePolicy(CoordinationPolicy):
 
 @dataclass(frozen=True)
 class FullPolicy(_SimplePolicy):
+    """Full-Graph: every AGV asks the nearest free picker (P = 1), as the reference's baseline."""
+
     name: str = "full"
     BRAINS: ClassVar[type[Coordinator]] = _FullBrains
 
 
 @dataclass(frozen=True)
 class BroadcastPolicy(_SimplePolicy):
+    """Full-Graph as the paper means it: every AGV asks every free picker at once; the sim applies one commitment."""
+
     name: str = "full-broadcast"
     broadcast: ClassVar[bool] = True
     BRAINS: ClassVar[type[Coordinator]] = _BroadcastBrains
@@ -159,6 +163,8 @@ class BroadcastPolicy(_SimplePolicy):
 
 @dataclass(frozen=True)
 class NonePolicy(_SimplePolicy):
+    """No coordination: no AGV ever asks (P = 0)."""
+
     name: str = "none"
     BRAINS: ClassVar[type[Coordinator]] = _NoneBrains
 
@@ -169,6 +175,8 @@ class ConstantParams(PolicyParams):
 
 @dataclass(frozen=True)
 class ConstantPolicy(_SimplePolicy):
+    """Every AGV asks the nearest free picker with one fixed probability ``p``."""
+
     p: float = 0.25
     name: str = "constant"
     Params: ClassVar[type[PolicyParams]] = ConstantParams
@@ -177,6 +185,8 @@ class ConstantPolicy(_SimplePolicy):
 
 @dataclass(frozen=True)
 class TSGPolicy(_SimplePolicy):
+    """TSG: gate 0.25 + 0.75 · (the pair shares a mission target now), recomputed every tick."""
+
     name: str = "tsg"
     BRAINS: ClassVar[type[Coordinator]] = _TSGBrains
 
@@ -187,6 +197,8 @@ class ProximityParams(PolicyParams):
 
 @dataclass(frozen=True)
 class ProximityPolicy(_SimplePolicy):
+    """Proximity: gate 0.25 + 0.75 · (the pair is within ``radius`` cells), recomputed every tick."""
+
     radius: int = 4
     name: str = "proximity"
     Params: ClassVar[type[PolicyParams]] = ProximityParams
@@ -446,6 +458,8 @@ class MorphOptions(PolicyParams):
 
 @dataclass(frozen=True)
 class MorphPolicy(CoordinationPolicy):
+    """MORPH: synaptic, homeostatic, structural and metaplastic rules learn whom each robot coordinates with."""
+
     preset: str = "reference"
     ablation: str | None = None
     name: str = "morph"

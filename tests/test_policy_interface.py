@@ -1,0 +1,134 @@
+"""The public policy interface: policies found by name, entry point or import path; their options validated from the
+command line, the environment and the API with one line naming the option; the conformance kit on every shipped
+policy and on three policies that break a rule on purpose (tests/_policies.py)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+from morph_sim.cli import main as cli_main
+from morph_sim.environment import env_to_argv
+from morph_sim.testing import PolicyCheckFailed, check_policy, policy_findings
+from services.policies.coordinators import ProximityPolicy
+from services.policies.loading import make_policy, resolve
+from services.runconfig import RunConfig
+
+TESTS = str(Path(__file__).resolve().parent)
+
+
+@pytest.fixture(autouse=True)
+def _importable(monkeypatch):
+    monkeypatch.syspath_prepend(TESTS)  # _policies:Name
+
+
+def _exit(argv, capsys) -> tuple[int, list[str]]:
+    code = cli_main(argv)
+    return code, capsys.readouterr().err.strip().splitlines()
+
+
+@pytest.mark.parametrize("argv, line", [
+    (["run", "--policy", "nope:Thing"], "policy: cannot import 'nope' (No module named 'nope')"),
+    (["run", "--policy", "_policies:Missing"], "policy: module '_policies' has no 'Missing'"),
+    (["run", "--policy", "_policies:np"], "policy: '_policies:np' is not a CoordinationPolicy subclass "
+                                          "(services.policies.interface.CoordinationPolicy)"),
+    (["run", "--policy", "proximity", "--policy-option", "radius=near"],
+     "policy-option radius: Input should be a valid integer, unable to parse string as an integer, got 'near'"),
+    (["run", "--policy", "proximity", "--policy-option", "radius=-1"],
+     "policy-option radius: Input should be greater than or equal to 0, got '-1'"),
+    (["run", "--policy", "proximity", "--policy-option", "reach=3"],
+     "policy-option reach: policy 'proximity' has no such option (its options: radius)"),
+    (["run", "--policy", "proximity", "--policy-option", "radius"],
+     "policy-option: 'radius' is not KEY=VALUE (KEY a parameter name)"),
+    (["run", "--policy", "proximity", "--radius", "2", "--policy-option", "radius=3"],
+     "policy-option radius: 3 differs from --radius 2; give it once"),
+    (["policy", "check", "proximity", "--policy-option", "radius=x"],
+     "policy-option radius: Input should be a valid integer, unable to parse string as an integer, got 'x'"),
+    (["policy", "show", "bogus"], "policy: unknown 'bogus' (known: full, full-broadcast, constant, tsg, proximity, "
+                                  "none, morph; or package.module:Class)"),
+])
+def test_a_bad_policy_or_option_is_one_line_and_exit_2(argv, line, capsys):
+    code, err = _exit(argv, capsys)
+    assert code == 2 and err == [f"morph-sim {argv[0]}: error: {line}"]
+
+
+def test_options_travel_by_flag_environment_and_api_alike():
+    by_api = RunConfig(run_id="r", policy="proximity", policy_options={"radius": 6})
+    by_env = RunConfig.from_env({"MORPH_RUN_ID": "r", "MORPH_POLICY": "proximity", "MORPH_POLICY_OPTIONS": "radius=6"})
+    by_json = RunConfig.from_env({"MORPH_RUN_ID": "r", "MORPH_POLICY": "proximity",
+                                  "MORPH_POLICY_OPTIONS": '{"radius": 6}'})
+    for cfg in (by_api, by_env, by_json):
+        assert cfg.make_policy() == ProximityPolicy(radius=6)
+    # a child process gets them back as repeated flags, a container as one variable
+    assert by_api.to_argv(("policy", "policy_options")) == ["--policy", "proximity", "--policy-option", "radius=6"]
+    assert RunConfig.from_env(by_env.to_env()).make_policy() == ProximityPolicy(radius=6)
+    assert env_to_argv("sim", {"MORPH_POLICY_OPTIONS": "a=1,b=x"}) == ["--policy-option", "a=1", "--policy-option",
+                                                                       "b=x"]
+
+
+def test_a_policy_from_an_import_path_and_from_an_entry_point(tmp_path, monkeypatch):
+    assert resolve("_policies:ClosestRequest").name == "closest-request"
+    # an installed package registers its policy under the entry-point group; importlib.metadata finds it on sys.path
+    dist = tmp_path / "closest_request-1.0.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: closest-request\nVersion: 1.0\n")
+    (dist / "entry_points.txt").write_text("[morph_sim.policies]\nclosest-request = _policies:ClosestRequest\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert make_policy("closest-request").name == "closest-request"
+    code = cli_main(["policy", "list"])
+    assert code == 0
+
+
+def test_the_shipped_policies_conform_in_the_lab():
+    # both MORPH presets, a baseline of each kind (memoryless gate, broadcast) and a policy that chooses for its pickers
+    for name, options in [("morph", {}), ("morph", {"preset": "paper"}), ("full-broadcast", {}), ("proximity", {}),
+                          ("_policies:ClosestRequest", {})]:
+        assert policy_findings(name, options, steps=60, distributed=False) == [], (name, options)
+
+
+@pytest.mark.slow
+def test_every_shipped_policy_preset_and_ablation_conforms_in_the_lab():
+    from services.policies.presets import ABLATIONS
+
+    for name in ("full", "constant", "tsg", "none"):
+        assert policy_findings(name, distributed=False) == [], name
+    for preset in ("reference", "paper"):
+        for ablation in (None, *ABLATIONS):
+            assert policy_findings("morph", {"preset": preset, "ablation": ablation}, distributed=False) == []
+
+
+@pytest.mark.parametrize("cls, lines", [
+    ("ReadsGlobal", ["own-view: robot 3, tick 0: with one brain for the fleet it decided P(ask picker 6) = 0, with a "
+                     "brain (and a copy of the policy's module) of its own P(ask picker 6) = 1"]),
+    ("NonDeterministic", ["determinism: robot 2, tick 0: the same seed decided P(ask picker 6) = "]),
+    ("CannotRestore", ["restore: robot 0, tick 61: probability 0.555556 after restoring from the states of tick 60, "
+                       "0.151515 without a restart"]),
+])
+def test_a_broken_policy_fails_naming_the_rule_the_robot_and_the_tick(cls, lines):
+    with pytest.raises(PolicyCheckFailed) as failed:
+        check_policy(f"_policies:{cls}", distributed=False)
+    found = [str(f) for f in failed.value.findings]
+    for line in lines:
+        assert any(f.startswith(line) for f in found), found
+    kinds = {f.rule for f in failed.value.findings}
+    assert kinds <= {"own-view", "determinism", "restore"}, kinds
+
+
+def test_policy_check_prints_one_line_per_broken_rule_and_exits_1(capsys):
+    assert cli_main(["policy", "check", "_policies:CannotRestore", "--no-distributed", "--steps", "80"]) == 1
+    out, err = capsys.readouterr()
+    assert out and all(line.startswith("restore: robot ") for line in out.strip().splitlines())
+    assert err.strip() == "policy _policies:CannotRestore: 5 of 6 rules kept; broken: restore"
+
+
+def test_a_policy_that_raises_is_reported_not_crashed():
+    found = [str(f) for f in policy_findings("_policies:Raises", distributed=False)]
+    assert found == ["robustness: robot 4, tick 20: probability raised KeyError: 6"]
+    assert [str(f) for f in policy_findings("_policies:Raises", {"nope": 1}, distributed=False)] == [
+        "interface: policy-option nope: policy 'raises' has no such option (its options: none)"]
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(pytest.main([__file__]))
