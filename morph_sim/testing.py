@@ -87,6 +87,7 @@ class _Watch:
         self.slowest: tuple[float, int | None, int | None, str] = (0.0, None, None, "")
         self.error: Finding | None = None
         self.views: dict[int, list[tuple]] = {}  # robot -> what it was handed, in order (per-robot brains)
+        self.tick: int | None = None  # the tick of the view learnt last
 
     def call(self, what: str, robot: int | None, tick: int | None, fn: Callable, *args):
         start = time.perf_counter()
@@ -121,9 +122,23 @@ class _WatchedBrains:
         return getattr(self._inner, name)
 
     def learn(self, obs) -> None:
+        self._watch.tick = _tick(obs)
         if self._solo is not None:
             self._watch.views.setdefault(self._solo, []).append(("learn", obs))
         self._watch.call("learn", self._solo, _tick(obs), self._inner.learn, obs)
+
+    def receive(self, agent, mail) -> None:
+        if self._solo is not None:
+            self._watch.views.setdefault(self._solo, []).append(("receive", agent, list(mail)))
+        self._watch.decisions.append((self._watch.tick, agent, "receive",
+                                      tuple((m.sender, m.t, repr(sorted(m.data.items()))) for m in mail)))
+        self._watch.call("receive", agent, None, self._inner.receive, agent, mail)
+
+    def take_outbox(self, agent):
+        out = self._watch.call("send", agent, None, self._inner.take_outbox, agent)
+        if out:
+            self._watch.decisions.append((self._watch.tick, agent, "send", tuple(out)))
+        return out
 
     def candidate(self, agv, obs, free=None) -> int:
         out = self._watch.call("candidate", agv, _tick(obs), self._inner.candidate, agv, obs, free)
@@ -278,6 +293,10 @@ def _shown(decision: tuple) -> str:
         return f"P(ask picker {rest[0]}) = {rest[1]:.6g}"
     if kind == "candidate":
         return f"candidate picker {rest[0]}"
+    if kind == "send":
+        return f"sent {len(rest[0])} message(s) to {[to for to, _ in rest[0]]}"
+    if kind == "receive":
+        return f"received {len(rest[0])} message(s) from {[m[0] for m in rest[0]]}"
     return f"choice {rest[1]} of AGVs {list(rest[0])}"
 
 
@@ -320,7 +339,7 @@ def _restore(setup: _Setup, watch: _Watch) -> list[Finding]:
         for event in events[position[r]:]:
             want = _replay(running[r], event)
             got = _replay(restored, event)
-            if event[0] != "learn" and not _same(want, got):
+            if event[0] not in ("learn", "receive") and not _same(want, got):
                 view = event[2] if event[0] == "candidate" else event[3]
                 out.append(Finding("restore", f"{event[0]} {_plain(got)} after restoring from the states of tick "
                                    f"{cut}, {_plain(want)} without a restart", r, _tick(view)))
@@ -335,7 +354,11 @@ def _plain(value) -> str:
 def _replay(brains: Coordinator, event: tuple):
     kind = event[0]
     if kind == "learn":
-        return brains.learn(event[1])
+        brains.learn(event[1])
+        brains.take_outbox(int(brains.owners[0]))  # what it sends goes nowhere here
+        return None
+    if kind == "receive":
+        return brains.receive(event[1], event[2])
     if kind == "candidate":
         _, agv, obs, free, _ = event
         return brains.candidate(agv, obs, free)

@@ -33,6 +33,7 @@ from schemas.messages import (
     OnBoard,
     Phase,
     PolicyAnnouncement,
+    PolicyMessage,
     Refusal,
     RegistrationReply,
     RegistrationRequest,
@@ -45,7 +46,7 @@ from schemas.messages import (
 __all__ = [
     "Ack", "AgentState", "Commit", "Crash", "DecodeError", "Distribution", "Duplicate", "Event", "FaultCommand",
     "FaultReply", "FaultSpec", "Heading", "HelpReply", "HelpRequest", "Latency", "Loss", "LossModel", "MESSAGES",
-    "MESSAGE_TYPES", "Message", "MetricSample", "MissionType", "OnBoard", "Partition", "PartitionDirection", "Phase", "PolicyAnnouncement",
+    "MESSAGE_TYPES", "Message", "MetricSample", "MissionType", "OnBoard", "Partition", "PartitionDirection", "Phase", "PolicyAnnouncement", "PolicyMessage",
     "Refusal",
     "RegistrationReply", "RegistrationRequest", "Reorder", "Resolve", "Role", "RunKeys", "Scope", "Stop", "Tick",
     "decode", "encode", "intersects", "matches", "register_upgrade", "to_payload", "validate_key_expr",

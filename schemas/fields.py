@@ -12,6 +12,11 @@ from pydantic import Field
 from pydantic_core import PydanticCustomError
 
 MAX_ROBOTS = 4096
+#: a policy message's content, bytes: a bid or a claim is a few numbers; a consensus round over a fleet's bundle of
+#: missions is a few hundred bytes (the policy interface refuses more before sending)
+MAX_POLICY_DATA = 1024
+#: policy messages one robot may send at one decision point (the acks that announce them stay small)
+MAX_POLICY_MESSAGES = 64
 RobotId = Annotated[int, Field(ge=0, lt=MAX_ROBOTS)]
 OptRobotId = Annotated[int, Field(ge=-1, lt=MAX_ROBOTS)]  # -1 = none
 Coord = Annotated[int, Field(ge=0, lt=65536)]

@@ -258,6 +258,19 @@ class RunKeys:
     def replies(self) -> str:
         return self._k("agent", "*", "reply", "*")
 
+    def policy(self, sender: int, to: int | None) -> str:
+        """Robot ``sender``'s policy message to robot ``to`` (None: to every other robot)."""
+        return self._k("agent", _agent_chunk(sender), "policy", "all" if to is None else _agent_chunk(to))
+
+    def policies_to(self, robot: int) -> str:
+        """Every policy message addressed to ``robot`` alone."""
+        return self._k("agent", "*", "policy", _agent_chunk(robot))
+
+    @cached_property
+    def policies_to_all(self) -> str:
+        """Every policy message addressed to every robot."""
+        return self._k("agent", "*", "policy", "all")
+
     def commit(self, picker: int) -> str:
         return self._k("agent", _agent_chunk(picker), "commit")
 
@@ -368,7 +381,7 @@ class RunKeys:
     def recipient_of(self, key: str) -> int | str | None:
         """The addressee of a point-to-point key (request/reply), ``sim`` for ack/commit, else None (broadcast)."""
         rel = self.relative(key)
-        if len(rel) == 4 and rel[0] == "agent" and rel[2] in ("request", "reply"):
+        if len(rel) == 4 and rel[0] == "agent" and rel[2] in ("request", "reply", "policy") and rel[3] != "all":
             return parse_agent_id(rel[3])
         if len(rel) == 3 and rel[0] == "agent" and rel[2] in ("ack", "commit"):
             return "sim"

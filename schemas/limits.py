@@ -13,6 +13,7 @@ MAX_MESSAGE_BYTES = 32 * 1024
 # key chunks after morph/<run>/ -> bound in bytes; the first matching rule wins
 _AGENT_KIND = {
     "ack": 8 * 1024, "skip": 8 * 1024, "request": 4 * 1024, "reply": 4 * 1024, "commit": 4 * 1024,
+    "policy": 2 * 1024,
     "state": MAX_MESSAGE_BYTES,
 }
 _HEAD = {"events": 16 * 1024, "ctl": 16 * 1024, "registry": 4 * 1024, "alive": 1024}

@@ -15,6 +15,9 @@ from pydantic_core import PydanticCustomError
 from schemas.base import Message
 from schemas.faults import FaultOp, FaultSpec
 from schemas.fields import (
+    MAX_POLICY_DATA,
+    MAX_POLICY_MESSAGES,
+    MAX_ROBOTS,
     Coord,
     Finite,
     Heading,
@@ -73,6 +76,11 @@ class Ack(Message):
                                                   "picker; the sim gives it the next decision point too")
     replied_to: list[RobotId] = Field(default_factory=list, description="RESOLVE: AGVs this picker sent a "
                                       "HelpReply (the next Tick tells them to wait for it)")
+    # Phase TICK (synchronisation): the robots its policy messages of this tick went to (-1: every other robot);
+    # the sim tells each receiver, in its next on-board state, how many to wait for
+    policy_to: list[Annotated[int, Field(ge=-1, lt=MAX_ROBOTS)]] = Field(
+        default_factory=list, max_length=MAX_POLICY_MESSAGES,
+        description="TICK: the robots this robot's policy sent a message to (-1: all)")
 
 
 class OnBoard(Message):
@@ -107,6 +115,9 @@ class OnBoard(Message):
     # likewise every robot takes it once this many refusals to it have arrived: a refusal frees an AGV to ask again
     # and ends a picker's commitment, so one still on its way would change what the robot decides
     refused: Annotated[int, Field(ge=0, lt=2**63)] = Field(default=0, description="Refusals sent to it so far")
+    # and every policy message sent to it in the ticks before this one: its policy takes them at this decision point
+    messaged: Annotated[int, Field(ge=0, lt=2**63)] = Field(
+        default=0, description="policy messages sent to it in the ticks before this one, so far")
 
 
 class Resolve(Message):
@@ -340,6 +351,21 @@ class RegistrationReply(Message):
         return self
 
 
+class PolicyMessage(Message):
+    """A robot's policy to another robot's (``to``) or to every other robot's (``to`` None): a bid, a claim, a round of
+    a consensus. Sent at the robot's decision point of tick ``t`` under its own key, judged by the fault layer and the
+    network profile like any protocol message; the receiver's policy takes it at its first decision point of a
+    later tick by which it was delivered."""
+
+    KIND = "policy_message"
+
+    t: TickNo
+    sender: RobotId
+    to: RobotId | None = Field(default=None, description="the receiving robot; None: every other robot")
+    pseq: Seq = Field(description="the sender's policy-message number (the order of messages delivered together)")
+    data: bytes = Field(max_length=MAX_POLICY_DATA, description="the policy's content (msgpack of a mapping)")
+
+
 class PolicyAnnouncement(Message):
     """The run's coordination policy as its sim built it (``morph/<run>/registry/policy``): every agent builds the
     same before it joins, and refuses to join with another."""
@@ -353,13 +379,13 @@ class PolicyAnnouncement(Message):
 
 MESSAGE_TYPES: tuple[type[Message], ...] = (
     Tick, OnBoard, Ack, Resolve, HelpRequest, HelpReply, Commit, Refusal, AgentState, MetricSample, Event, Stop,
-    FaultCommand, FaultReply, RegistrationRequest, RegistrationReply, PolicyAnnouncement,
+    FaultCommand, FaultReply, RegistrationRequest, RegistrationReply, PolicyAnnouncement, PolicyMessage,
 )
 MESSAGES: dict[str, type[Message]] = {cls.KIND: cls for cls in MESSAGE_TYPES}
 
 __all__ = [
     "Ack", "AgentState", "Commit", "Event", "FaultCommand", "FaultReply", "Heading", "HelpReply", "HelpRequest",
-    "MESSAGES", "MESSAGE_TYPES", "MetricSample", "MissionType", "OnBoard", "Phase", "PolicyAnnouncement", "Refusal",
+    "MESSAGES", "MESSAGE_TYPES", "MetricSample", "MissionType", "OnBoard", "Phase", "PolicyAnnouncement", "PolicyMessage", "Refusal",
     "RegistrationReply",
     "RegistrationRequest",
     "Resolve", "Role", "Stop", "Tick",

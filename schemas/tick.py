@@ -516,16 +516,17 @@ def tick_fields(obs: TickObservation, sim_time: float, extra: dict | None = None
     )
 
 
-def onboard_fields(tick: dict, robot: int, free: bool, replied: int = 0, refused: int = 0) -> dict:
+def onboard_fields(tick: dict, robot: int, free: bool, replied: int = 0, refused: int = 0, messaged: int = 0) -> dict:
     """One robot's :class:`~schemas.messages.OnBoard` field map, read off the Tick field map the sim built
     (:func:`tick_fields` plus the world fields): what that robot senses of itself. ``free``: a picker without an
-    assignment; ``replied``, ``refused``: the synchronisation counts of its decision point."""
+    assignment; ``replied``, ``refused``, ``messaged``: the synchronisation counts of its decision point (the last
+    only when a policy has sent any: the field's default)."""
     return dict(
         t=tick["t"], robot=robot, x=tick["x"][robot], y=tick["y"][robot], heading=tick["heading"][robot],
         mission=tick["mission"][robot], target_x=tick["target_x"][robot], target_y=tick["target_y"][robot],
         task=tick["task"][robot], needs_picker=tick["needs_picker"][robot], free=free,
         carrying=tick["carrying"][robot], reward=tick["reward"][robot], handled=tick["handled"][robot],
-        final=tick["final"], replied=replied, refused=refused)
+        final=tick["final"], replied=replied, refused=refused, **({"messaged": messaged} if messaged else {}))
 
 
 def tick_from_observation(obs: TickObservation, sim_time: float, extra: dict | None = None) -> Tick:

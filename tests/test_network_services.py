@@ -202,7 +202,7 @@ def test_communication_cost_is_counted_in_messages_and_bytes(legacy):
     summary = json.loads((cfg.record_dir / "summary.json").read_text())
     comm = summary["communication"]
     kinds = comm["kinds"]
-    assert set(kinds) == {"sim", "ack", "request", "reply", "commit"}
+    assert set(kinds) == {"sim", "ack", "request", "reply", "commit", "policy"}
     assert comm["messages"] == sum(summary["messages"].get(k, 0) for k in kinds) > 0
     assert comm["bytes"] == sum(summary["bytes"].get(k, 0) for k in kinds) > comm["messages"]
     assert summary["messages"]["sim"] >= cfg.steps  # one Tick per step at least (the monitor is not faulted)

@@ -132,3 +132,56 @@ def test_a_policy_that_raises_is_reported_not_crashed():
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(pytest.main([__file__]))
+
+
+# -- policy messages ---------------------------------------------------------------------------------------------------
+def test_a_policy_message_is_checked_when_it_is_sent():
+    from services.policies.interface import Fleet
+
+    brains = make_policy("_policies:ClosestRequest").brains(Fleet(5, 3, "tiny"), [0], 1)
+    brains.send(0, 6, {"bid": 3})
+    brains.send(0, None, {"claim": [1, 2]})
+    assert [to for to, _ in brains.take_outbox(0)] == [6, None] and brains.take_outbox(0) == []
+    for to, data, why in [(0, {"x": 1}, "robot 0 cannot send to 0"), (8, {"x": 1}, "robot 0 cannot send to 8"),
+                          (6, [1, 2], "the content must be a mapping"), (6, {"x": "a" * 2000}, "at most 1024"),
+                          (6, {"x": object()}, "cannot pack its content")]:
+        with pytest.raises(ValueError, match=why):
+            brains.send(0, to, data)
+
+
+def test_a_mailbox_hands_over_what_was_sent_before_this_tick_and_delivered_by_now():
+    from schemas.messages import PolicyMessage
+    from services.policies.interface import pack_mail
+    from services.protocol.dispatch import Mailbox
+
+    box = Mailbox()
+
+    def mail(sender, t, pseq, **data):
+        return PolicyMessage(t=t, sender=sender, to=None, pseq=pseq, data=pack_mail(data))
+
+    assert box.receive(mail(3, 4, 1, a=1), due=4.0)
+    assert not box.receive(mail(3, 4, 1, a=1), due=4.5)  # a copy
+    box.receive(mail(1, 4, 7, b=2), due=4.0)
+    box.receive(mail(2, 5, 1, c=3), due=5.0)  # sent this tick: the next one takes it
+    box.receive(mail(0, 3, 2, d=4), due=6.5)  # late: delivered after this decision point
+    taken = box.take(5, 5.0)
+    assert [(m.sender, m.t, dict(m.data)) for m in taken] == [(1, 4, {"b": 2}), (3, 4, {"a": 1})]
+    assert [m.sender for m in box.take(6, 6.0)] == [2]
+    assert [m.sender for m in box.take(7, 7.0)] == [0]
+    with pytest.raises(ValueError, match="not a mapping"):
+        box.receive(PolicyMessage(t=1, sender=1, pseq=9, data=b"\x01"), due=1.0)
+
+
+def test_a_decision_point_waits_for_the_policy_messages_announced_to_it():
+    from services.protocol.readiness import Readiness
+
+    r = Readiness(lockstep=True)
+    r.fleet(5)
+    r.announce(4, 0, 0)
+    assert r.may_act(4, 0, False)
+    r.announce(5, 0, 2)  # two messages were sent to this robot in tick 4
+    assert not r.may_act(5, 0, False) and r.messages_owed() == 2
+    assert r.message("agent-1", 10, 4) and not r.message("agent-1", 10, 4)  # a copy counts once
+    assert not r.may_act(5, 0, False)
+    r.message("agent-2", 3, 4)  # delivered, or held or lost by the fault layer: arrived all the same
+    assert r.may_act(5, 0, False)

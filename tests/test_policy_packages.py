@@ -82,6 +82,37 @@ def test_a_policy_that_chooses_for_its_pickers_gives_the_labs_record_under_wifi_
     assert (lab.ticks["commits"] != full.ticks["commits"]).any()
 
 
+AUCTION = ROOT / "examples" / "auction"
+
+
+def test_the_auction_talks_and_gives_the_labs_record_in_run_and_up_under_wifi_roaming(tmp_path, monkeypatch):
+    """The example allocator from outside (examples/auction: pickers bid over policy messages) under roaming:
+    the lab, ``run`` and ``up`` give one record, messages included."""
+    from morph_sim.lab.runner import EpisodeSpec, run_episode
+
+    monkeypatch.syspath_prepend(str(AUCTION))
+    name, steps, seed, net = "morph_auction.policy:AuctionPolicy", 150, 5, "wifi-legacy-roaming"
+    lab = run_episode(EpisodeSpec(scale="tiny", condition="auction", policy_name=name, seed=seed, steps=steps,
+                                  network=net, fiedler_every=1))
+    run = asyncio.run(run_local(RunConfig(run_id="a", policy=name, steps=steps, seed=seed, network=net,
+                                          output_dir=tmp_path / "local")))
+    up = _morph(["up", "--policy", name, "--steps", str(steps), "--seed", str(seed), "--network", net,
+                 "--run-id", "a", "--output-dir", str(tmp_path / "up"), "--quiet", "--insecure"], _env(AUCTION))
+    assert up.returncode == 0, up.stderr[-2000:]
+    assert (tmp_path / "up" / "a" / "metrics.csv").read_bytes() == (tmp_path / "local" / "a" / "metrics.csv").read_bytes()
+    assert (tmp_path / "up" / "a" / "links.csv").read_bytes() == (tmp_path / "local" / "a" / "links.csv").read_bytes()
+    rows = run.monitor.rows
+
+    def col(key):
+        return np.array([np.nan if r[key] is None else float(r[key]) for r in rows])
+
+    for key in ("deliveries_total", "requests", "commits", "links", "view_age_mean", "view_age_max"):
+        np.testing.assert_array_equal(col(key), lab.ticks[key], err_msg=key)
+    # it talked: bids went over the radio (some lost or late under roaming), and the services counted them
+    assert lab.summary["messages_sent"] > 3 * lab.summary["deliveries"] > 0
+    assert run.monitor.messages.get("policy", 0) > 0
+
+
 def test_an_agent_with_another_policy_refuses_to_join_naming_both(tmp_path):
     port = free_port()
     common = ["--run-id", "m", "--steps", "20", "--output-dir", str(tmp_path)]

@@ -26,6 +26,7 @@ from schemas import (
     OnBoard,
     Partition,
     PolicyAnnouncement,
+    PolicyMessage,
     Refusal,
     RegistrationReply,
     RegistrationRequest,
@@ -163,6 +164,8 @@ MESSAGE_STRATEGIES: dict[type, st.SearchStrategy] = {
                                  role=st.sampled_from(["agv", "picker"]), n_agvs=st.integers(0, 99),
                                  n_pickers=st.integers(0, 99))
     | st.builds(RegistrationReply, ok=st.just(False), reason=st.text(max_size=20)),
+    PolicyMessage: st.builds(PolicyMessage, t=tick_no, sender=rid, to=st.none() | rid, pseq=st.integers(0, 2**40),
+                             data=st.binary(max_size=64)),
     PolicyAnnouncement: st.builds(PolicyAnnouncement, policy=st.sampled_from(["morph", "proximity", "pkg.mod:Cls"]),
                                   options=st.dictionaries(st.text(min_size=1, max_size=8),
                                                           st.none() | st.booleans() | st.integers(-9, 9)

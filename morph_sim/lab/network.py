@@ -23,8 +23,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from schemas.codec import encode
 from schemas.faults import FaultSpec
 from schemas.keys import FLEET, RunKeys, matches
+from schemas.messages import PolicyMessage
 from schemas.tick import TickObservation
 from services.faults.layer import FaultLayer
 from services.faults.network import NetworkModel
@@ -34,6 +36,7 @@ from services.protocol.dispatch import (
     Commitment,
     Endpoints,
     FleetView,
+    Mailbox,
     Refusal,
     Reply,
     Request,
@@ -48,6 +51,8 @@ RUN = "lab"
 FLEET_KEY = FLEET
 #: the dispatch protocol's keys (relative to morph/<run>/), the scope of "faults on dispatch messages"
 DISPATCH_KEYS = ("agent/*/request/*", "agent/*/reply/*", "agent/*/commit", "sim/refusal/*")
+#: a policy's own messages (bids, claims, consensus rounds): the same radio, scoped apart from the dispatch protocol
+POLICY_KEYS = "agent/*/policy/*"
 
 
 @dataclass
@@ -142,23 +147,28 @@ class EventNetwork:
             return []
         return self.model.observe_tick(obs.t, dt, obs.cells.tolist())
 
-    def send(self, key: str, sender, receiver, msg, at: float, *, seq: int | None = None, size: int | None = None
-             ) -> None:
+    def next_seq(self, key: str) -> int:
+        """The next sequence number on ``key`` (one publication's, when it reaches several receivers)."""
+        counter = self._seqs.get(key)
+        if counter is None:
+            counter = self._seqs[key] = itertools.count()
+        return next(counter)
+
+    def send(self, key: str, sender, receiver, msg, at: float, *, seq: int | None = None, size: int | None = None,
+             count: bool = True) -> None:
         """Send ``msg`` from ``sender`` to ``receiver`` on ``key`` at sim time ``at``. ``seq``: the message's sequence
         number when one publication reaches several receivers (a Tick: its t); default the next on (sender, key).
         ``size``: bytes on the wire (default: the protocol message's encoded size)."""
         if seq is None:
-            counter = self._seqs.get(key)
-            if counter is None:
-                counter = self._seqs[key] = itertools.count()
-            seq = next(counter)
+            seq = self.next_seq(key)
         if isinstance(msg, FleetBroadcast):
             self.stats.broadcasts += 1
             size = size or 0
         else:
-            self.stats.sent += 1
             size = wire_size(msg) if size is None else size
-            self.stats.bytes += size
+            if count:  # one publication to several receivers counts once, as a bus sends it once
+                self.stats.sent += 1
+                self.stats.bytes += size
         fate = (self.layer.fate(key, sender, receiver, at, msg=(sender, seq), size=size)
                 if self.layer is not None else [0.0])
         if not fate:
@@ -220,6 +230,7 @@ class LabDispatch:
         self.team_brain = team_brain
         self.agent_brains = agent_brains
         self.views = [FleetView() for _ in range(self.n)] if agent_brains is not None else None
+        self.mail = [Mailbox() for _ in range(self.n)]  # each robot's policy messages delivered, not yet taken
         # per tick: mean and max view age over the agents that hold a view, sim seconds (per-agent views only;
         # nan before any agent holds one) -- the monitor's view_age_mean / view_age_max columns
         self.view_ages: list[float] = []
@@ -243,6 +254,13 @@ class LabDispatch:
             if isinstance(msg, FleetBroadcast):
                 self.views[receiver].update(msg.view, msg.stamp)
                 continue
+            if isinstance(msg, PolicyMessage):
+                self.net.observe_delay(due, msg.t * self.dt)
+                try:
+                    self.mail[receiver].receive(msg, due)
+                except ValueError:  # content that is not a packed mapping: the agent refuses it too
+                    pass
+                continue
             self.net.observe_delay(due, msg.sent_at)
             if isinstance(msg, Request):
                 ep.pickers[receiver].receive(msg, due, out)
@@ -264,6 +282,7 @@ class LabDispatch:
         if self.agent_brains is None:
             self._deliver(s)
             self.team_brain.learn(obs)
+            self._hand_mail(obs.t, s)
             return
         size = self._tick_size(obs)
         for agent in range(self.n):  # one publication: one sequence number (its t), a copy per receiver
@@ -275,9 +294,34 @@ class LabDispatch:
             if new is not None and not (new.final and brain.memoryless):
                 brain.learn(new)
             ages.append(view.age(s))
+        self._hand_mail(obs.t, s)
         mean, top = view_age_stats(ages)
         self.view_ages.append(float("nan") if mean is None else mean)
         self.view_age_max.append(float("nan") if top is None else top)
+
+    # -- policy messages ----------------------------------------------------------------------------------------------
+    def _brain(self, robot: int):
+        return self.team_brain if self.agent_brains is None else self.agent_brains[robot]
+
+    def _hand_mail(self, t: int, s: float) -> None:
+        """At the tick's decision point, after learning: each robot's policy takes what was delivered to it."""
+        for robot, box in enumerate(self.mail):
+            mail = box.take(t, s)
+            if mail:
+                self._brain(robot).receive(robot, mail)
+
+    def _send_mail(self, t: int, at: float) -> None:
+        """What each robot's policy wrote since its last decision point goes out (an agent sends it after its
+        decision, before its ack)."""
+        net, k = self.net, self.keys
+        for robot in range(self.n):
+            for to, data in self._brain(robot).take_outbox(robot):
+                msg = PolicyMessage(t=t, sender=robot, to=to, pseq=self.mail[robot].next_pseq(), data=data)
+                key, size = k.policy(robot, to), len(encode(msg))
+                seq = net.next_seq(key)
+                receivers = [to] if to is not None else [r for r in range(self.n) if r != robot]
+                for i, receiver in enumerate(receivers):
+                    net.send(key, robot, receiver, msg, at, seq=seq, size=size, count=i == 0)
 
     def _tick_size(self, obs: TickObservation) -> int:
         """The Tick's bytes on the wire, for a profile's rate limits (its observation fields; the services' Tick also
@@ -331,6 +375,7 @@ class LabDispatch:
             for picker in g.targets:  # one, or every free picker of the view for a broadcasting policy
                 req = endpoint.request(picker, obs.target[agv], s_agv, out)
                 net.send(k.request(agv, picker), agv, picker, req, s_agv)
+        self._send_mail(obs.t, s_agv)
         self._deliver(s_pick)
         self.sent_commits = []
         for picker, endpoint in ep.pickers.items():

@@ -66,7 +66,7 @@ class ArrivalHook:
                     if t <= agent.last_t:
                         return
                     with agent._lock:
-                        agent.readiness.announce(ob.t, ob.refused)
+                        agent.readiness.announce(ob.t, ob.refused, ob.messaged)
                 else:
                     msg = sample.decode(Resolve)
                     if not msg.expected(agent.id):
@@ -87,6 +87,8 @@ class ArrivalHook:
             if agent.id in (msg.agv, msg.picker):
                 with agent._lock:
                     agent.count_refusal(sample, msg.t)
+        elif "/policy/" in key:
+            agent.mail_missed(sample)
         else:
             agent.missed(sample, fate)  # a reply to an AGV, a request to a picker
 

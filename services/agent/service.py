@@ -31,7 +31,7 @@ import logging
 import threading
 from dataclasses import dataclass
 
-from schemas import Ack, AgentState, Event, OnBoard, Phase, Refusal, Stop
+from schemas import Ack, AgentState, Event, OnBoard, Phase, PolicyMessage, Refusal, Stop
 from schemas.codec import encode_fields
 from schemas.keys import RunKeys
 from schemas.tick import decode_tick, observation_from_arrays
@@ -113,6 +113,7 @@ class AgentService:
         self.outcomes = protocol.Outcomes()
         # what this robot knows of the others: its latest fleet broadcast, with its age (services/protocol)
         self.fleet = protocol.FleetView()
+        self.mailbox = protocol.Mailbox()  # policy messages delivered, until a decision point takes them
         # what its decision points still wait for (replies, refusals, the fleet broadcast, requests)
         self.readiness = Readiness(self._lockstep)
         self._onboard: OnBoard | None = None  # this tick's on-board state, its decision point not yet taken
@@ -136,6 +137,8 @@ class AgentService:
         await bus.subscribe(k.stop, self._on_stop)
         await self._subscribe_role()
         await bus.subscribe(k.refusal(self.id), self._on_refusal, inline=True)
+        await bus.subscribe(k.policies_to(self.id), self._on_mail, inline=True)
+        await bus.subscribe(k.policies_to_all, self._on_mail, inline=True)
         # the token last: once the sim sees it, the subscriptions above are declared
         token = await bus.declare_token(k.alive(self.id))
         if restored is not None:  # published once the session is established, so the record does not miss it
@@ -229,7 +232,7 @@ class AgentService:
         self.last_t = msg.t
         self.counters.ticks += 1
         with self._lock:
-            self.readiness.announce(msg.t, msg.refused)
+            self.readiness.announce(msg.t, msg.refused, msg.messaged)
             self._onboard = msg
             self._try_act()
 
@@ -271,13 +274,18 @@ class AgentService:
             self._check_commitment(t)
             # what became of this robot's dispatch messages by this boundary, for the record (on the ack)
             counts = self.outcomes.counts()
+            mail = self.mailbox.take(t, now)
+        if mail:
+            self.brains.receive(self.id, mail)
         asked = self._decide_on_board(ob, now, final)
+        policy_to = self._send_mail(t)
         eta = float(self.brains.state.eta) if isinstance(self.brains, MorphBrains) else None
         publish_state = t % self.config.state_every == 0 or final
         # encoded from plain values (no model round trip: the hot path, codec.encode_fields)
         ack = encode_fields(Ack, t=t, agent=self.id, phase=int(Phase.TICK), requests_sent=asked,
                             seq=self._next_seq(), links=self.brains.out_links(self.id), eta=eta,
-                            view_age=None if age == float("inf") else float(age), outcomes=counts)
+                            view_age=None if age == float("inf") else float(age), outcomes=counts,
+                            **({"policy_to": policy_to} if policy_to else {}))
         if final:
             # Before the ack, on the same link: the last state must reach the monitor before the run ends.
             self.bus.put(self._state_key, self.state_message(t))
@@ -286,6 +294,49 @@ class AgentService:
         if publish_state:
             # still before this agent's ack of t+1, hence before tick t+2, when the monitor closes row t
             self.bus.put(self._state_key, self.state_message(t))
+
+    # -- policy messages ----------------------------------------------------------------------------------------------
+    def _send_mail(self, t: int) -> list[int]:
+        """Send what this robot's policy wrote since its last decision point; the receivers, for the ack (-1: all)."""
+        out = self.brains.take_outbox(self.id)
+        for to, data in out:
+            self.bus.put(self.keys.policy(self.id, to), encode_fields(
+                PolicyMessage, t=t, sender=self.id, to=to, pseq=self.mailbox.next_pseq(), data=data))
+        return [-1 if to is None else to for to, _ in out]
+
+    def _on_mail(self, sample: Sample) -> None:
+        if self._stop.is_set():
+            return
+        msg = self.intake.decode(sample, PolicyMessage)
+        if msg is None:
+            return
+        author = self.keys.sender_of(sample.key)
+        if author != msg.sender or msg.sender == self.id or msg.to not in (None, self.id):
+            self.intake.refuse(sample.key, f"policy message of {msg.sender} to {msg.to} on the key of {author}")
+            return
+        if self.last_t >= 0 and msg.t > self.last_t + self._ticks.max_gap:
+            self.intake.refuse(sample.key, f"policy message of tick {msg.t}, this robot is at tick {self.last_t}")
+            return
+        with self._lock:
+            try:
+                self.mailbox.receive(msg, self._due(sample, msg.t * self.config.dt))
+            except ValueError as exc:
+                self.intake.refuse(sample.key, exc)
+            # arrived, kept or not: the decision point that waits for it goes
+            if self.readiness.message(sample.sender, sample.seq, msg.t):
+                self._resume()
+
+    def mail_missed(self, sample: Sample) -> None:
+        """A policy message to this robot arrived and the fault layer will not deliver it now (dropped or held): it
+        has arrived all the same (with the runtime's lock held, not ours)."""
+        try:
+            msg = sample.decode(PolicyMessage)
+        except ValueError:
+            return
+        if msg.to in (None, self.id) and msg.sender != self.id:
+            with self._lock:
+                if self.readiness.message(sample.sender, sample.seq, msg.t):
+                    self._resume()
 
     def _check_commitment(self, t: int) -> None:
         """At the decision point of tick ``t``, before the outcomes are counted (with ``_lock`` held): a picker's

@@ -41,6 +41,7 @@ from services.monitor.ingest import Ingest
 from services.monitor.latest import LatestState
 from services.monitor.recorder import Recorder, read_metrics
 from services.monitor.streams import MessageStats, StreamPublisher
+from services.policies.interface import Fleet
 from services.runconfig import RunConfig
 from services.tickorder import TickOrder
 
@@ -54,7 +55,7 @@ QUIET_EVENTS = ("ready.probe", "ready.ack", "record.progress")
 #: lockstep sim keeps at most its window of ticks ahead of it (services/sim/service.py, MONITOR_WINDOW)
 PROGRESS_EVERY = 50
 # what the dispatch protocol sends, by the monitor's message kind (the sim's Ticks and Resolves are kind "sim")
-PROTOCOL_KINDS = ("sim", "ack", "request", "reply", "commit")  # what the monitor's own network model can see
+PROTOCOL_KINDS = ("sim", "ack", "request", "reply", "commit", "policy")  # what the monitor's own network model can see
 
 
 @dataclass
@@ -98,7 +99,8 @@ class MonitorService:
         self.keep_rows = keep_rows
         self.result = MonitorResult()
         self.rows = RowReducer(self.n, config.n_agvs, config.steps, state_every=config.state_every,
-                               snapshot_every=config.snapshot_every, plastic=config.policy == "morph")
+                               snapshot_every=config.snapshot_every, plastic=not config.make_policy().memoryless(
+                                   Fleet(config.n_agvs, config.n_pickers, config.scale)))
         self._ticks = TickOrder(config.steps)  # which ticks the record takes (services/tickorder.py)
         self._stop = asyncio.Event()
         self._done = False

@@ -89,6 +89,41 @@ class SavedState:
     rows: Mapping[str, Sequence[float]] | None = None
 
 
+@dataclass(frozen=True)
+class Mail:
+    """A policy message that reached a robot: from whom, sent at which tick, what (the mapping its sender sent)."""
+
+    sender: int
+    t: int
+    data: Mapping[str, Any]
+
+
+def pack_mail(data: Mapping[str, Any]) -> bytes:
+    """A policy message's content on the wire; ValueError naming the problem when it cannot go."""
+    import msgpack
+
+    from schemas.fields import MAX_POLICY_DATA
+
+    if not isinstance(data, Mapping):
+        raise ValueError(f"policy message: the content must be a mapping, got {type(data).__name__}")
+    try:
+        packed = msgpack.packb(dict(data), use_bin_type=True)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ValueError(f"policy message: cannot pack its content: {exc}") from None
+    if len(packed) > MAX_POLICY_DATA:
+        raise ValueError(f"policy message: {len(packed)} bytes of content, at most {MAX_POLICY_DATA}")
+    return packed
+
+
+def unpack_mail(data: bytes) -> dict[str, Any]:
+    import msgpack
+
+    out = msgpack.unpackb(data, raw=False, strict_map_key=True)
+    if not isinstance(out, dict):
+        raise ValueError("policy message: its content is not a mapping")
+    return out
+
+
 class Coordinator(ABC):
     """Coordination state and decisions of the robots in ``owners`` (indices into the fleet): one robot in an agent
     service, the whole team in the lab."""
@@ -138,6 +173,32 @@ class Coordinator(ABC):
         none. ``agvs`` come in delivery order, ties in the fleet's mission order as the picker's view ``obs`` has it
         (None before its first view); the default takes the first, as the reference's pickers do."""
         return 0
+
+    # -- policy messages ----------------------------------------------------------------------------------------------
+    def send(self, agent: int, to: int | None, data: Mapping[str, Any]) -> None:
+        """Owned robot ``agent`` sends ``data`` (a mapping msgpack can pack, at most
+        :data:`~schemas.fields.MAX_POLICY_DATA` bytes packed) to robot ``to`` (None: every other robot). It leaves
+        at the end of the robot's decision point of this tick and reaches the receiver's policy (:meth:`receive`)
+        at its first decision point of a later tick by which the network delivered it; it may be lost."""
+        from schemas.fields import MAX_POLICY_MESSAGES
+
+        if to is not None and not (0 <= int(to) < self.fleet.n and int(to) != agent):
+            raise ValueError(f"policy message: robot {agent} cannot send to {to!r} (another robot's id, or None)")
+        box = self.__dict__.setdefault("_outbox", {}).setdefault(self.slot(agent), [])
+        if len(box) >= MAX_POLICY_MESSAGES:
+            raise ValueError(f"policy message: robot {agent} sent more than {MAX_POLICY_MESSAGES} in one tick")
+        box.append((None if to is None else int(to), pack_mail(data)))
+
+    def take_outbox(self, agent: int) -> list[tuple[int | None, bytes]]:
+        """What owned robot ``agent`` sent since the last call (its driver sends it)."""
+        box = self.__dict__.get("_outbox")
+        if not box:
+            return []
+        return box.pop(self.slot(agent), [])
+
+    def receive(self, agent: int, mail: Sequence[Mail]) -> None:  # noqa: B027 - a silent policy ignores mail
+        """The policy messages that reached owned robot ``agent`` by this decision point, in delivery order (ties:
+        sender, then the sender's order); called after :meth:`learn` and before the robot decides."""
 
     # -- what the record and the restore read -----------------------------------------------------------------------
     @abstractmethod
@@ -237,6 +298,11 @@ class CoordinationPolicy(ABC):
         """The policy from option values (strings from a command line are converted by each field's type);
         ValueError with one line naming the option on a bad one."""
         return cls.from_params(validate_options(cls, options or {}))
+
+    def memoryless(self, fleet: Fleet) -> bool:
+        """Whether its brains recompute their links from each tick (then a report at tick t is of step t; a policy
+        with memory reports the state its update for step t−1 left)."""
+        return bool(self.brains(fleet, [0], 0).memoryless)
 
     def options(self) -> dict[str, Any]:
         """The values of its parameters (what ``from_options`` takes back)."""

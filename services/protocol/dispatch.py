@@ -402,6 +402,57 @@ class CommitmentDesk:
         return done, refusals
 
 
+class Mailbox:
+    """One robot's policy messages delivered and not yet taken by its policy (services.policies.interface.Mail).
+
+    A message sent at tick ``t`` is taken at the robot's first decision point of a later tick by which it was
+    delivered (its due time), so what a policy hears does not depend on when, within a tick, a message physically
+    arrived; messages taken together come in (due, sender, the sender's order). A copy of one already held is
+    dropped."""
+
+    #: ticks a message's identity is remembered after it was taken (a late duplicate beyond it would be taken again;
+    #: no network here delays a copy that long)
+    REMEMBER = 64
+
+    def __init__(self) -> None:
+        self.items: list[tuple[float, int, int, int, dict]] = []  # (due, sender, pseq, t sent, content)
+        self._seen: dict[tuple[int, int], int] = {}  # (sender, pseq) -> tick sent
+        self._pseq = 0
+
+    def next_pseq(self) -> int:
+        """The number of this robot's next policy message."""
+        self._pseq += 1
+        return self._pseq
+
+    def receive(self, msg, due: float) -> bool:
+        """Hold policy message ``msg`` (a schemas PolicyMessage) delivered at ``due``; False for a copy of one held.
+        ValueError when its content is not a packed mapping."""
+        from services.policies.interface import unpack_mail
+
+        key = (msg.sender, msg.pseq)
+        if key in self._seen:
+            return False
+        content = unpack_mail(msg.data)
+        self._seen[key] = msg.t
+        self.items.append((due, msg.sender, msg.pseq, msg.t, content))
+        return True
+
+    def take(self, t: int, now: float) -> list:
+        """The messages the decision point of tick ``t`` (at sim time ``now``) hands to the policy."""
+        if not self.items:
+            return []
+        from services.policies.interface import Mail
+
+        ready = [m for m in self.items if m[3] < t and m[0] <= now + EPS]
+        if not ready:
+            return []
+        self.items = [m for m in self.items if not (m[3] < t and m[0] <= now + EPS)]
+        ready.sort(key=lambda m: (m[0], m[1], m[2]))
+        if len(self._seen) > 4096:
+            self._seen = {k: sent for k, sent in self._seen.items() if sent >= t - self.REMEMBER}
+        return [Mail(sender, sent, content) for _, sender, _, sent, content in ready]
+
+
 @dataclass
 class FleetView:
     """An agent's latest view of the fleet state (a broadcast), with the sim time it describes.

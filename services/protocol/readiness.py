@@ -24,23 +24,56 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 
+class _Announced:
+    """Messages to this robot that its on-board state announces by a cumulative count (refusals, policy messages):
+    the arrivals per tick they were sent at, since the base (the tick of the last decision point that had them all,
+    and the count then)."""
+
+    __slots__ = ("announced", "arrivals", "base", "seen")
+
+    def __init__(self) -> None:
+        self.arrivals: dict[int, int] = {}
+        self.base: tuple[int, int] | None = None
+        self.seen: set[tuple[str, int]] = set()
+        # (tick, count) of the newest on-board state that arrived, acted on or not
+        self.announced: tuple[int, int] | None = None
+
+    def announce(self, t: int, count: int) -> None:
+        if self.announced is None or t > self.announced[0]:
+            self.announced = (t, count)
+
+    def arrived(self, sender: str, seq: int, t: int) -> bool:
+        return _count(self.seen, self.arrivals, sender, seq, t)
+
+    def owed(self) -> int:
+        """Announced by the newest on-board state and not arrived. Those announced by the newest on-board state when
+        this is first asked (this process's first decision point) are not waited for: a restarted robot's
+        predecessor had them. Once none is owed, what arrived up to that tick becomes the base."""
+        if self.announced is None:
+            return 0
+        upto, announced = self.announced
+        since, count = self.base if self.base is not None else self.announced
+        arrived = sum(n for t, n in self.arrivals.items() if since < t <= upto)
+        owed = announced - count - arrived
+        if owed <= 0:
+            self.base = self.announced
+            self.arrivals = {t: n for t, n in self.arrivals.items() if t > upto}
+        return owed
+
+
 class Readiness:
     """The readiness bookkeeping of one robot's decision points (see the module's docstring)."""
 
-    __slots__ = ("_announced", "_lockstep", "_refusal_arrivals", "_refusal_base", "_refusals_seen", "_reply_arrivals",
-                 "_reply_base", "_replies_seen", "_requests", "fleet_arrived")
+    __slots__ = ("_lockstep", "_mail", "_refusals", "_reply_arrivals", "_reply_base", "_replies_seen", "_requests",
+                 "fleet_arrived")
 
     def __init__(self, lockstep: bool) -> None:
         self._lockstep = lockstep
         self.fleet_arrived = -1  # the newest tick whose fleet broadcast arrived (delivered, held or lost)
-        # refusals to this robot that arrived, per boundary tick they were sent at, since the base: (the tick of the
-        # last decision point that had them all, the sim's count then); None before the first on-board state
-        self._refusal_arrivals: dict[int, int] = {}
-        self._refusal_base: tuple[int, int] | None = None
-        self._refusals_seen: set[tuple[str, int]] = set()
-        # (tick, refusals sent to this robot by then) of the newest on-board state that arrived, acted on or not: a
-        # picker that skipped its tick still decides at that tick's Resolve, with the refusals it announced
-        self._announced: tuple[int, int] | None = None
+        # refusals to this robot, per boundary tick they were sent at; policy messages to it, per tick they were sent
+        # at. A picker that skipped its tick still decides at that tick's Resolve, with the refusals announced.
+        self._refusals = _Announced()
+        self._mail = _Announced()
         # AGV: replies that arrived, per step the picker decided at, and (step of the outstanding request, replies
         # announced to this AGV before it)
         self._reply_arrivals: dict[int, int] = {}
@@ -53,14 +86,14 @@ class Readiness:
     def may_act(self, t: int, replied: int, awaiting_replies: bool) -> bool:
         """Whether the tick's decision point of tick ``t`` may be taken now: its fleet broadcast has arrived and, in
         lockstep, every reply announced (``replied``, for an AGV ``awaiting_replies`` — a request outstanding, not
-        the final tick) and every refusal announced has arrived."""
+        the final tick), every refusal and every policy message announced has arrived."""
         if self.fleet_arrived < t:
             return False
         if not self._lockstep:
             return True
         if awaiting_replies and self.replies_owed(replied) > 0:
             return False
-        return self.refusals_owed() <= 0
+        return self.refusals_owed() <= 0 and self._mail.owed() <= 0
 
     def may_decide(self, t: int, expected: Iterable[int]) -> bool:
         """Whether a picker's decision point of step ``t`` may be taken now: (in lockstep) every refusal announced
@@ -80,33 +113,30 @@ class Readiness:
             return True
         return False
 
-    # -- refusals --------------------------------------------------------------------------------------------------------
-    def announce(self, t: int, refused: int) -> None:
+    # -- refusals and policy messages ------------------------------------------------------------------------------------
+    def announce(self, t: int, refused: int, messaged: int = 0) -> None:
         """An on-board state of tick ``t`` arrived (delivered, or skipped by the fault layer), announcing ``refused``
-        refusals sent to this robot so far. Only the newest counts."""
-        if self._announced is None or t > self._announced[0]:
-            self._announced = (t, refused)
+        refusals and ``messaged`` policy messages sent to this robot so far. Only the newest counts."""
+        self._refusals.announce(t, refused)
+        self._mail.announce(t, messaged)
 
     def refusal(self, sender: str, seq: int, t: int) -> bool:
         """A copy of refusal (``sender``, ``seq``), sent at the boundary that starts tick ``t``, arrived; True the
         first time (each refusal counts once, whatever the network did to its copies)."""
-        return _count(self._refusals_seen, self._refusal_arrivals, sender, seq, t)
+        return self._refusals.arrived(sender, seq, t)
 
     def refusals_owed(self) -> int:
-        """Refusals the sim sent to this robot by the tick of its newest on-board state that have not arrived yet.
-        Those announced by the newest on-board state when this is first asked (this process's first decision point)
-        are not waited for: a restarted robot's predecessor had them. Once none is owed, what arrived up to that tick
-        becomes the base."""
-        if self._announced is None:
-            return 0
-        upto, announced = self._announced
-        since, count = self._refusal_base if self._refusal_base is not None else self._announced
-        arrived = sum(n for t, n in self._refusal_arrivals.items() if since < t <= upto)
-        owed = announced - count - arrived
-        if owed <= 0:
-            self._refusal_base = self._announced
-            self._refusal_arrivals = {t: n for t, n in self._refusal_arrivals.items() if t > upto}
-        return owed
+        """Refusals the sim sent to this robot by the tick of its newest on-board state that have not arrived yet."""
+        return self._refusals.owed()
+
+    def message(self, sender: str, seq: int, t: int) -> bool:
+        """A copy of policy message (``sender``, ``seq``), sent at tick ``t``, arrived; True the first time. It was
+        announced by the on-board state of tick ``t + 1``, whose arrivals are counted from ``t + 1`` on."""
+        return self._mail.arrived(sender, seq, t + 1)
+
+    def messages_owed(self) -> int:
+        """Policy messages sent to this robot in the ticks before its newest on-board state, not arrived yet."""
+        return self._mail.owed()
 
     # -- replies (an AGV) ------------------------------------------------------------------------------------------------
     def asked(self, t: int, replied: int) -> None:

@@ -95,6 +95,7 @@ class SimService(Presence, PhaseCollection):
         self._more: set[int] = set()  # pickers that asked for the next decision point (requests still to come)
         self._replied = [0] * config.n_agvs  # replies sent to each AGV so far (each Tick tells the AGVs)
         self._refused = [0] * self.n  # refusals sent to each robot so far (its on-board state tells it)
+        self._messaged = [0] * self.n  # policy messages sent to each robot so far, by the ticks before the current
         self._probe_round = 0
         self._running = False  # between tick 0 and the end: only then does a leaving agent count as absent
         self._monitor_rows: int | None = None  # rows the monitor reported written (None: not heard since it joined)
@@ -163,6 +164,12 @@ class SimService(Presence, PhaseCollection):
                 return  # duplicate
             ph.held.discard(msg.agent)
             if ph.phase == Phase.TICK:
+                for to in msg.policy_to:  # its policy's messages: the receivers wait for them next tick
+                    if to == -1:
+                        for r in range(self.n):
+                            self._messaged[r] += r != msg.agent
+                    elif 0 <= to < self.n and to != msg.agent:
+                        self._messaged[to] += 1
                 asked = [p for p in msg.requests_sent if self.config.n_agvs <= p < self.n]
                 if msg.agent < self.config.n_agvs and asked:
                     # one request per AGV per tick; a broadcasting policy's AGV asks each picker once
@@ -282,11 +289,12 @@ class SimService(Presence, PhaseCollection):
         tick = encode_tick_body(body)
         bus.put(k.tick, tick)
         free = set(body["free_pickers"])
-        replied, refused, n_agvs = self._replied, self._refused, self.config.n_agvs
+        replied, refused, messaged, n_agvs = self._replied, self._refused, self._messaged, self.config.n_agvs
         # each robot takes its on-board state and the broadcast together (over Zenoh in one message: bus.put_together)
         bus.put_together((k.fleet, tick), [
             (self._onboard_keys[robot], encode_fields(OnBoard, **onboard_fields(
-                body, robot, robot in free, replied[robot] if robot < n_agvs else 0, refused[robot])))
+                body, robot, robot in free, replied[robot] if robot < n_agvs else 0, refused[robot],
+                messaged[robot])))
             for robot in range(self.n)])
 
     async def _event(self, kind: str, **details) -> None:
