@@ -39,7 +39,7 @@ class AuctionBrains(Coordinator):
         if obs.final:
             return
         waiting = np.flatnonzero(obs.needs_picker[: obs.n_agvs])
-        for k, robot in enumerate(self.owners.tolist()):
+        for robot in self.owners.tolist():
             if self.fleet.is_agv(robot) or not obs.free_picker[robot] or waiting.size == 0:
                 continue
             cx, cy = obs.cells[robot]
