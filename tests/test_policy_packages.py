@@ -42,7 +42,7 @@ def test_a_template_package_runs_in_run_and_up_without_touching_morph_sim(tmp_pa
     assert {p.relative_to(pkg).as_posix() for p in pkg.rglob("*") if p.is_file()} == {
         "pyproject.toml", "README.md", "near_first/__init__.py", "near_first/policy.py", "tests/test_policy.py"}
     env, name = _env(pkg), "near_first.policy:NearFirstPolicy"
-    check = _morph(["policy", "check", name, "--no-distributed", "--steps", "60"], env)
+    check = _morph(["policy", "check", name, "--no-distributed", "--steps", "60", "--decision-limit", "2"], env)
     assert check.returncode == 0 and check.stderr.strip() == f"policy {name}: 6 of 6 rules kept", check.stderr
     out = tmp_path / "runs"
     flags = ["--policy", name, "--policy-option", "reach=6", "--steps", "80", "--seed", "3", "--output-dir", str(out)]

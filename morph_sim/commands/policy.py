@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import keyword
+import math
 import re
 import sys
 from importlib import resources
@@ -41,6 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     check.add_argument("--seed", type=int, default=1, help="seed of the episodes (default 1)")
     check.add_argument("--no-distributed", dest="distributed", action="store_false",
                        help="skip the distributed run (morph-sim up) against the lab")
+    check.add_argument("--decision-limit", type=float, default=None, metavar="SECONDS",
+                       help="seconds one decision may take (default 0.25)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -108,16 +111,19 @@ def _new(args) -> int:
 
 
 def _check(args) -> int:
-    from morph_sim.testing import RULES, policy_findings
+    from morph_sim.testing import DECISION_LIMIT, RULES, policy_findings
     from services.policies.loading import make_policy
     from services.runconfig import parse_policy_options
 
     if args.steps < 2 or args.steps > 100_000:
         raise ValueError(f"steps: {args.steps} outside 2..100000")
+    limit = DECISION_LIMIT if args.decision_limit is None else args.decision_limit
+    if not (math.isfinite(limit) and 0 < limit <= 60):
+        raise ValueError(f"decision-limit: {args.decision_limit} is not a number of seconds in (0, 60]")
     options = parse_policy_options(args.options)
     make_policy(args.name, options)  # a bad name or option: one line, exit 2, before anything runs
     findings = policy_findings(args.name, options, scale=args.scale, steps=args.steps, seed=args.seed,
-                               distributed=args.distributed)
+                               distributed=args.distributed, decision_limit=limit)
     broken = {f.rule for f in findings}
     for finding in findings:
         print(finding)
