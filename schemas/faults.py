@@ -17,13 +17,18 @@ from schemas.keys import validate_key_expr
 Percent = Annotated[float, Field(ge=0.0, le=100.0, allow_inf_nan=False)]
 Seconds = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
 AgentRef = int | str  # robot ids are ints; services are named ("sim", "monitor")
+SERVICE_AGENTS = ("sim", "monitor")  # the services a fault may name as an agent (they send and receive too)
 
 
 def _normalize_agents(values: list[AgentRef] | None) -> list[AgentRef] | None:
     # "3" and 3 name the same robot (ids arrive as strings from key chunks, CLI flags and env vars).
     if values is None:
         return None
-    return [int(v) if isinstance(v, str) and v.isdigit() else v for v in values]
+    out = [int(v) if isinstance(v, str) and v.isdigit() else v for v in values]
+    for v in out:  # any other name matches no sender: the fault would silently apply to nobody
+        if isinstance(v, int) and v < 0 or isinstance(v, str) and v not in SERVICE_AGENTS:
+            raise ValueError(f"{v!r} is not a robot id (0, 1, …) nor a service ({', '.join(SERVICE_AGENTS)})")
+    return out
 
 
 class _Spec(BaseModel):

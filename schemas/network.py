@@ -14,14 +14,22 @@ from __future__ import annotations
 import re
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from schemas.errors import message
 from schemas.faults import Latency
 
 Percent = Annotated[float, Field(ge=0.0, le=100.0, allow_inf_nan=False)]
 Seconds = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
 
 PROFILE_NAME = re.compile(r"^[a-z0-9][a-z0-9_\-]{0,63}$")
+#: Closest spacing of the default access-point grid, in cells: one access point per cell is already denser than any
+#: deployment, and the grid has ceil(W/spacing) × ceil(H/spacing) points, so a spacing of 1e-6 would ask for 10^14
+#: of them before the first tick.
+MIN_AP_SPACING = 1.0
+#: Most access points an explicit ``cells`` list may place: more than the largest warehouse (extralarge, 30 × 45)
+#: has cells. Every robot's move is compared with every access point.
+MAX_ACCESS_POINTS = 4096
 
 
 class _Spec(BaseModel):
@@ -33,9 +41,23 @@ class Placement(_Spec):
     neighbours, centred in the tiles it cuts the warehouse into (so every scale gets its own default placement).
     An empty list means no access points: the robots are as if wired, nobody roams."""
 
-    spacing: float = Field(default=12.0, gt=0.0, allow_inf_nan=False, description="cells between neighbouring APs")
+    spacing: float = Field(default=12.0, allow_inf_nan=False, description="cells between neighbouring APs")
     cells: list[tuple[float, float]] | None = Field(
         default=None, description="explicit AP positions (x, y); overrides spacing; [] = no radio cells (wired)")
+
+    @field_validator("spacing")
+    @classmethod
+    def _spacing(cls, value: float) -> float:
+        if not value >= MIN_AP_SPACING:
+            raise ValueError(f"{value:g} cells is closer than one access point per cell (at least {MIN_AP_SPACING:g})")
+        return value
+
+    @field_validator("cells", mode="before")
+    @classmethod
+    def _count(cls, value):  # counted before each entry is built
+        if isinstance(value, list) and len(value) > MAX_ACCESS_POINTS:
+            raise ValueError(f"{len(value):,} access points, at most {MAX_ACCESS_POINTS:,}")
+        return value
 
 
 class Handover(_Spec):
@@ -95,7 +117,7 @@ def _explain(exc: ValidationError, where: str) -> ValueError:
     parts = []
     for err in exc.errors(include_url=False):
         loc = "".join(f"[{x}]" if isinstance(x, int) else f".{x}" for x in err["loc"]).lstrip(".")
-        parts.append(f"{loc or '<root>'}: {err['msg']}")
+        parts.append(f"{loc or '<root>'}: {message(err)}")
     return ValueError(f"{where}: " + "; ".join(parts))
 
 

@@ -68,8 +68,9 @@ def base_zenoh_config(environ: dict[str, str] | None = None, path: str | None = 
         path = (os.environ if environ is None else environ).get(ZENOH_CONFIG_ENV)
     if not path:
         return None
-    if os.path.isdir(path):
-        raise ValueError(f"{what}: {path!r} is a directory, not a Zenoh config file")
+    from services.inputs import input_file
+
+    input_file(path, what)  # zenoh reads the file whole: not a directory, a device, nor one of any size
     try:
         return zenoh.Config.from_file(path)
     except Exception as exc:  # zenoh raises its own ZError for a missing or malformed file
@@ -93,18 +94,6 @@ async def open_bus(identity: str, *, listen: str | None = None, connect: str | N
                                config=config, connect_timeout=connect_timeout)
 
 
-def _seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not value > 0 or value == float("inf"):
-        import argparse
-
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds > 0")
-    return value
-
-
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"  # where an operator command looks when nothing tells it where the run is
 
 
@@ -117,7 +106,7 @@ def add_operator_arguments(parser) -> None:
     parser.add_argument("--credentials", default=None, metavar="FILE",
                         help="Zenoh config with the operator's user/password (default: $ZENOH_CONFIG, else "
                              "<output-dir>/<run>/credentials/operator.json5 written by `morph-sim up`)")
-    parser.add_argument("--connect-timeout", type=_seconds, default=10.0, metavar="SECONDS",
+    parser.add_argument("--connect-timeout", type=float, default=10.0, metavar="SECONDS",
                         help="give up when the endpoint does not answer within this time (default 10)")
     if not any(a.dest in ("output_dir", "cfg_output_dir") for a in parser._actions):
         parser.add_argument("--output-dir", default="runs", help="parent directory of run records (default runs)")
@@ -146,29 +135,46 @@ def operator_endpoint(args, run_id: str | None, output_dir=None) -> str:
     """The endpoint an operator command connects to: ``--endpoint``; else where run ``run_id`` is hosted, as its
     record says (``credentials/where``, written by ``up`` before any process starts; else the endpoint in the
     monitor's ``manifest.json``, which an ``--insecure`` run has too); else :data:`DEFAULT_ENDPOINT`. ``up`` hosts
-    a run on a free port, so the record is the only place that knows it."""
+    a run on a free port, so the record is the only place that knows it.
+
+    Every operator command asks for its endpoint before it connects, so this is where the operator options are
+    checked: the endpoint (wherever it came from), ``--connect-timeout`` and the ``--credentials`` file."""
+    from services.inputs import endpoint, finite, input_file
+
+    if getattr(args, "connect_timeout", None) is not None:
+        finite(args.connect_timeout, "connect_timeout", above=0)
+    if getattr(args, "credentials", None):
+        input_file(args.credentials, "credentials")
+    if getattr(args, "endpoint", None):
+        return endpoint(args.endpoint, "endpoint")
+    where, source = _recorded_endpoint(args, run_id, output_dir)
+    return endpoint(where, f"endpoint (from {source})") if where else DEFAULT_ENDPOINT
+
+
+def _recorded_endpoint(args, run_id: str | None, output_dir=None) -> tuple[str, str]:
+    """(endpoint, the file that says so) for run ``run_id`` from its record, or ("", "")."""
     import json
     from pathlib import Path
 
     from services.credentials import WHERE_FILE, run_credentials
+    from services.inputs import read_text
 
-    if getattr(args, "endpoint", None):
-        return args.endpoint
-    if run_id is not None:
-        record = Path(output_dir if output_dir is not None else getattr(args, "output_dir", None) or "runs") / run_id
-        try:
-            where = (run_credentials(record).directory / WHERE_FILE).read_text().strip()
-        except OSError:
-            where = ""
-        if where:
-            return where
-        try:
-            where = json.loads((record / "manifest.json").read_text()).get("config", {}).get("endpoint") or ""
-        except (OSError, ValueError, AttributeError):
-            where = ""
-        if where:
-            return where
-    return DEFAULT_ENDPOINT
+    if run_id is None:
+        return "", ""
+    record = Path(output_dir if output_dir is not None else getattr(args, "output_dir", None) or "runs") / run_id
+    where_file = run_credentials(record).directory / WHERE_FILE
+    try:
+        where = read_text(where_file, "endpoint").strip() if where_file.exists() else ""
+    except ValueError:
+        where = ""
+    if where:
+        return where, str(where_file)
+    try:
+        manifest = read_text(record / "manifest.json", "endpoint") if (record / "manifest.json").exists() else "{}"
+        where = json.loads(manifest).get("config", {}).get("endpoint") or ""
+    except (ValueError, AttributeError):
+        where = ""
+    return (where, str(record / "manifest.json")) if where else ("", "")
 
 
 async def open_operator_bus(identity: str, endpoint: str, args, run_id: str | None, output_dir=None):

@@ -28,17 +28,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     from services.credentials import RunCredentials
+    from services.inputs import output_dir
     from services.runconfig import RunConfig, config_from_args
 
     if getattr(args, "cfg_run_id", None) is None and not __import__("os").environ.get(RunConfig.env_name("run_id")):
         raise ValueError("run_id: credentials are per run; pass --run-id (or MORPH_RUN_ID)")
     config = config_from_args(args)
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"out: {out} exists and is not a directory")
+    out = output_dir(args.out, "out")
     mounted_at = args.mounted_at
     if mounted_at is not None and not mounted_at.startswith("/"):
         raise ValueError(f"mounted_at: {mounted_at!r} must be an absolute path (where a container mounts the files)")

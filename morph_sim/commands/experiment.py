@@ -325,6 +325,12 @@ def run(args) -> int:
         raise ValueError(f"executor: the dask executor runs the scale and ablation studies (and sweeps), "
                          f"not {args.suite}")
     refuse_unhonoured(args)
+    from morph_sim.lab.executors import check_jobs
+    from services.inputs import output_dir
+
+    output_dir(args.out, "out")  # before the first episode: its record goes there
+    if args.jobs is not None:
+        check_jobs(args.jobs)
     args.executor = args.executor or "local"
     if args.executor == "dask" and not args.scheduler:
         raise ValueError("scheduler: --executor dask needs --scheduler tcp://HOST:8786")

@@ -70,10 +70,10 @@ def build_command(args: argparse.Namespace):
     from schemas.errors import invalid
     from schemas.keys import validate_run_id
     from schemas.messages import FaultCommand
+    from services.inputs import finite
 
     validate_run_id(args.run)
-    if args.timeout <= 0:
-        raise ValueError(f"timeout: must be > 0, got {args.timeout}")
+    finite(args.timeout, "timeout", above=0)  # nan would pass a `<= 0` test and reach the query
     at_tick = getattr(args, "at_tick", None)
     if at_tick is not None and at_tick < 0:
         raise ValueError(f"at_tick: must be >= 0, got {at_tick}")

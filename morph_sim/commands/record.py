@@ -59,20 +59,19 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
     import signal
     import time
-    from pathlib import Path
 
     from morph_sim.commands.watch import check_run, find_run
     from schemas.keys import RunKeys, validate_run_id
+    from services.inputs import finite, output_file
     from services.monitor.replay import BusRecorder
     from services.process import open_operator_bus, operator_endpoint
-    from services.runconfig import RunConfig
 
     if args.run is not None:
         validate_run_id(args.run)
-    endpoint = operator_endpoint(args, args.run)
-    RunConfig(endpoint=endpoint)  # validates the endpoint, naming the field
-    if args.timeout is not None and args.timeout <= 0:
-        raise ValueError(f"timeout: must be > 0, got {args.timeout}")
+    if args.timeout is not None:
+        finite(args.timeout, "timeout", above=0)
+    out = output_file(args.out, "out", parents=True)  # the recorder creates its directory
+    endpoint = operator_endpoint(args, args.run)  # checks it, and the other operator options
 
     def say(line: str) -> None:
         if not args.quiet:
@@ -91,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
             sink = [early.append]
             sub = await bus.subscribe(RunKeys(run_id).everything, lambda sample: sink[0](sample))
             config = await run_config(bus, run_id)
-            rec = BusRecorder(bus, config, Path(args.out))
+            rec = BusRecorder(bus, config, out)
             for sample in early:
                 rec.on_sample(sample)
             sink[0] = rec.on_sample

@@ -17,13 +17,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import asyncio
     import json
-    from pathlib import Path
 
+    from services.inputs import input_file, output_dir
     from services.monitor.replay import replay
 
-    path = Path(args.record)
-    if not path.is_file():
-        raise ValueError(f"record: {path} is not a file")
-    result = asyncio.run(replay(path, Path(args.output_dir), args.run_id))
+    path = input_file(args.record, "record", limit=None)  # read frame by frame: any size, but a file
+    result = asyncio.run(replay(path, output_dir(args.output_dir, "output_dir"), args.run_id))
     print(json.dumps({"rows": len(result.rows), "deliveries": result.deliveries_total, "rejected": result.rejected}))
     return 0

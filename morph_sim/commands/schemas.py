@@ -16,10 +16,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from schemas.jsonschema import export
+    from services.inputs import output_dir
 
     if args.schemas_action != "export":
         raise ValueError(f"schemas: unknown action {args.schemas_action!r}")
-    paths = export(args.dir)
+    paths = export(output_dir(args.dir, "dir"))
     for path in paths:
         print(path)
     return 0

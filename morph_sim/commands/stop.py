@@ -26,10 +26,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from schemas import Stop
     from schemas.keys import RunKeys, validate_run_id
+    from services.inputs import finite
     from services.process import open_operator_bus, operator_endpoint
 
     keys = RunKeys(validate_run_id(args.run))
-    endpoint = operator_endpoint(args, args.run)
+    finite(args.timeout, "timeout", above=0)
+    endpoint = operator_endpoint(args, args.run)  # checks it, and the other operator options
 
     async def main() -> bool:
         bus = await open_operator_bus("operator-stop", endpoint, args, args.run)

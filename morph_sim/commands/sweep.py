@@ -43,6 +43,7 @@ def _pairs(items: list[str], what: str) -> dict[str, str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from morph_sim.lab.executors import check_jobs
     from morph_sim.lab.sweep import (
         SweepPlan,
         comparison_markdown,
@@ -51,6 +52,7 @@ def run(args: argparse.Namespace) -> int:
         plan_from_toml,
         run_sweep,
     )
+    from services.inputs import output_dir
 
     file_run: dict = {}
     if args.file:
@@ -64,20 +66,16 @@ def run(args: argparse.Namespace) -> int:
                                base=_pairs(args.fixed, "set"), engine=args.engine or "lab",
                                baseline=_pairs(args.baseline, "baseline") or None)
     executor = args.executor or file_run.get("executor", "local")
-    jobs = args.jobs if args.jobs is not None else int(file_run.get("jobs", 2))
-    if jobs < 1:
-        raise ValueError(f"jobs: must be at least 1, got {jobs}")
+    jobs = check_jobs(args.jobs if args.jobs is not None else int(file_run.get("jobs", 2)))
     scheduler = args.scheduler or file_run.get("scheduler")
     if executor == "dask" and not scheduler:
         raise ValueError("scheduler: --executor dask needs --scheduler tcp://HOST:8786")
+    out = output_dir(args.out or file_run.get("out", "runs"), "out")
     n = len(plan.episodes())
     print(f"sweep: {len(plan.conditions())} conditions × {len(plan.seeds)} seeds = {n} episodes "
           f"({plan.engine} engine, {executor} executor)", file=sys.stderr)
-    from pathlib import Path
-
     from morph_sim.lab.sweep import count_done
 
-    out = Path(args.out or file_run.get("out", "runs"))
     run_id = args.run_id or file_run.get("run_id") or default_sweep_id()
     try:
         result = run_sweep(plan, out, run_id, executor=executor, jobs=jobs, scheduler=scheduler,

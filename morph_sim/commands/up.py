@@ -110,17 +110,13 @@ def monitor_flags(args: argparse.Namespace) -> tuple[tuple[str, ...], float]:
     import os
     import socket
 
-    if args.max_rate < 0:
-        raise ValueError(f"max_rate: must be >= 0, got {args.max_rate}")
-    if args.prometheus_grace < 0:
-        raise ValueError(f"prometheus_grace: must be >= 0, got {args.prometheus_grace}")
+    from services.inputs import finite, output_file
+
+    finite(args.max_rate, "max_rate", at_least=0)
+    finite(args.prometheus_grace, "prometheus_grace", at_least=0)
     flags: list[str] = ["--max-rate", repr(float(args.max_rate))]
     if args.bus_record:
-        import pathlib
-
-        if pathlib.Path(args.bus_record).is_dir():
-            raise ValueError(f"bus_record: {args.bus_record!r} is a directory, not a file")
-        flags += ["--bus-record", str(pathlib.Path(args.bus_record).resolve())]
+        flags += ["--bus-record", str(output_file(args.bus_record, "bus_record", parents=True).resolve())]
     port = args.prometheus_port
     if port is None and os.environ.get("MORPH_PROMETHEUS_PORT"):
         try:

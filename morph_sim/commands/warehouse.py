@@ -10,6 +10,15 @@ HELP = "run TA-RWARE's heuristic controller for one episode and print deliveries
 
 # TA-RWARE's scripts/run_heuristic.py reports pick rate as deliveries * 3600 / (5 * steps): 5 s of robot time a step.
 PICK_RATE_SECONDS_PER_STEP = 5.0
+#: Largest image --png or --gif draws, in pixels (4096 × 4096): more than a screen shows, and within about 100 MB
+#: for the frame, its copies and the cached background; the extralarge warehouse reaches it near --cell-px 90.
+#: The size follows from --cell-px, so it is checked before the episode, not found when the first frame is drawn.
+MAX_IMAGE_PIXELS = 4096 * 4096
+#: Most frames a GIF keeps (every frame waits in memory until the episode ends): over 16 minutes of animation at the
+#: default 10 fps; more is a --gif-every that was meant to be larger.
+MAX_GIF_FRAMES = 10_000
+#: Seeds the warehouse takes: its random state is numpy's RandomState, whose seed is 32 bits.
+MAX_SEED = 2**32 - 1
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -37,20 +46,37 @@ def run(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from schemas.errors import invalid
+    from services.inputs import at_most, finite, output_file
+    from services.runconfig import MAX_STEPS
     from services.world.heuristic import run_episode
+    from services.world.layout import layout_for
+    from services.world.render import WAREHOUSE_LEGEND, image_size
     from services.world.warehouse import WarehouseConfig
 
-    if args.steps is not None and args.steps < 1:
-        raise ValueError(f"steps: must be >= 1, got {args.steps}")
+    if args.steps is not None and not 1 <= args.steps <= MAX_STEPS:
+        raise ValueError(f"steps: must be in 1..{MAX_STEPS:,}, got {args.steps}")
+    if not 0 <= args.seed <= MAX_SEED:
+        raise ValueError(f"seed: must be in 0..{MAX_SEED}, got {args.seed}")
     if args.gif_every < 1:
         raise ValueError(f"gif-every: must be >= 1, got {args.gif_every}")
     if args.cell_px < 4:
         raise ValueError(f"cell-px: must be >= 4, got {args.cell_px}")
+    finite(args.fps, "fps", above=0)
+    for flag in ("png", "gif"):  # before the episode: a path that cannot be written is known now
+        if getattr(args, flag):
+            output_file(getattr(args, flag), flag)
     try:
         config = WarehouseConfig.named(args.scale, args.agvs, args.pickers, max_steps=args.steps,
                                        reward_type=args.reward)
     except ValueError as exc:  # pydantic's ValidationError is a ValueError
         raise invalid(exc) from None
+    if args.png or args.gif:
+        layout = layout_for(config.layout)
+        w, h = image_size(layout.H, layout.W, args.cell_px, header=True, legend=WAREHOUSE_LEGEND)
+        at_most(w * h, MAX_IMAGE_PIXELS, "cell-px", f"pixels in a {w}×{h} image of the {args.scale} warehouse")
+    if args.gif:
+        at_most(config.max_steps // args.gif_every + 1, MAX_GIF_FRAMES, "gif-every",
+                f"GIF frames ({config.max_steps} steps, one kept every {args.gif_every})")
 
     frames = []
     render_s = 0.0
@@ -93,12 +119,12 @@ def run(args: argparse.Namespace) -> int:
     out.print(f"  return      {result.global_return:.1f}  (sum over agents and steps)")
     out.print(f"  speed       {result.steps / sim_seconds:,.0f} steps/s  (simulation + controller)")
     if args.png:
-        from services.world.render import WAREHOUSE_LEGEND, save_png
+        from services.world.render import save_png
 
         save_png(frames_last[0], args.png, cell_px=args.cell_px, legend=WAREHOUSE_LEGEND)
         out.print(f"  png         {args.png}")
     if args.gif:
-        from services.world.render import WAREHOUSE_LEGEND, write_gif
+        from services.world.render import write_gif
 
         n = write_gif(frames, args.gif, fps=args.fps, cell_px=args.cell_px, legend=WAREHOUSE_LEGEND)
         out.print(f"  gif         {args.gif} ({n} frames)")

@@ -250,13 +250,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from schemas.keys import validate_run_id
+    from services.inputs import finite
     from services.process import open_operator_bus, operator_endpoint
-    from services.runconfig import RunConfig
 
     if args.run is not None:
         validate_run_id(args.run)
-    endpoint = operator_endpoint(args, args.run)
-    RunConfig(endpoint=endpoint)  # validates the endpoint, naming the field
+    if args.duration is not None:
+        finite(args.duration, "duration", above=0)
+    if args.steps is not None and args.steps < 1:
+        raise ValueError(f"steps: must be >= 1, got {args.steps}")
+    endpoint = operator_endpoint(args, args.run)  # checks it, and the other operator options
     if args.run is not None:
         ended = finished_record(args.output_dir, args.run)
         if ended is not None:  # nothing of the run is left to join: say so now instead of waiting for it

@@ -115,11 +115,24 @@ def _stop(pool: ProcessPoolExecutor) -> None:
         worker.join(STOP_WAIT)
 
 
+#: Most local worker processes: more than the machine's cores only queue for them, and each is a Python process
+#: of its own (about 100 MB with an episode loaded), so 256 already asks for more cores and memory than one machine
+#: has; a larger --jobs would start that many processes at once.
+MAX_LOCAL_JOBS = 256
+
+
+def check_jobs(jobs: int) -> int:
+    """``jobs`` if it is a number of local worker processes: 1..MAX_LOCAL_JOBS."""
+    from services.inputs import at_most
+
+    if jobs < 1:
+        raise ValueError(f"jobs: must be at least 1, got {jobs}")
+    return at_most(jobs, MAX_LOCAL_JOBS, "jobs", "worker processes")
+
+
 class LocalExecutor:
     def __init__(self, jobs: int = 2):
-        if jobs < 1:
-            raise ValueError(f"jobs: must be at least 1, got {jobs}")
-        self.jobs = jobs
+        self.jobs = check_jobs(jobs)
         self._running: Iterator[Any] | None = None
 
     def map_unordered(self, fn, tasks):

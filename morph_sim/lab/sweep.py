@@ -44,6 +44,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from morph_sim.lab.faults_experiment import BURST as LAB_BURST  # the lab's bursty loss: mean burst, messages
 from morph_sim.lab.grid import RecordMismatch, count_done, read_done as _read_done, run_grid  # noqa: F401 - API
+from services.inputs import at_most, read_text
 from services.metrics import catalogue
 from services.runconfig import RunConfig
 
@@ -62,6 +63,10 @@ PARQUET_HINT = "pip install pyarrow (or 'morph-sim[data]') for results.parquet"
 #: freedom and one episode can swing p anywhere between significant and not
 WELCH_MIN_N = 3
 WELCH_WITHHELD = f"n < {WELCH_MIN_N}"
+#: Most episodes (conditions × seeds) a sweep may plan. The plan lists every episode before the first runs, and the
+#: record keeps a row for each; the largest study the project runs has a few thousand (the scale study: 2,600 a
+#: scale), and 100,000 episodes of a few seconds each are days of CPU, so more is a slip like 1-100000000 for 1-100.
+MAX_SWEEP_EPISODES = 100_000
 
 
 # -- parsing ------------------------------------------------------------------------------------------------------
@@ -69,27 +74,30 @@ def parse_seeds(text: str | Sequence[int]) -> tuple[int, ...]:
     """``"1-20"``, ``"1,2,5"``, ``"1-3,7"`` or a list of ints; error names ``seeds``."""
     if not isinstance(text, str):
         values = list(text)
+        at_most(len(values), MAX_SWEEP_EPISODES, "seeds", "seeds")
     else:
-        values = []
+        parts: list[tuple[int, int]] = []
         for part in text.replace(" ", "").split(","):
             if not part:
                 continue
             lo, dash, hi = part.partition("-")
             try:
-                if dash:
-                    a, b = int(lo), int(hi)
-                    if b < a:
-                        raise ValueError
-                    values.extend(range(a, b + 1))
-                else:
-                    values.append(int(part))
+                a, b = (int(lo), int(hi)) if dash else (int(part), int(part))
+                if b < a:
+                    raise ValueError
             except ValueError:
                 raise ValueError(f"seeds: {part!r} is not a seed or a range like 1-20") from None
+            parts.append((a, b))
+        # counted before a range is spelled out: 1-100000000 would otherwise fill memory before any check
+        at_most(sum(b - a + 1 for a, b in parts), MAX_SWEEP_EPISODES, "seeds", "seeds")
+        values = [v for a, b in parts for v in range(a, b + 1)]
     out = []
+    seen = set()
     for v in values:
         if isinstance(v, bool) or not isinstance(v, int) or v < 0:
             raise ValueError(f"seeds: {v!r} is not a non-negative integer")
-        if v not in out:
+        if v not in seen:
+            seen.add(v)
             out.append(v)
     if not out:
         raise ValueError("seeds: at least one seed")
@@ -199,7 +207,11 @@ class SweepPlan(BaseModel):
         for name in base_norm:
             if name in axes:
                 raise ValueError(f"{name}: both fixed and swept")
-        plan = cls(grid=axes, seeds=parse_seeds(seeds), base=base_norm, engine=engine,
+        seeds = parse_seeds(seeds)
+        conditions = math.prod(len(values) for values in axes.values())  # before each is listed and checked
+        at_most(conditions * len(seeds), MAX_SWEEP_EPISODES, "grid",
+                f"episodes ({conditions:,} conditions × {len(seeds):,} seeds)")
+        plan = cls(grid=axes, seeds=seeds, base=base_norm, engine=engine,
                    baseline=dict(baseline) if baseline else None, fiedler_every=fiedler_every)
         plan = plan.model_copy(update={"grid": {n: plan._normalise(n, vs) for n, vs in axes.items()},
                                        "base": {n: plan._normalise(n, [v])[0] for n, v in base_norm.items()}})
@@ -616,8 +628,8 @@ def plan_from_toml(path: str | Path) -> tuple[SweepPlan, dict[str, Any]]:
 
     Returns the plan and the file's ``[run]`` table (executor, jobs, scheduler, out) for the CLI."""
     try:
-        data = tomllib.loads(Path(path).read_text())
-    except (OSError, tomllib.TOMLDecodeError) as exc:
+        data = tomllib.loads(read_text(path, "sweep file"))
+    except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"sweep file: {path}: {exc}") from None
     known = {"seeds", "engine", "grid", "base", "baseline", "fiedler_every", "run"}
     for k in data:

@@ -40,6 +40,7 @@ import numpy as np
 from schemas.faults import Latency
 from schemas.network import NetworkProfile, Rate, parse_profile
 from services.faults.distributions import latency_quantile
+from services.inputs import read_text
 from services.world.layout import Layout
 
 CAUSES = ("handover", "link_queue", "ap_queue", "loss", "dead_zone")
@@ -378,10 +379,7 @@ def load_profile(name_or_path: str) -> NetworkProfile:
     """A named profile (``wifi-legacy-roaming``) or a TOML file path; ValueError naming the profile and field."""
     if name_or_path.endswith(".toml"):
         path = Path(name_or_path)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ValueError(f"network: cannot read {path}: {exc.strerror}") from None
+        text = read_text(path, "network")
         where = f"network {path}"
     else:
         if name_or_path not in profile_names():

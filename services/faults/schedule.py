@@ -30,6 +30,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from schemas.errors import invalid
 from schemas.faults import FaultOp, FaultSpec
 from schemas.messages import FaultCommand
+from services.inputs import at_most, read_text
 
 
 class TimedCommand(BaseModel):
@@ -67,7 +68,17 @@ class FaultSchedule(BaseModel):
         return [(c.at(dt), c.command()) for _, c in indexed]
 
 
+#: Most entries a schedule may have. A schedule is a handful of timed faults written by hand (the ones the project
+#: ships have one to a few); each active fault is checked against every message, and each answer about the faults
+#: names all of them, so the cost in every process grows with the square of the faults active at once: 300 set at
+#: tick 0 already take 36 MB more and seconds per tick, 2000 take 1.3 GB.
+MAX_SCHEDULE_ENTRIES = 256
+
+
 def parse_schedule(data: dict, where: str = "schedule") -> FaultSchedule:
+    entries = data.get("at") if isinstance(data, dict) else None
+    if isinstance(entries, list):  # counted before pydantic builds a model of each
+        at_most(len(entries), MAX_SCHEDULE_ENTRIES, f"{where}: at", "entries")
     try:
         return FaultSchedule.model_validate(data)
     except ValidationError as exc:
@@ -78,16 +89,9 @@ def load_schedule(path: str | Path, n_agents: int | None = None) -> FaultSchedul
     """Read and validate a schedule file; ValueError naming the file and the bad field. With ``n_agents``, every
     agent a command names must be in the fleet (a crash of agent 99 in a fleet of 8 would otherwise never happen)."""
     path = Path(path)
+    text = read_text(path, "fault_schedule")
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ValueError(f"fault schedule {path}: no such file") from None
-    except IsADirectoryError:
-        raise ValueError(f"fault schedule {path}: is a directory, not a TOML file") from None
-    except UnicodeDecodeError as exc:
-        raise ValueError(f"fault schedule {path}: not UTF-8 text (byte {exc.start})") from None
-    except OSError as exc:
-        raise ValueError(f"fault schedule {path}: cannot read it: {exc.strerror}") from None
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"fault schedule {path}: not valid TOML: {exc}") from None
     schedule = parse_schedule(data, f"fault schedule {path}")

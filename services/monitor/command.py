@@ -47,10 +47,12 @@ def run(args: argparse.Namespace) -> int:
     config = service_config(args)
     if not config.endpoint:
         raise ValueError("endpoint: the monitor needs --endpoint ENDPOINT (e.g. tcp/127.0.0.1:7447)")
-    if args.max_rate < 0:
-        raise ValueError(f"max_rate: must be >= 0, got {args.max_rate}")
-    if args.prometheus_grace < 0:
-        raise ValueError(f"prometheus_grace: must be >= 0, got {args.prometheus_grace}")
+    from services.inputs import finite, output_file
+
+    finite(args.max_rate, "max_rate", at_least=0)
+    finite(args.prometheus_grace, "prometheus_grace", at_least=0)
+    if args.bus_record:  # before the session opens
+        output_file(args.bus_record, "bus_record", parents=True)
     setup_logging(args.log_level, "monitor")
     port = None if args.prometheus_port in (None, "") else int(args.prometheus_port)
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from services.metrics import measures as M
-from services.monitor.recorder import read_metrics, read_snapshots
+from services.monitor.recorder import read_snapshots
 
 log = logging.getLogger("morph_sim.report")
 
@@ -38,6 +38,8 @@ class Record:
     n_agents: int
     name: str = ""
     gaps: list[tuple[int, int]] = field(default_factory=list)
+    #: what reading the record left out: a last line its writer never finished (see :func:`record_lines`)
+    notes: list[str] = field(default_factory=list)
 
     def column(self, name: str) -> np.ndarray:
         return np.array([float(r[name]) if r.get(name) not in (None, "") else math.nan for r in self.rows])
@@ -65,11 +67,14 @@ class Record:
         if not path.exists():
             return out
         n = self.n_agents
-        for line in path.read_text(encoding="utf-8").splitlines():
-            cells = line.split(",")
-            if len(cells) != 1 + 4 * n:
-                continue  # a line cut by a killed monitor
-            out[int(cells[0])] = np.array(cells[1:], dtype=np.int64).reshape(4, n)
+        for number, line in record_lines(path, self.notes):
+            try:
+                cells = line.split(",")
+                if len(cells) != 1 + 4 * n:
+                    raise ValueError(f"{len(cells)} fields, not 1 + 4 × {n} robots")
+                out[int(cells[0])] = np.array(cells[1:], dtype=np.int64).reshape(4, n)
+            except ValueError as exc:
+                raise _bad_line(path, number, exc) from None
         return out
 
     def links(self) -> dict[int, np.ndarray]:
@@ -78,36 +83,74 @@ class Record:
         if not path.exists():
             return out
         n = self.n_agents
-        for line in path.read_text(encoding="utf-8").splitlines():
+        for number, line in record_lines(path, self.notes):
             t, _, pairs = line.partition(",")
             A = np.zeros((n, n), dtype=bool)
             try:
                 for p in pairs.split():
                     i, j = map(int, p.split("-"))
+                    if not (0 <= i < n and 0 <= j < n):
+                        raise ValueError(f"link {p} names a robot outside 0..{n - 1}")
                     A[i, j] = A[j, i] = True
                 out[int(t)] = A
-            except ValueError:
-                continue
+            except ValueError as exc:
+                raise _bad_line(path, number, exc) from None
         return out
+
+
+def record_lines(path: Path, notes: list[str]) -> list[tuple[int, str]]:
+    """(line number, text) of every whole line of a record file. The writers end every line with a newline and a
+    restarted monitor trims an unfinished one before it appends, so only the last line can be unfinished: its
+    writer was stopped mid-line (killed, or the disk was full). That line is left out, and ``notes`` says so; the
+    lines before it are the record as it was. A file that is not UTF-8 is refused naming the byte."""
+    from services.inputs import input_file
+
+    data = input_file(path, "run_dir", limit=None).read_bytes()
+    end = data.rfind(b"\n") + 1
+    try:
+        text = data[:end].decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"run_dir: {path} is not UTF-8 text (byte {exc.start})") from None
+    lines = text.splitlines()
+    if end < len(data):
+        notes.append(f"{path} (line {len(lines) + 1})")
+    return list(enumerate(lines, start=1))
+
+
+def _bad_line(path: Path, number: int, why: object) -> ValueError:
+    return ValueError(f"run_dir: {path} line {number} is not a line of this table ({why}); the record is damaged")
+
+
+def _json_file(path: Path):
+    from services.inputs import read_text
+
+    try:
+        return json.loads(read_text(path, "run_dir"))
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"run_dir: {path} is not JSON ({exc})") from None
 
 
 def load(directory: Path) -> Record:
     d = Path(directory)
     if not (d / "metrics.csv").exists():
         raise ValueError(f"run_dir: {d} holds no run record (metrics.csv missing)")
-    manifest = json.loads((d / "manifest.json").read_text()) if (d / "manifest.json").exists() else {}
+    notes: list[str] = []
+    manifest = _json_file(d / "manifest.json") if (d / "manifest.json").exists() else {}
     events = []
     if (d / "events.jsonl").exists():
-        for line in (d / "events.jsonl").read_text(encoding="utf-8").splitlines():
+        for number, line in record_lines(d / "events.jsonl", notes):
             try:
-                events.append(json.loads(line))
-            except json.JSONDecodeError:
-                continue  # a line cut by a killed monitor
-    summary = json.loads((d / "summary.json").read_text()) if (d / "summary.json").exists() else None
+                event = json.loads(line)
+            except json.JSONDecodeError as exc:
+                raise _bad_line(d / "events.jsonl", number, exc) from None
+            if not isinstance(event, dict):
+                raise _bad_line(d / "events.jsonl", number, "not a JSON object")
+            events.append(event)
+    summary = _json_file(d / "summary.json") if (d / "summary.json").exists() else None
     fleet = manifest.get("fleet", {})
-    rows = read_metrics(d)
+    rows = _metrics(d / "metrics.csv", notes)
     rec = Record(d, manifest, rows, events, summary, int(fleet.get("agvs", 0)),
-                 int(fleet.get("agvs", 0)) + int(fleet.get("pickers", 0)), name=d.name)
+                 int(fleet.get("agvs", 0)) + int(fleet.get("pickers", 0)), name=d.name, notes=notes)
     rec.gaps = [(int(e["details"]["first"]), int(e["details"]["last"])) for e in events
                 if e.get("kind") == "monitor.gap" and "first" in e.get("details", {})]
     return rec
@@ -268,6 +311,23 @@ def figures(recs: list[Record], out: Path) -> dict[str, Path]:
 GIF_MIN_WIDTH = 640  # px: a warehouse GIF a person can read without zooming (cells of a large layout stay >= 12 px)
 
 
+def _metrics(path: Path, notes: list[str]) -> list[dict[str, str]]:
+    """The rows of ``metrics.csv`` (:func:`record_lines`), each with exactly the header's columns."""
+    import csv
+
+    numbered = record_lines(path, notes)
+    if not numbered:
+        return []
+    rows = csv.reader(line for _, line in numbered)
+    header = next(rows)
+    out = []
+    for (number, _), cells in zip(numbered[1:], rows):
+        if len(cells) != len(header) or "t" in header and not cells[header.index("t")].isdigit():
+            raise _bad_line(path, number, f"{len(cells)} fields, the header has {len(header)}")
+        out.append(dict(zip(header, cells)))
+    return out
+
+
 def warehouse_gif(rec: Record, path: Path, *, max_frames: int = 200, cell_px: int | None = None) -> int | None:
     """GIF of the robots with their coordination links, from ``positions.csv`` and ``links.csv``, with a legend of
     the glyphs and colours; ``cell_px`` defaults to what makes it at least GIF_MIN_WIDTH wide. None if absent."""
@@ -313,8 +373,9 @@ def warehouse_gif(rec: Record, path: Path, *, max_frames: int = 200, cell_px: in
     return write_gif(frames(), path, fps=8, cell_px=cell_px, legend=legend)
 
 
-def write_report(run_dirs: list[Path], out: Path, *, gif: bool = True) -> Path:
-    """Write ``out/report.md`` with its figures; returns the Markdown path."""
+def write_report(run_dirs: list[Path], out: Path, *, gif: bool = True, notes: list[str] | None = None) -> Path:
+    """Write ``out/report.md`` with its figures; returns the Markdown path. ``notes`` gets the unfinished last lines
+    that were left out of the records (:func:`record_lines`)."""
     recs = [load(Path(d)) for d in run_dirs]
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -354,6 +415,12 @@ def write_report(run_dirs: list[Path], out: Path, *, gif: bool = True) -> Path:
                 lines += [f"![{rec.name}]({g.name})", "",
                           f"{count} frames; the legend under the map names every glyph and colour."]
         lines.append("")
+    cut = list(dict.fromkeys(note for rec in recs for note in rec.notes))  # a table read twice is named once
+    if cut:
+        lines += ["", f"Left out of the records: the unfinished last line of {', '.join(cut)} (its writer stopped "
+                  "mid-line: a killed monitor or a full disk)."]
+    if notes is not None:
+        notes.extend(cut)
     md = out / "report.md"
     md.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return md
