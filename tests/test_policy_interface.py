@@ -189,3 +189,15 @@ def test_a_decision_point_waits_for_the_policy_messages_announced_to_it():
     assert not r.may_act(5, 0, False)
     r.message("agent-2", 3, 4)  # delivered, or held or lost by the fault layer: arrived all the same
     assert r.may_act(5, 0, False)
+
+
+def test_the_network_study_enters_a_policy_from_outside_by_name():
+    from morph_sim.lab.network_study import grid_plan, network_tasks, run_network_task
+
+    plan = grid_plan(scales=("tiny",), profiles=("wifi-legacy-roaming",), conditions=["_policies:ClosestRequest"],
+                     seeds=(1,), steps=60)
+    episode = run_network_task(network_tasks(plan)[0])["episode"]
+    assert episode["condition"] == "_policies:ClosestRequest" and episode["steps"] == 60
+    assert episode["messages_per_delivery"] is None or episode["messages_per_delivery"] > 0
+    with pytest.raises(ValueError, match="conditions: unknown 'all'; choose from .* or a policy name"):
+        grid_plan(conditions=["all"])

@@ -23,7 +23,13 @@ from pathlib import Path
 import numpy as np
 
 from services.metrics import catalogue
-from services.policies.conditions import DEFAULT_RADIUS, NETWORK_STUDY, by_label, command_line_keys
+from services.policies.conditions import (
+    DEFAULT_RADIUS,
+    NETWORK_STUDY,
+    by_label,
+    command_line_keys,
+    study_condition,
+)
 
 #: the study's conditions by label (its records name a condition by its label); Proximity at RunConfig's radius
 CONDITIONS = by_label(NETWORK_STUDY)
@@ -69,7 +75,7 @@ def run_network_task(task: NetworkTask) -> dict:
 
     t0, c0 = time.perf_counter(), time.process_time()
     s = run_episode(EpisodeSpec(scale=task.scale, seed=task.seed, steps=task.steps,
-                                **CONDITIONS[task.condition].episode_fields(radius=DEFAULT_RADIUS),
+                                **study_condition(task.condition, CONDITIONS).episode_fields(radius=DEFAULT_RADIUS),
                                 fiedler_every=10**9, network=task.profile)).summary
     d = s["deliveries"]
     ep = {"scale": task.scale, "profile": task.profile, "condition": task.condition, "seed": task.seed,
@@ -95,7 +101,8 @@ def grid_plan(*, scales=SCALES, profiles=PROFILES, conditions=None, seeds=SEEDS,
     conditions = [CONDITION_KEYS.get(c, c) for c in (conditions or available_conditions())]
     for c in conditions:
         if c not in CONDITIONS:
-            raise ValueError(f"conditions: unknown {c!r}; choose from {', '.join(CONDITION_KEYS)}")
+            study_condition(c, CONDITION_KEYS)  # a policy from outside, by name; else one line naming it
+            continue
         if c not in available_conditions():
             raise ValueError(f"conditions: {c!r} needs the lab condition {CONDITIONS[c].key!r}, which this "
                              "version does not have")

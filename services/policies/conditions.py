@@ -10,7 +10,7 @@ elsewhere: :data:`DEFAULT_RADIUS`).
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 from services.policies.coordinators import MorphPolicy, ProximityPolicy
@@ -37,7 +37,11 @@ class Condition:
     def episode_fields(self, preset: str = "reference", radius: int | None = None) -> dict:
         """The lab episode's ``condition``, ``preset`` and ``radius`` of this condition in a study of ``preset`` and
         ``radius``: a pinned preset runs as the study-preset condition of the same policy and ablation, so the
-        episode (and its key) is the one that condition gives at that preset."""
+        episode (and its key) is the one that condition gives at that preset. A policy from outside runs by name."""
+        from services.policies.coordinators import POLICIES
+
+        if self.policy not in POLICIES:
+            return {"condition": self.key, "policy_name": self.policy, "preset": preset, "radius": None}
         return {"condition": key_of(self.policy, self.ablation), "preset": self.preset or preset,
                 "radius": (self.radius if self.radius is not None else radius) if self.policy == "proximity" else None}
 
@@ -83,6 +87,21 @@ def select(keys: Iterable[str]) -> dict[str, Condition]:
             raise ValueError(f"condition: unknown {k!r} (known: {', '.join(CONDITIONS)})")
         out[k] = CONDITIONS[k]
     return out
+
+
+def study_condition(name: str, table: Mapping[str, Condition]) -> Condition:
+    """A study's condition: ``name``'s entry in the study's ``table``, or a policy from outside by the name
+    ``--policy`` takes (its label is that name); ValueError naming ``conditions`` otherwise."""
+    if name in table:
+        return table[name]
+    from services.policies.loading import resolve
+
+    try:
+        resolve(name)
+    except ValueError as exc:
+        raise ValueError(f"conditions: unknown {name!r}; choose from {', '.join(table)} or a policy name "
+                         f"({str(exc).removeprefix('policy: ')})") from None
+    return Condition(name, name, name)
 
 
 def by_label(keys: Iterable[str]) -> dict[str, Condition]:
