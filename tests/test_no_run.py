@@ -59,7 +59,7 @@ async def test_commands_against_an_endpoint_where_nothing_listens(tmp_path):
 async def test_a_connect_timeout_that_is_not_a_duration_is_refused_naming_the_option():
     code, text, _ = await _run(["watch", "--connect-timeout", "0"])
     assert code == 2 and text.strip().splitlines()[-1] == (
-        "morph-sim watch: error: argument --connect-timeout: '0' is not a number of seconds > 0"), text
+        "morph-sim watch: error: connect_timeout: must be a finite number > 0, got 0.0"), text
 
 
 async def test_commands_against_an_endpoint_without_the_run(tmp_path):
