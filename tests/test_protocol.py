@@ -417,9 +417,12 @@ def test_claims_sender_binding():
     for robot, name in ((4, "host-b"), (3, ""), (5, "")):
         with pytest.raises(ValueError):
             senders.check(robot, name)
-    senders.check(3, "mallory")  # the first other name under 3's keys binds, the next is refused
+    with pytest.raises(ValueError, match="agent-3"):
+        senders.check(3, "mallory")  # robot 3's keys carry its own name already
+    senders.check(6, "mallory")  # the first name seen under 6's keys binds (an instance-named session) ...
+    senders.check(6, "agent-6")  # ... beside its identity
     with pytest.raises(ValueError):
-        senders.check(3, "mallory-2")
+        senders.check(6, "mallory-2")
 
 
 def test_claims_sequence_window():

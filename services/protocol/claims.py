@@ -113,23 +113,18 @@ def agent_identity(robot: int) -> str:
 
 
 class SenderBinding:
-    """The header sender a robot's keys may carry: its session identity ``agent-<id>``, or, for an agent that joined
-    without an id and claimed one (its session is named after its instance), the first name seen under that robot's
-    keys. Any other name under the same robot's keys is refused: a robot cannot open new streams under new names."""
+    """The header sender a robot's keys may carry: its session identity ``agent-<id>``, or the first name seen under
+    that robot's keys (an agent that joined without an id and claimed one has a session named after its instance).
+    Any other name under the same robot's keys is refused: a robot cannot open new streams under new names."""
 
     def __init__(self) -> None:
         self._bound: dict[int, str] = {}
 
     def check(self, robot: int, sender: str) -> None:
-        if sender == agent_identity(robot):
-            return
-        bound = self._bound.get(robot)
-        if bound is None:
-            if not sender:
-                raise ValueError(f"message under robot {robot}'s key without a sender")
-            self._bound[robot] = sender
-            return
-        if sender != bound:
+        if not sender:
+            raise ValueError(f"message under robot {robot}'s key without a sender")
+        bound = self._bound.setdefault(robot, sender)  # the first name seen under the robot's keys
+        if sender != bound and sender != agent_identity(robot):
             raise ValueError(f"sender {sender!r} under robot {robot}'s key, which is {bound!r}'s")
 
 
