@@ -82,16 +82,18 @@ async def _attacked(tmp_path, baseline, attack, *, sim_refused: int, monitor_ref
 
 async def test_insider_outcomes_and_ticks_out_of_window_are_refused(tmp_path, baseline):
     """Acks of robot 3 claiming 2**62 expiries: after the run, at the current tick (a lie beyond what a tick can
-    produce: refused, and the genuine ack of that tick is still taken), and 300 acks for ticks ahead."""
+    produce: refused, and the genuine ack of that tick is still taken); a second ack of the tick just answered
+    (refused, not preferred); and 300 acks for ticks ahead."""
     def attack(put, keys, config, t):
         put(keys.ack(3), Ack(t=config.steps + 1, agent=3, outcomes={"expired": 2**62}))
+        put(keys.ack(3), Ack(t=t - 1, agent=3, requests_sent=[config.n_agvs], links=[0, 1, 2], eta=9.0))
         put(keys.ack(3), Ack(t=t, agent=3, outcomes={"expired": 2**62}))
         for ahead in range(100, 400):
             put(keys.ack(3), Ack(t=t + ahead - 90 if t + ahead - 90 <= config.steps else config.steps,
                                  agent=3, requests_sent=[config.n_agvs], links=[0, 1, 2], eta=9.0))
 
-    # 302 refused by the sim and the monitor alike (the ahead ones beyond the run's end too: out of 0..steps)
-    await _attacked(tmp_path, baseline, attack, sim_refused=302, monitor_refused=302)
+    # 303 refused by the sim and the monitor alike (the ahead ones beyond the run's end too: out of 0..steps)
+    await _attacked(tmp_path, baseline, attack, sim_refused=303, monitor_refused=303)
 
 
 async def test_insider_new_sender_names_and_sequence_jumps(tmp_path, baseline):
