@@ -39,7 +39,7 @@ KINDS: dict[str, tuple[str, ...]] = {
     ),
     "services": (
         "test_bus_zenoh", "test_faults_control", "test_faults_crash", "test_faults_lockstep", "test_faults_restore",
-        "test_faults_services", "test_dispatch_outcomes", "test_metric_streams", "test_monitoring", "test_prometheus", "test_record_replay",
+        "test_faults_services", "test_dispatch_outcomes", "test_insider", "test_metric_streams", "test_monitoring", "test_prometheus", "test_record_replay",
         "test_registry", "test_services_local", "test_vocabulary", "test_zenoh_acl",
     ),
     "e2e": (

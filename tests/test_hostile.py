@@ -3,7 +3,9 @@
 Secure (default) mode: without credentials or with a wrong password the endpoint does not let the client in; with a
 robot's own credentials (a compromised robot: agent 3's file from the run directory) it forges ticks (with and without
 the sim's header), ``ctl/stop``, ``ctl/faults`` (put and query), ``run.finished``, other robots' acks, commits and
-replies, sequence numbers, and payloads of 64 KB to 20 MB on every key. ``--insecure`` mode: everything that the
+replies, sequence numbers, and payloads of 64 KB to 20 MB on every key; as an insider on its own keys (and picker 5's
+with its file) it sends acks, states and commitments of ticks the run cannot use, acks under a new header name and
+inflated outcome counts (tests/test_insider.py has each of them alone). ``--insecure`` mode: everything that the
 services' own checks can stop (ticks, run.finished, other pickers' replies, sequence numbers, sizes), without
 credentials. Either way the run completes with metrics byte-equal to the same run over the in-process bus, and the
 monitor counts the attempts that reached it.
@@ -22,7 +24,7 @@ from pathlib import Path
 import pytest
 
 from morph_sim.local import run_local
-from schemas import Ack, Commit, Event, FaultCommand, HelpReply, OnBoard, Stop, encode
+from schemas import Ack, AgentState, Commit, Event, FaultCommand, HelpReply, OnBoard, Stop, encode
 from schemas.keys import RunKeys
 from schemas.tick import encode_tick_body, tick_fields
 from services.bus.base import pack_header
@@ -59,14 +61,15 @@ def _client(ep: str, credentials: Path | None, *, user: str | None = None, passw
 
 
 def _attack(session, keys: RunKeys, config: RunConfig, ticks: dict[int, bytes], *, secure: bool,
-            running=lambda: True) -> dict[str, int]:
+            running=lambda: True, picker=None) -> dict[str, int]:
     """Everything a hostile client tries, in order of harm; returns how many of each were sent. ``ticks``: forged
-    Tick payloads by number, built before the run so the attack lands while it is young."""
+    Tick payloads by number, built before the run so the attack lands while it is young. ``picker``: a session with
+    picker 5's own credentials (secure), for an insider's commitments."""
     sent: dict[str, int] = {}
 
-    def put(what: str, key: str, payload: bytes, sender: str | None = "sim", seq: int = 1) -> None:
+    def put(what: str, key: str, payload: bytes, sender: str | None = "sim", seq: int = 1, via=None) -> None:
         att = None if sender is None else pack_header(sender, seq, time.time())
-        session.put(key, payload, attachment=att)
+        (via or session).put(key, payload, attachment=att)
         sent[what] = sent.get(what, 0) + 1
 
     put("tick t=100000 (sim header)", keys.tick, ticks[100_000])
@@ -97,6 +100,24 @@ def _attack(session, keys: RunKeys, config: RunConfig, ticks: dict[int, bytes], 
             "id": "hostile-q", "loss": {"percent": 100}})), timeout=1.0))
         assert [r for r in replies if r.ok is not None] == [], "a robot's credentials set faults"
         sent["ctl/faults query"] = 1
+    if secure and picker is not None:  # an insider: robot 3's (an AGV's) and robot 5's (a picker's) own keys and
+        # names, bounded floods
+        put("insider: ack after the run claiming 2**62 expiries", keys.ack(3),
+            encode(Ack(t=config.steps + 1, agent=3, outcomes={"expired": 2**62})), sender="agent-3")
+        for t in range(100, 400):  # ahead of the young run: each would be the first ack of its row
+            put("insider: acks of ticks ahead", keys.ack(3),
+                encode(Ack(t=t, agent=3, requests_sent=[config.n_agvs], links=[0, 1], eta=9.0)), sender="agent-3")
+        for k in range(1, 1001):
+            put("insider: acks under a new name", keys.ack(3), encode(Ack(t=1, agent=3)), sender="mallory",
+                seq=9_999 * k)
+        row = [0.5] * config.n_agents
+        for t in range(config.steps + 1, config.steps + 301):
+            put("insider: states of ticks after the run", keys.agent_state(3), encode(AgentState(
+                t=t, agent=3, role="agv", w_row=row, a_row=[False] * config.n_agents, theta_row=row,
+                age_row=[0] * config.n_agents, h=0.0, eta=0.1)), sender="agent-3")
+        for k in range(1, 1001):  # far in the future, and numbered 1..1000 like the picker's own commitments
+            put("insider: commits of tick 10**9", keys.commit(5), encode(Commit(t=10**9, picker=5, agv=0, seq=k)),
+                sender="agent-5", via=picker)
     # the forged messages must have met a live run, or they prove nothing (the floods below may outlast it)
     assert running(), "the run ended before the forged messages were sent"
     # oversized payloads on small kinds go before the 64 KB floods: a flood fills the client's transport, which drops
@@ -150,7 +171,11 @@ def _hostile_run(tmp_path: Path, *, secure: bool) -> None:
 
         sub = session.declare_subscriber(keys.tick, on_tick)
         assert seen.wait(60), "the run never started"
-        sent = _attack(session, keys, config, forged_ticks, secure=secure, running=lambda: proc.poll() is None)
+        picker = _client(ep, creds / "agent-5.json5") if secure else None  # a picker's own credentials
+        sent = _attack(session, keys, config, forged_ticks, secure=secure, running=lambda: proc.poll() is None,
+                       picker=picker)
+        if picker is not None:
+            picker.close()
         if secure and proc.poll() is None:  # (tests/test_secure_defaults.py checks this on an endpoint that stays)
             for user, password in ((None, None), ("operator", "wrong"), ("agent-3", "wrong")):
                 with pytest.raises(Exception):  # nobody gets in without this run's credentials
@@ -172,6 +197,10 @@ def _hostile_run(tmp_path: Path, *, secure: bool) -> None:
     # (the insecure run: the endpoint lets them in), oversized small kinds
     assert summary["rejected"] >= (4 if secure else 6), summary
     assert summary["sequence_gaps"] < 1000, summary
+    local_snapshots = sorted(p.name for p in (tmp_path / "local" / run_id / "snapshots").glob("t*"))
+    assert sorted(p.name for p in (up / "snapshots").glob("t*")) == local_snapshots
+    if secure:  # the insider's floods were refused and counted (a flooding client may lose some on the way)
+        assert summary["rejected"] >= 1000 and summary["finished"]["rejected"] >= 1000, summary
     monitor_log = (up / "logs" / "monitor.log").read_text()
     assert "only the sim ends a run" in monitor_log
     if not secure:

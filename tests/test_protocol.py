@@ -356,3 +356,118 @@ def test_broadcast_is_the_papers_all_to_all_and_its_messages_grow_with_the_picke
         ratio.append(per_delivery[-1] / (u["messages_sent"] / u["deliveries"]))
     assert per_request == sorted(per_request) and per_request[0] > 1.0
     assert per_delivery == sorted(per_delivery) and ratio == sorted(ratio) and ratio[-1] > 1.5
+
+
+# -- what one author may claim (services/protocol/claims.py) ------------------------------------------------------
+def test_claims_tick_window():
+    from services.protocol.claims import TICKS_AHEAD, TICKS_BEHIND, check_tick
+
+    check_tick(10, 10, 100, "ack")
+    check_tick(10 + TICKS_AHEAD, 10, 100, "ack")
+    check_tick(100, -1, 100, "ack")  # no clock yet: the run's range only
+    for t, now in ((101, 100), (10 + TICKS_AHEAD + 1, 10), (200 - TICKS_BEHIND - 1, 200), (10**9, -1)):
+        with pytest.raises(ValueError, match="tick"):
+            check_tick(t, now, 1000 if t != 101 and t != 10**9 else 100, "ack")
+
+
+def test_claims_outcome_bound_per_tick_with_restart():
+    from services.protocol.claims import OUTCOME_CARRY_TICKS, OutcomeBound, outcome_step_bound
+
+    per = outcome_step_bound(8)
+    bound = OutcomeBound(per)
+    bound.check(3, 1, {"requests": per})  # one tick's worth
+    with pytest.raises(ValueError, match="grew by"):
+        bound.check(3, 2, {"requests": 2 * per + 1})
+    bound.check(3, 2, {"requests": 2 * per})  # the refused report was not taken: the allowance is still there
+    bound.check(3, 5, {"requests": 5 * per})  # three quiet ticks carry their allowance
+    bound.check(3, 6, {"requests": 1})  # restarted from zero: judged from zero
+    with pytest.raises(ValueError):
+        bound.check(3, 7, {"expired": 2**62})
+    bound.check(3, 6, {"expired": 2**62})  # older than the last taken: the tally ignores it, so does the bound
+    with pytest.raises(ValueError):  # a long silence carries at most OUTCOME_CARRY_TICKS ticks of allowance
+        bound.check(3, 6 + 10 * OUTCOME_CARRY_TICKS, {"requests": per * (OUTCOME_CARRY_TICKS + 2)})
+
+
+def test_claims_once_per_tick_copies_and_seconds():
+    from services.protocol.claims import OncePerTick
+
+    once = OncePerTick()
+    assert once.admit(3, 10, 0, seq=7)
+    assert not once.admit(3, 10, 0, seq=7)  # the network's copy
+    with pytest.raises(ValueError, match="second answer"):
+        once.admit(3, 10, 0, seq=8)
+    assert once.admit(3, 10, 1, seq=9) and once.admit(4, 10, 0, seq=8)
+    once.forget(3, 11, 0)
+    assert once.admit(3, 11, 0, seq=1)
+    once.forget(3, 11, 0)
+    assert once.admit(3, 11, 0, seq=2)  # a forgotten (refused) answer does not keep the genuine one out
+    for t in range(12, 12 + 100 * once.keep):  # remembered ticks stay bounded
+        once.admit(5, t, 0, seq=t)
+    assert len(once._seen) <= 64 * once.keep + 1
+
+
+def test_claims_sender_binding():
+    from services.protocol.claims import SenderBinding
+
+    senders = SenderBinding()
+    senders.check(3, "agent-3")
+    senders.check(4, "host-a")  # an agent that claimed id 4: its instance name binds
+    senders.check(4, "host-a")
+    senders.check(4, "agent-4")
+    for robot, name in ((4, "host-b"), (3, ""), (5, "")):
+        with pytest.raises(ValueError):
+            senders.check(robot, name)
+    with pytest.raises(ValueError, match="agent-3"):
+        senders.check(3, "mallory")  # robot 3's keys carry its own name already
+    senders.check(6, "mallory")  # the first name seen under 6's keys binds (an instance-named session) ...
+    senders.check(6, "agent-6")  # ... beside its identity
+    with pytest.raises(ValueError):
+        senders.check(6, "mallory-2")
+
+
+def test_claims_sequence_window():
+    from services.protocol.claims import SEQ_WINDOW, SeqWindow
+
+    s = SeqWindow()
+    assert s.take(1) == 0 and s.take(5) == 3 and s.take(4) == 0
+    with pytest.raises(ValueError):
+        s.take(5 + SEQ_WINDOW + 1)
+    assert s.take(6) == 0 and s.last == 6  # the genuine stream goes on
+    gaps = 0
+    for k in range(1, 1001):  # a forger's numbers 9,999 apart: each one refused, no gap counted
+        try:
+            gaps += s.take(6 + 9_999 * k)
+        except ValueError:
+            pass
+    assert gaps == 0 and s.last == 6
+    with pytest.raises(ValueError):
+        s.take(10**6)
+    assert s.take(10**6 + 1) == 0 and s.last == 10**6 + 1  # two consecutive: the stream really moved (resync)
+
+
+def test_desk_refuses_far_commitments_and_bounds_what_it_holds():
+    from services.protocol.dispatch import MAX_HELD_PER_PICKER, Commitment, CommitmentDesk, Outcomes
+
+    dt = 1.0
+    desk, out = CommitmentDesk(dt), Outcomes()
+    now = 100 * dt
+
+    def commit(t, seq, agv=0, picker=5):
+        return Commitment(picker, agv, (1, 2), t * dt + dt / 2, seq)
+
+    for bad in (10**9, 102, 100 - 65):
+        with pytest.raises(ValueError, match="tick"):
+            desk.receive(commit(bad, 1), now, out, now=now)
+    assert desk.inbox == []
+    # a forged number does not shadow the genuine commitment that later carries it
+    desk.receive(commit(100, 7, agv=1), now, out, now=now)
+    desk.receive(commit(101, 7, agv=0), now, out, now=now)
+    assert len(desk.inbox) == 2 and out.duplicates == 0
+    desk.receive(commit(101, 7, agv=0), now, out, now=now)  # the network's copy
+    assert len(desk.inbox) == 2 and out.duplicates == 1
+    for seq in range(100, 100 + MAX_HELD_PER_PICKER - 2):
+        desk.receive(commit(100, seq), now, out, now=now)
+    with pytest.raises(ValueError, match="waiting"):
+        desk.receive(commit(100, 999), now, out, now=now)
+    desk.receive(commit(100, 999, picker=6), now, out, now=now)  # another picker is not held up
+    assert len(desk.inbox) == MAX_HELD_PER_PICKER + 1

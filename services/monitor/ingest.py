@@ -17,6 +17,7 @@ from schemas.tick import TickArrays, decode_tick
 from services.bus.base import Sample
 from services.metrics.rows import RowReducer
 from services.monitor.streams import MessageStats
+from services.protocol.claims import OncePerTick, OutcomeBound, SenderBinding, check_tick, outcome_step_bound
 from services.runconfig import RunConfig
 
 if TYPE_CHECKING:
@@ -41,6 +42,11 @@ class Ingest:
         self.counts = counts
         self.sizes = sizes
         self._robot_copies = (keys.fleet, keys.onboard(0).rsplit("/", 1)[0] + "/")
+        # what one robot may claim of itself (services/protocol/claims.py): its own header name, one ack of a tick's
+        # phase, one commit and one state per tick, all of ticks the record can still use
+        self._senders = SenderBinding()
+        self._once = OncePerTick()
+        self._outcomes = OutcomeBound(outcome_step_bound(self.n))  # before the row reducer takes a robot's counts
 
     def take(self, sample: Sample) -> Checked | None:
         """The message ``sample`` carries, checked; None for one the monitor does not act on."""
@@ -53,6 +59,10 @@ class Ingest:
         kind = head if head != "agent" or len(rel) < 3 else rel[2]
         self.counts[kind] = self.counts.get(kind, 0) + 1
         self.sizes[kind] = self.sizes.get(kind, 0) + len(sample.payload)
+        author = self.keys.sender_of(sample.key)
+        if isinstance(author, int):
+            # before its sequence number is counted: a robot opens no stream under a name that is not its own
+            self._senders.check(author, sample.sender)
         # Latency in the clock of the stamp: a wall stamp (wall fault time) against our wall clock; a sim-time stamp
         # (virtual time) against our sim clock, the start of the last tick we saw: sim seconds that passed while
         # the message travelled (never time.time() minus sim seconds). The stream says which (label "clock").
@@ -77,14 +87,29 @@ class Ingest:
             if rel[2] == "ack":
                 ack = sample.decode(Ack)
                 self._check_sender(rel[1], ack.agent)
-                return ack if ack.phase == Phase.TICK else None
+                self._check_tick(ack.t, "ack")
+                if ack.phase != Phase.TICK or not self._once.admit(ack.agent, ack.t, ack.phase, sample.seq):
+                    return None
+                if ack.outcomes is not None:
+                    try:
+                        self._outcomes.check(ack.agent, ack.t, ack.outcomes)
+                    except ValueError:
+                        self._once.forget(ack.agent, ack.t, ack.phase)  # a refused lie keeps no genuine ack out
+                        raise
+                return ack
             if rel[2] == "commit":
-                return self._commit(sample.decode(Commit), rel[1])
+                commit = self._commit(sample.decode(Commit), rel[1])
+                # a picker commits once a tick; the network's copies of it count as they always did
+                self._once.admit(commit.picker, commit.t, -1, sample.seq)
+                return commit
             if rel[2] == "state":
                 state = sample.decode(AgentState)
                 self._check_sender(rel[1], state.agent)
                 if len(state.w_row) != self.n:
                     raise ValueError(f"state row of {len(state.w_row)} entries, fleet of {self.n}")
+                self._check_tick(state.t, "state")  # before any snapshot of that tick is begun
+                if not self._once.admit(state.agent, state.t, -2, sample.seq):
+                    return None
                 return state
             return None
         if head == "events" and len(rel) == 2:
@@ -103,9 +128,13 @@ class Ingest:
         self._check_sender(chunk, commit.picker)
         if commit.picker < self.config.n_agvs or not 0 <= commit.agv < self.config.n_agvs:
             raise ValueError(f"commit of robot {commit.picker} to robot {commit.agv}: a picker commits to an AGV")
-        if not 0 <= commit.t <= self.rows.last_tick + 1:
-            raise ValueError(f"commit of tick {commit.t}, the run is at tick {self.rows.last_tick}")
+        self._check_tick(commit.t, "commit")
         return commit
+
+    def _check_tick(self, t: int, what: str) -> None:
+        """ValueError for a robot's message of a tick the record cannot use: beyond the run, ahead of the sim's
+        newest tick (by more than the one tick an answer may overtake its tick), or older than a late message."""
+        check_tick(t, self.rows.last_tick, self.config.steps, what)
 
     @staticmethod
     def _event(event: Event, chunk: str) -> Event:

@@ -22,6 +22,7 @@ import numpy as np
 
 from schemas import MetricSample
 from services.metrics.catalogue import CATALOGUE, RATE_WINDOW, ROW, sample
+from services.protocol.claims import SeqWindow
 
 #: Histogram bucket boundaries (seconds): prometheus_client's defaults, also OTel's for messaging durations.
 LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.075, 0.1, 0.25, 0.5, 0.75, 1.0, 2.5, 5.0, 7.5, 10.0)
@@ -52,9 +53,9 @@ class Histogram:
         return out
 
 
-# A stream (sender, key) whose sequence number jumps further than this is refused: no run loses that many messages
-# of one stream between two that arrive. Streams are tracked up to MAX_STREAMS (senders are named by the header).
-MAX_SEQ_JUMP = 10_000
+# Streams (sender, key) tracked; each one's sequence numbers may jump at most SEQ_WINDOW (services/protocol/claims.py).
+# The monitor refuses a header sender under a robot's key that is not that robot's before it gets here, so the
+# streams are the authenticated authors' own.
 MAX_STREAMS = 65_536
 
 
@@ -69,7 +70,7 @@ class MessageStats:
         self.gaps = 0
         self.rejected = 0
         self.clock = "wall"  # clock of the latencies: "wall" seconds or "sim" seconds (virtual time)
-        self._last_seq: dict[tuple[str, str], int] = {}
+        self._seq: dict[tuple[str, str], SeqWindow] = {}
         self._latency: deque[tuple[float, float]] = deque()  # (receive time, latency)
         self.latency = Histogram(LATENCY_BUCKETS)
         self.dispatch = Histogram(DISPATCH_BUCKETS)
@@ -87,13 +88,14 @@ class MessageStats:
         self.total += 1
         self.by_kind[kind] = self.by_kind.get(kind, 0) + 1
         if sender and seq:
-            last = self._last_seq.get((sender, key))
-            if last is not None and seq > last + MAX_SEQ_JUMP:
-                return False
-            if last is not None and seq > last + 1:
-                self.gaps += seq - last - 1
-            if (last is None and len(self._last_seq) < MAX_STREAMS) or (last is not None and seq > last):
-                self._last_seq[(sender, key)] = seq
+            stream = self._seq.get((sender, key))
+            if stream is None and len(self._seq) < MAX_STREAMS:
+                stream = self._seq[(sender, key)] = SeqWindow()
+            if stream is not None:
+                try:
+                    self.gaps += stream.take(seq)
+                except ValueError:
+                    return False
         if sent_at > 0:
             self.clock = clock
             now = time.time() if now is None else now

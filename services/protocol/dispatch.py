@@ -353,20 +353,47 @@ def check_choice(chosen, n: int, picker: int) -> int:
     return k
 
 
+#: commitments of one picker the desk holds at once: a picker has one in flight, and the network may deliver a copy
+#: or a late one of each of the few ticks it delays; more than this is not a picker's traffic
+MAX_HELD_PER_PICKER = 16
+
+
 class CommitmentDesk:
-    """The sim's side: commitments delivered and not yet applied, applied in order at each step boundary."""
+    """The sim's side: commitments delivered and not yet applied, applied in order at each step boundary.
+
+    A copy of a commitment already received counts as a duplicate. A copy is the same commitment: same picker,
+    AGV, cell, tick and sequence number. Keyed by all of them, a message that reuses a picker's sequence number for
+    another tick or AGV (forged, or a restarted picker numbering from one again) is judged on its own and never
+    shadows the genuine commitment that later carries that number."""
 
     def __init__(self, dt: float):
         self.dt = float(dt)
         self.inbox: list[tuple[float, Commitment]] = []
-        self._seen: set[tuple[int, int]] = set()  # (picker, seq)
+        self._seen: dict[Commitment, float] = {}  # commitment -> its sent_at
 
-    def receive(self, msg: Commitment, due: float, outcomes: Outcomes) -> None:
-        key = (msg.picker, msg.seq)
-        if key in self._seen:
+    def receive(self, msg: Commitment, due: float, outcomes: Outcomes, now: float | None = None) -> None:
+        """Hold ``msg`` (delivered at ``due``) for the next step boundary. With ``now`` (the sim time of the desk's
+        current tick; a service's desk, whose commitments come over a bus from robots it does not control) it is
+        first judged: ValueError, and nothing held, for a commitment sent at a tick far from ``now``
+        (services/protocol/claims.py: ahead of it by more than a tick, or older than any late one) or from a picker
+        that already has :data:`MAX_HELD_PER_PICKER` waiting."""
+        if now is not None:
+            from services.protocol.claims import TICKS_AHEAD, TICKS_BEHIND
+
+            tick, at = round((msg.sent_at - self.dt / 2) / self.dt), round(now / self.dt)
+            if tick > at + TICKS_AHEAD or tick < at - TICKS_BEHIND:
+                raise ValueError(f"commitment of picker {msg.picker} of tick {tick}, the sim is at tick {at} "
+                                 f"(at most {TICKS_AHEAD} ahead, {TICKS_BEHIND} behind)")
+        if msg in self._seen:
             outcomes.duplicates += 1
             return
-        self._seen.add(key)
+        if now is not None:
+            if sum(1 for _, c in self.inbox if c.picker == msg.picker) >= MAX_HELD_PER_PICKER:
+                raise ValueError(f"picker {msg.picker} has {MAX_HELD_PER_PICKER} commitments waiting already")
+            if len(self._seen) > 64 * MAX_HELD_PER_PICKER:  # older ones are refused above: forget them
+                oldest = now - (TICKS_BEHIND + 1) * self.dt
+                self._seen = {c: sent for c, sent in self._seen.items() if sent >= oldest}
+        self._seen[msg] = msg.sent_at
         self.inbox.append((due, msg))
 
     def settle(self, boundary: float, rank: Mapping[int, int], wanted: Mapping[int, tuple[int, int]],

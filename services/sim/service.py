@@ -39,6 +39,7 @@ from services.bus.base import Bus, Sample
 from services.bus.registry import mount_registry
 from services.intake import Intake
 from services.protocol import dispatch as protocol
+from services.protocol.claims import OncePerTick, OutcomeBound, SenderBinding, check_tick, outcome_step_bound
 from services.protocol.tick import TickStep
 from services.runconfig import RunConfig
 from services.sim.phases import PhaseBarrier, PhaseCollection
@@ -89,6 +90,12 @@ class SimService(Presence, PhaseCollection):
         self.outcomes = protocol.Outcomes()
         self.desk = protocol.CommitmentDesk(config.dt)
         self.robot_outcomes = protocol.OutcomeTally()  # the robots' own counts, as their acks report them
+        # what one robot may claim of itself (services/protocol/claims.py): acks and commits of ticks the sim can
+        # use, one ack per tick and phase, under its own header name, its counts growing no faster than its ticks
+        # can make them grow
+        self._outcome_bound = OutcomeBound(outcome_step_bound(self.n))
+        self._once = OncePerTick()
+        self._senders = SenderBinding()
         self._reported_outcomes: dict[str, int] = {}  # the sim's counts on its latest tick
         self._broadcast = config.make_policy().broadcast  # its AGVs ask several pickers in one tick
         self._desk_lock = threading.Lock()
@@ -149,13 +156,34 @@ class SimService(Presence, PhaseCollection):
                 ph.held.add(who)
             ph.answered(who)
 
+    def _claims(self, sample: Sample, robot: int, t: int, what: str) -> bool:
+        """Whether a robot's ack or commit of tick ``t`` is one the sim can take; a refused one is counted."""
+        try:
+            self._senders.check(robot, sample.sender)
+            check_tick(t, self.ctl.t, self.config.steps, what)
+        except ValueError as exc:
+            self.intake.refuse(sample.key, exc)
+            return False
+        return True
+
     def _on_ack(self, sample: Sample) -> None:
         msg = self.intake.decode(sample, Ack, "agent", "ack of agent")
-        if msg is None:
+        if msg is None or not self._claims(sample, msg.agent, msg.t, "ack"):
             return
-        if msg.outcomes is not None and msg.phase == Phase.TICK:
-            with self._desk_lock:
-                self.robot_outcomes.report(msg.agent, msg.t, msg.outcomes)
+        with self._desk_lock:  # (the receive thread and the loop both take acks)
+            try:
+                if not self._once.admit(msg.agent, msg.t, msg.phase, sample.seq):
+                    return  # the network's copy of an ack taken
+                if msg.outcomes is not None and msg.phase == Phase.TICK:
+                    try:
+                        self._outcome_bound.check(msg.agent, msg.t, msg.outcomes)
+                    except ValueError:
+                        self._once.forget(msg.agent, msg.t, msg.phase)  # a refused lie keeps no genuine ack out
+                        raise
+                    self.robot_outcomes.report(msg.agent, msg.t, msg.outcomes)
+            except ValueError as exc:
+                self.intake.refuse(sample.key, exc)
+                return
         ph = self._phase
         if ph is None or msg.t != ph.t or msg.phase != ph.phase:
             return  # an ack of another phase: synchronisation only, nothing to do
@@ -187,7 +215,7 @@ class SimService(Presence, PhaseCollection):
 
     def _on_commit(self, sample: Sample) -> None:
         msg = self.intake.decode(sample, Commit, "picker", "commit of picker")
-        if msg is None:
+        if msg is None or not self._claims(sample, msg.picker, msg.t, "commit"):
             return
         if not (self.config.n_agvs <= msg.picker < self.n and 0 <= msg.agv < self.config.n_agvs):
             self.intake.refuse(sample.key, f"commit of robot {msg.picker} to robot {msg.agv}: not a picker and an AGV")
@@ -197,8 +225,16 @@ class SimService(Presence, PhaseCollection):
         sent = msg.t * self.config.dt + self.config.dt / 2
         cell = (msg.target_x, msg.target_y) if msg.target_x >= 0 and msg.target_y >= 0 else None
         with self._desk_lock:
-            self.desk.receive(protocol.Commitment(msg.picker, msg.agv, cell, sent, msg.seq),
-                              sample.due if sample.due >= 0.0 else sent, self.outcomes)
+            try:  # judged against the sim's tick and what the desk holds before it is held (dispatch.py)
+                # a picker commits at most once a tick (its one decision point); the network's copies go on to the
+                # desk, which counts them as duplicates
+                self._once.admit(msg.picker, msg.t, -1, sample.seq)
+                self.desk.receive(protocol.Commitment(msg.picker, msg.agv, cell, sent, msg.seq),
+                                  sample.due if sample.due >= 0.0 else sent, self.outcomes,
+                                  now=self.ctl.t * self.config.dt)
+            except ValueError as exc:
+                self.intake.refuse(sample.key, exc)
+                return
         ph = self._phase
         if ph is not None and ph.phase == Phase.RESOLVE and msg.t == ph.t:
             with ph.lock:

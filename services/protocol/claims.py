@@ -1,0 +1,165 @@
+"""What a receiver lets one author claim: pure bounds on ticks, outcome counts, answers per tick, header senders and
+sequence numbers.
+
+Access control (docs/deploy.md) makes sure a robot publishes only under its own keys; it cannot stop a robot (its
+own credentials, used by whoever holds them) from saying anything there. These bounds are what the sim and the
+monitor check before they act on what a robot says of itself, so that one robot's lies stay its own: a claim outside
+them raises ``ValueError``, which the service counts as a refusal (services/intake.py) and does not act on.
+
+Nothing here does I/O or reads a clock; the services call it with the tick they are at.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+from services.tickorder import MAX_TICK_GAP
+
+#: ticks behind the receiver's clock a message of a tick may still come: the fault layer delays messages by a few
+#: ticks at most (and the clock itself may jump this far, services/tickorder.py), so older than this is a replay
+TICKS_BEHIND = MAX_TICK_GAP
+#: ticks ahead of the receiver's clock: an agent answers tick t once it has it, and the monitor may see an agent's
+#: message just before the sim's tick that caused it (different paths), so one tick ahead is all the protocol needs
+TICKS_AHEAD = 1
+
+
+def check_tick(t: int, now: int, steps: int, what: str, ahead: int = TICKS_AHEAD, behind: int = TICKS_BEHIND) -> None:
+    """ValueError unless tick ``t`` of ``what`` is one the receiver at tick ``now`` can use: within ``0..steps`` and
+    within ``now - behind .. now + ahead`` (``now < 0``: the receiver has no clock yet, only the run's range holds)."""
+    if not 0 <= t <= steps:
+        raise ValueError(f"{what} of tick {t}: outside 0..{steps} (steps)")
+    if now < 0:
+        return
+    if t > now + ahead:
+        raise ValueError(f"{what} of tick {t}: ahead of tick {now} by more than {ahead}")
+    if t < now - behind:
+        raise ValueError(f"{what} of tick {t}: behind tick {now} by more than {behind}")
+
+
+def outcome_step_bound(n_agents: int) -> int:
+    """How much one robot's outcome counter may grow per tick.
+
+    In one tick a robot exchanges at most one dispatch message (request, reply, commitment, refusal) with each other
+    robot: an AGV asks each picker at most once, a picker answers each AGV once. Each of those ends in at most one
+    counted outcome, so a counter grows by at most ``n_agents`` a tick; twice that again covers the fault layer's
+    copies (``duplicates``) and late messages of earlier ticks that all come due in the same tick."""
+    return 4 * max(1, int(n_agents))
+
+
+#: unused allowance a robot carries from quiet ticks (a burst of late outcomes after a few ticks of delay)
+OUTCOME_CARRY_TICKS = MAX_TICK_GAP
+
+
+class OutcomeBound:
+    """Per robot, whether its cumulative outcome counts grew by more than its ticks can produce.
+
+    Each robot has an allowance of ``per_tick`` per counter and tick since its last accepted report (carried for up
+    to :data:`OUTCOME_CARRY_TICKS` ticks); a report whose increase exceeds it is refused. A report below the last
+    one (a robot restarted from zero) is held to the same allowance from zero. A report older than the last taken
+    is left to the tally (which ignores it)."""
+
+    def __init__(self, per_tick: int):
+        self.per_tick = int(per_tick)
+        self._last: dict[object, tuple[int, dict[str, int]]] = {}  # robot -> (tick, counts) of its last report
+
+    def check(self, who, t: int, counts: Mapping[str, int]) -> None:
+        """ValueError when ``who``'s ``counts`` at tick ``t`` grew by more than allowed; else they are taken."""
+        last_t, prev = self._last.get(who, (-1, {}))
+        if t <= last_t:
+            return
+        allowance = self.per_tick * min(t - last_t, OUTCOME_CARRY_TICKS)
+        restarted = any(counts.get(name, 0) < v for name, v in prev.items())
+        for name, v in counts.items():
+            grew = v if restarted else v - prev.get(name, 0)
+            if grew > allowance:
+                raise ValueError(f"outcome {name} of robot {who} grew by {grew} in {t - last_t} tick(s), at most "
+                                 f"{allowance}")
+        self._last[who] = (t, dict(counts))
+
+
+class OncePerTick:
+    """One answer per (author, tick, phase): a copy the network made (same header sequence number) is ignored, a
+    second, different answer is refused rather than taken or preferred. Remembers ``keep`` ticks."""
+
+    def __init__(self, keep: int = TICKS_BEHIND + TICKS_AHEAD + 1):
+        self.keep = int(keep)
+        self._seen: dict[tuple[object, int, int], int] = {}  # (author, t, phase) -> header seq
+        self._newest = -1
+
+    def admit(self, who, t: int, phase: int, seq: int) -> bool:
+        """True: the first answer; False: a copy of it; ValueError: a second, different answer."""
+        key = (who, t, phase)
+        held = self._seen.get(key)
+        if held is not None:
+            if held == seq:
+                return False
+            raise ValueError(f"a second answer of {who} for tick {t} (phase {phase})")
+        self._seen[key] = seq
+        if t > self._newest:
+            self._newest = t
+            if len(self._seen) > 64 * self.keep:  # older ticks are refused by the tick window before they get here
+                self._seen = {k: s for k, s in self._seen.items() if k[1] >= t - self.keep}
+        return True
+
+    def forget(self, who, t: int, phase: int) -> None:
+        """Undo :meth:`admit` for an answer refused on its content afterwards: it must not take the genuine one's
+        place."""
+        self._seen.pop((who, t, phase), None)
+
+
+def agent_identity(robot: int) -> str:
+    """The header sender of robot ``robot``'s own session (services/credentials.py user_of_agent names it too)."""
+    return f"agent-{int(robot)}"
+
+
+class SenderBinding:
+    """The header sender a robot's keys may carry: its session identity ``agent-<id>``, or the first name seen under
+    that robot's keys (an agent that joined without an id and claimed one has a session named after its instance).
+    Any other name under the same robot's keys is refused: a robot cannot open new streams under new names."""
+
+    def __init__(self) -> None:
+        self._bound: dict[int, str] = {}
+
+    def check(self, robot: int, sender: str) -> None:
+        if not sender:
+            raise ValueError(f"message under robot {robot}'s key without a sender")
+        bound = self._bound.setdefault(robot, sender)  # the first name seen under the robot's keys
+        if sender != bound and sender != agent_identity(robot):
+            raise ValueError(f"sender {sender!r} under robot {robot}'s key, which is {bound!r}'s")
+
+
+#: how far one stream's (sender, key) sequence number may jump and count as lost messages: a key carries a few
+#: messages of one publisher a tick, and the tick window is TICKS_BEHIND ticks
+SEQ_WINDOW = 4 * TICKS_BEHIND
+
+
+class SeqWindow:
+    """The sequence numbers of one stream: a number more than ``window`` ahead of the last is refused (once: it is
+    neither taken nor counted as a gap, so a forged far-ahead number cannot hide the genuine stream or claim millions
+    of losses), unless the next one follows it (two consecutive numbers: the stream really is there, e.g. after its
+    publisher reconnected)."""
+
+    __slots__ = ("last", "_jump")
+
+    def __init__(self) -> None:
+        self.last: int | None = None
+        self._jump: int | None = None
+
+    def take(self, seq: int, window: int = SEQ_WINDOW) -> int:
+        """The messages lost before ``seq`` (0 for the next, a stale or the first); ValueError for a jump."""
+        last = self.last
+        if last is None:
+            self.last = seq
+            return 0
+        if seq <= last:
+            return 0
+        if seq > last + window:
+            resync = self._jump is not None and seq == self._jump + 1
+            self._jump = seq
+            if not resync:
+                raise ValueError(f"sequence number {seq} jumps {seq - last} ahead of {last} (at most {window})")
+            self.last = seq
+            return 0
+        self._jump = None
+        self.last = seq
+        return seq - last - 1
