@@ -91,9 +91,19 @@ def pytest_unconfigure(config):
 @pytest.hookimpl(wrapper=True)
 def pytest_collection(session):
     """A worker collects (imports every test module: seconds of CPU) holding the machine shared, so that a test
-    marked ``alone`` on the other worker waits for that too."""
-    with machine_share(alone=False):
-        return (yield)
+    marked ``alone`` on the other worker waits for that too. pytest rewrites the asserts of every test module it
+    imports (~3 CPU-s for this suite) and caches the result beside the module only where bytecode may be written:
+    where ``PYTHONDONTWRITEBYTECODE`` is set, each worker would rewrite them all again on every run, so the cache is
+    written while the modules are collected (the environment is as it was for the tests)."""
+    import sys
+
+    dont_write = sys.dont_write_bytecode
+    sys.dont_write_bytecode = False
+    try:
+        with machine_share(alone=False):
+            return (yield)
+    finally:
+        sys.dont_write_bytecode = dont_write
 
 
 @pytest.fixture(autouse=True)
@@ -239,7 +249,7 @@ with zenoh.open(conf) as session:
 print(json.dumps({"seconds": {k: sorted(v) for k, v in seconds.items()}, "ticks": ticks, "last": last}))
 '''
 
-SHARED_STEPS = 1200  # a default run long enough (> 5 s at full speed) to judge its streams second by second
+SHARED_STEPS = 800  # a default run long enough (> 5 s at full speed) to judge its streams second by second
 LATE_JOIN_ROWS = 20  # the late watcher joins once the record has this many rows
 
 
