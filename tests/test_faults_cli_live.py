@@ -28,7 +28,7 @@ from services.monitor.report import load
 
 from _procs import alive, descendants, kill_all
 
-STEPS = 220  # the commands below take ~10 s at most of its 17.6 s (a loaded machine included)
+STEPS = 140  # the commands below take ~10 s at most of its 11.2 s (a loaded machine included)
 PERIOD = 0.08  # s per tick: 50 ticks = 4 s, more than a CLI process needs to answer
 AHEAD = 50
 VICTIM = 1
