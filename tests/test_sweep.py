@@ -308,14 +308,16 @@ def test_an_unreachable_scheduler_is_one_error_line(tmp_path):
         DaskExecutor(f"tcp://127.0.0.1:{free_port()}", timeout=1)
 
 
-def test_the_scale_study_on_dask_equals_it_on_local_processes(tmp_path):
+def test_the_scale_study_on_dask_equals_it_on_local_processes(tmp_path, capsys):
     """The existing studies take the same executor: the scale study (with the Proximity calibration that gates some
-    episodes) from the CLI in its own process, on a LocalCluster, gives the same episodes as on local processes."""
+    episodes) from the CLI in its own process, on a LocalCluster, gives the same episodes as on local processes (the
+    CLI in this process: its pool's processes are the local ones)."""
+    from morph_sim.cli import main
+
     study = ["experiment", "scale", "--scales", "tiny", "--seeds", "1,2", "--steps", "25", "--conditions",
              "morph,proximity", "--out", str(tmp_path), "--no-progress"]
     cli = [sys.executable, "-m", "morph_sim.cli"]
-    local = subprocess.run([*cli, *study, "--run-id", "local"], capture_output=True, text=True, timeout=300)
-    assert local.returncode == 0, local.stderr
+    assert main([*study, "--run-id", "local"]) == 0, capsys.readouterr().err
     with _local_cluster() as cluster:
         dask = subprocess.run([*cli, *study, "--run-id", "dask", "--executor", "dask", "--scheduler",
                                cluster.scheduler_address], capture_output=True, text=True, timeout=300)
@@ -332,9 +334,9 @@ def test_the_scale_study_on_dask_equals_it_on_local_processes(tmp_path):
     a, b = episodes("local"), episodes("dask")
     assert len(a) == 4 and a == b
     assert (tmp_path / "dask" / "summary.csv").read_text() == (tmp_path / "local" / "summary.csv").read_text()
-    bad = subprocess.run([*cli, "experiment", "shift", "--executor", "dask", "--scheduler", "tcp://127.0.0.1:1"],
-                         capture_output=True, text=True, timeout=120)
-    assert bad.returncode == 2 and bad.stderr.strip() == (
+    capsys.readouterr()
+    assert main(["experiment", "shift", "--executor", "dask", "--scheduler", "tcp://127.0.0.1:1"]) == 2
+    assert capsys.readouterr().err.strip() == (
         "morph-sim experiment: error: executor: the dask executor runs the scale and ablation studies (and sweeps), "
         "not shift")
 
