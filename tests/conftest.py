@@ -288,14 +288,15 @@ ENDLESS_PERIOD = 0.1  # seconds per tick: a run that waits for a test to finish 
 
 
 @pytest.fixture
-def endless_run(live_run):
-    """``endless_run()``: a secure ``morph-sim up --scale tiny`` of three robots listening on a loopback port that runs until someone
-    stops it (``--steps 100000``), paced at :data:`ENDLESS_PERIOD` so it idles between ticks while the test works (a
-    lockstep run would take both cores the whole time). Killed at the end of the test if it still runs."""
+def endless_run(shared_live_run):
+    """``endless_run()``: a secure ``morph-sim up --scale tiny`` of three robots listening on a loopback port that runs
+    until someone stops it (``--steps 100000``), paced at :data:`ENDLESS_PERIOD` so it idles between ticks while the
+    test works (a lockstep run would take both cores the whole time). One run is handed from test to test
+    (``shared_live_run``) until a test ends it; the next then gets a new one."""
 
     def start() -> LiveRun:
-        return live_run("endless", "--steps", "100000", "--mode", "paced", "--period", str(ENDLESS_PERIOD),
-                        *FEW_ROBOTS)
+        return shared_live_run("endless", "--steps", "100000", "--mode", "paced", "--period", str(ENDLESS_PERIOD),
+                               *FEW_ROBOTS)
 
     return start
 
