@@ -58,9 +58,9 @@ SLOW_TIMEOUT = 1800  # seconds: an experiment-scale test may take many minutes o
 
 @contextlib.contextmanager
 def machine_share(*, alone: bool):
-    """Between pytest workers (pyproject's ``-n 2``): a test holds the machine shared with the other worker, or
+    """Between pytest workers (pyproject's ``-n 3``): a test holds the machine shared with the other workers, or
     ``alone`` while it measures wall-clock behaviour (every stream every second, a real-time period) that the other
-    worker's CPU would decide instead of the code. A lock file in the workers' common temporary directory."""
+    workers' CPU would decide instead of the code. A lock file in the workers' common temporary directory."""
     path = _machine_lock()
     if path is None:
         yield
@@ -92,14 +92,24 @@ def pytest_unconfigure(config):
 @pytest.hookimpl(wrapper=True)
 def pytest_collection(session):
     """A worker collects (imports every test module: seconds of CPU) holding the machine shared, so that a test
-    marked ``alone`` on the other worker waits for that too."""
-    with machine_share(alone=False):
-        return (yield)
+    marked ``alone`` on another worker waits for that too. pytest rewrites the asserts of every test module it
+    imports (~3 CPU-s for this suite) and caches the result beside the module only where bytecode may be written:
+    where ``PYTHONDONTWRITEBYTECODE`` is set, each worker would rewrite them all again on every run, so the cache is
+    written while the modules are collected (the environment is as it was for the tests)."""
+    import sys
+
+    dont_write = sys.dont_write_bytecode
+    sys.dont_write_bytecode = False
+    try:
+        with machine_share(alone=False):
+            return (yield)
+    finally:
+        sys.dont_write_bytecode = dont_write
 
 
 @pytest.fixture(autouse=True)
 def _share_the_machine(request):
-    """Each test shares the machine with the other worker, or has it alone if marked ``alone``. (The tests of
+    """Each test shares the machine with the other workers, or has it alone if marked ``alone``. (The tests of
     ``shared_default_up`` read a run that had the machine alone while it ran, see there.)"""
     if any(f in request.fixturenames for f in ALONE_RUNS):
         yield
@@ -151,9 +161,9 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.timeout(SLOW_TIMEOUT))
     if unknown:
         raise pytest.UsageError(f"tests/conftest.py: give these test files a kind in KINDS: {sorted(unknown)}")
-    # Workers take groups in this order: the runs that have the machine alone first (both workers start on them, so
-    # they follow each other instead of waiting for a long test the other worker is in the middle of), the long
-    # live groups next, and the many short pure tests last, where they fill in while the other worker ends its last
+    # Workers take groups in this order: the runs that have the machine alone first (every worker starts on one, so
+    # they follow each other instead of waiting for a long test another worker is in the middle of), the long live
+    # groups next, and the many short pure tests last, where they fill in while the other workers end their last
     # long group.
     def order(item) -> int:
         if item.get_closest_marker("alone") or any(f in item.fixturenames for f in ALONE_RUNS):
@@ -279,14 +289,15 @@ ENDLESS_PERIOD = 0.1  # seconds per tick: a run that waits for a test to finish 
 
 
 @pytest.fixture
-def endless_run(live_run):
-    """``endless_run()``: a secure ``morph-sim up --scale tiny`` of three robots listening on a loopback port that runs until someone
-    stops it (``--steps 100000``), paced at :data:`ENDLESS_PERIOD` so it idles between ticks while the test works (a
-    lockstep run would take both cores the whole time). Killed at the end of the test if it still runs."""
+def endless_run(shared_live_run):
+    """``endless_run()``: a secure ``morph-sim up --scale tiny`` of three robots listening on a loopback port that runs
+    until someone stops it (``--steps 100000``), paced at :data:`ENDLESS_PERIOD` so it idles between ticks while the
+    test works (a lockstep run would take both cores the whole time). One run is handed from test to test
+    (``shared_live_run``) until a test ends it; the next then gets a new one."""
 
     def start() -> LiveRun:
-        return live_run("endless", "--steps", "100000", "--mode", "paced", "--period", str(ENDLESS_PERIOD),
-                        *FEW_ROBOTS)
+        return shared_live_run("endless", "--steps", "100000", "--mode", "paced", "--period", str(ENDLESS_PERIOD),
+                               *FEW_ROBOTS)
 
     return start
 

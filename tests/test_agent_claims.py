@@ -24,12 +24,15 @@ def _kill_all(procs: list[subprocess.Popen]) -> None:
             proc.wait(timeout=5)
 
 
-def test_eight_agents_without_ids_claim_0_to_7_with_the_fleet_roles_and_the_run_completes(tmp_path):
+def test_agents_without_ids_claim_every_id_with_the_fleet_roles_and_the_run_completes(tmp_path):
+    """Three robots (two AGVs, a picker), each agent a fresh interpreter with its own --instance: ids and roles do not
+    depend on the fleet's size; the test below starts the tiny fleet's eight by hand."""
     from services.bus.zenoh_bus import free_port
 
+    agvs, pickers = 2, 1
     where = f"tcp/127.0.0.1:{free_port()}"
     env = {k: v for k, v in os.environ.items() if not k.startswith("MORPH_") and k != ZENOH_CONFIG_ENV}
-    common = ["--run-id", "claims", "--scale", "tiny", "--agvs", str(AGVS), "--pickers", str(PICKERS),
+    common = ["--run-id", "claims", "--scale", "tiny", "--agvs", str(agvs), "--pickers", str(pickers),
               "--steps", "20", "--ready-timeout", "60", "--output-dir", str(tmp_path)]
     cli = [sys.executable, "-m", "morph_sim.cli"]
     procs: list[subprocess.Popen] = []
@@ -39,7 +42,7 @@ def test_eight_agents_without_ids_claim_0_to_7_with_the_fleet_roles_and_the_run_
         procs.append(sim)
         agents = [subprocess.Popen(cli + ["agent", "--endpoint", where, "--instance", f"box-{i}", *common],
                                    env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-                  for i in range(AGVS + PICKERS)]
+                  for i in range(agvs + pickers)]
         procs += agents
         out, err = sim.communicate(timeout=TIMEOUT)
         assert sim.returncode == 0, err[-3000:]
@@ -52,9 +55,9 @@ def test_eight_agents_without_ids_claim_0_to_7_with_the_fleet_roles_and_the_run_
             report = json.loads(text.strip().splitlines()[-1])
             assert report["ticks"] == 21  # 20 steps and the final report
             claimed[report["agent"]] = (report["role"], report["instance"])
-        assert sorted(claimed) == list(range(AGVS + PICKERS))
-        assert [claimed[i][0] for i in range(AGVS + PICKERS)] == ["agv"] * AGVS + ["picker"] * PICKERS
-        assert {inst for _, inst in claimed.values()} == {f"box-{i}" for i in range(AGVS + PICKERS)}
+        assert sorted(claimed) == list(range(agvs + pickers))
+        assert [claimed[i][0] for i in range(agvs + pickers)] == ["agv"] * agvs + ["picker"] * pickers
+        assert {inst for _, inst in claimed.values()} == {f"box-{i}" for i in range(agvs + pickers)}
     finally:
         _kill_all(procs)
 

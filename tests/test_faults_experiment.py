@@ -65,20 +65,28 @@ def test_reduced_experiment_writes_json_and_plot(tmp_path) -> None:
     assert lossy["p_vs_clean"] is None or 0 <= lossy["p_vs_clean"] <= 1
 
 
-def _cli(argv, **kw):
+def _cli(argv, capsys):
+    """``morph-sim experiment faults`` in this process (the same parser and error handling as the CLI's; the
+    interrupt below needs a process of its own): its exit status, stdout and stderr."""
     import subprocess
-    import sys
 
-    return subprocess.run([sys.executable, "-m", "morph_sim.cli", "experiment", "faults", *argv], capture_output=True,
-                          text=True, timeout=300, **kw)
+    from morph_sim.cli import main
+
+    capsys.readouterr()
+    try:
+        code = main(["experiment", "faults", *argv])
+    except SystemExit as exc:  # argparse's errors
+        code = exc.code
+    out = capsys.readouterr()
+    return subprocess.CompletedProcess(argv, code, out.out, out.err)
 
 
-def test_cli_honours_scales_seeds_steps_targets_and_levels(tmp_path) -> None:
+def test_cli_honours_scales_seeds_steps_targets_and_levels(tmp_path, capsys) -> None:
     """Every flag reaches the grid: the record holds exactly the episodes asked for, at the scale and length asked
     for; the table, the figure and the last line say what ran."""
     res = _cli(["--scales", "small", "--seeds", "3,4", "--steps", "40", "--jobs", "2", "--conditions", "tsg,morph",
                 "--targets", "fleet", "--loss-levels", "0,20", "--latency-levels", "2", "--out", str(tmp_path),
-                "--run-id", "f"])
+                "--run-id", "f"], capsys)
     assert res.returncode == 0, res.stderr
     record = tmp_path / "f"
     eps = json.loads((record / "faults.json").read_text())["episodes"]
@@ -95,9 +103,10 @@ def test_cli_honours_scales_seeds_steps_targets_and_levels(tmp_path) -> None:
     assert "16 episodes" in res.stderr and "T = 40" in res.stderr
 
 
-def test_cli_progress_and_resume_after_interrupt_give_the_same_tables(tmp_path) -> None:
+def test_cli_progress_and_resume_after_interrupt_give_the_same_tables(tmp_path, capsys) -> None:
     """Interrupted by Ctrl-C mid-grid: exit 130 and a line saying how to resume; resumed with the same --run-id it
-    runs only the missing episodes, and its tables equal those of a grid that ran straight through."""
+    runs only the missing episodes, and its tables equal those of a grid that ran straight through. (The interrupted
+    grid is a process of its own, as a user's terminal starts it; the others run the CLI in this process.)"""
     import os
     import signal
     import subprocess
@@ -106,9 +115,9 @@ def test_cli_progress_and_resume_after_interrupt_give_the_same_tables(tmp_path) 
 
     from _procs import kill_tree, terminal_signals
 
-    argv = ["--quick", "--seeds", "1,2,3", "--steps", "200", "--jobs", "1", "--out", str(tmp_path)]
-    straight = _cli([*argv, "--run-id", "a"])
-    assert straight.returncode == 0 and "faults" in straight.stderr and "24/24" in straight.stderr  # progress
+    argv = ["--quick", "--seeds", "1,2", "--steps", "60", "--jobs", "1", "--out", str(tmp_path)]
+    straight = _cli([*argv, "--run-id", "a"], capsys)
+    assert straight.returncode == 0 and "faults" in straight.stderr and "16/16" in straight.stderr  # progress
     proc = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "experiment", "faults", *argv, "--run-id", "b"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=terminal_signals)
     try:
@@ -124,13 +133,13 @@ def test_cli_progress_and_resume_after_interrupt_give_the_same_tables(tmp_path) 
     assert err.strip().splitlines()[-1].startswith("experiment faults: interrupted with ")
     assert "--run-id b resumes it" in err
     done = log.read_text().count("\n")
-    assert 3 <= done < 24
-    resumed = _cli([*argv, "--run-id", "b"])
+    assert 3 <= done < 16
+    resumed = _cli([*argv, "--run-id", "b"], capsys)
     assert resumed.returncode == 0, resumed.stderr
-    assert f"{24 - done} episodes run, {done} already in the record" in resumed.stdout
+    assert f"{16 - done} episodes run, {done} already in the record" in resumed.stdout
     assert (tmp_path / "b" / "faults.md").read_text() == (tmp_path / "a" / "faults.md").read_text()
     assert resumed.stdout.split("faults experiment:")[0] == straight.stdout.split("faults experiment:")[0]
-    other = _cli(["--quick", "--seeds", "1", "--out", str(tmp_path), "--run-id", "b"])  # another grid, same record
+    other = _cli(["--quick", "--seeds", "1", "--out", str(tmp_path), "--run-id", "b"], capsys)  # another grid
     assert other.returncode == 2 and other.stderr.strip().endswith("holds a different faults; give another --run-id "
                                                                    "or --out")
 

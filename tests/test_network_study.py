@@ -6,24 +6,32 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 
 import pytest
 
 from morph_sim.lab.network_study import CONDITIONS, SEEDS, grid_plan, network_tasks, run_study
 
 
-def _cli(argv):
-    return subprocess.run([sys.executable, "-m", "morph_sim.cli", "experiment", "network", *argv],
-                          capture_output=True, text=True, timeout=300)
+def _cli(argv, capsys):
+    """``morph-sim experiment network`` in this process (the CLI's parser and error handling): its exit status,
+    stdout and stderr."""
+    from morph_sim.cli import main
+
+    capsys.readouterr()
+    try:
+        code = main(["experiment", "network", *argv])
+    except SystemExit as exc:  # argparse's errors
+        code = exc.code
+    out = capsys.readouterr()
+    return subprocess.CompletedProcess(argv, code, out.out, out.err)
 
 
 ARGV = ["--scales", "tiny", "--seeds", "301,302", "--steps", "40", "--profiles", "lan,wifi-legacy-roaming",
         "--conditions", "morph,full,tsg", "--jobs", "2"]
 
 
-def test_cli_runs_the_grid_asked_for_with_tables_figure_and_progress(tmp_path) -> None:
-    res = _cli([*ARGV, "--out", str(tmp_path), "--run-id", "n"])
+def test_cli_runs_the_grid_asked_for_with_tables_figure_and_progress(tmp_path, capsys) -> None:
+    res = _cli([*ARGV, "--out", str(tmp_path), "--run-id", "n"], capsys)
     assert res.returncode == 0, res.stderr
     record = tmp_path / "n"
     data = json.loads((record / "network.json").read_text())
@@ -77,8 +85,8 @@ def test_default_grid_is_the_study_the_issue_asks_for() -> None:
     (["--steps", "0"], "steps: must be >= 1"),
     (["--quick"], "quick: experiment network does not take --quick"),
 ])
-def test_bad_values_are_refused_in_one_line(tmp_path, argv, message) -> None:
-    res = _cli([*argv, "--out", str(tmp_path / "never")])
+def test_bad_values_are_refused_in_one_line(tmp_path, argv, message, capsys) -> None:
+    res = _cli([*argv, "--out", str(tmp_path / "never")], capsys)
     assert res.returncode == 2 and res.stderr.count("\n") == 1, res.stderr
     assert res.stderr.startswith(f"morph-sim experiment: error: {message}"), res.stderr
     assert not (tmp_path / "never").exists()

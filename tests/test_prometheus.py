@@ -102,7 +102,7 @@ def test_up_serves_prometheus_through_the_run_and_a_grace_after_it(tmp_path):
     port = free_port()
     argv = [sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", "tiny", "--steps", "150",
             "--run-id", "prom", "--output-dir", str(tmp_path), "--prometheus-port", str(port),
-            "--prometheus-grace", "6", *FEW_ROBOTS]
+            "--prometheus-grace", "3", *FEW_ROBOTS]
     # a busy port is named in one line before anything starts
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", port))

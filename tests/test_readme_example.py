@@ -12,7 +12,7 @@ from pathlib import Path
 from services.metrics import catalogue
 
 README = Path(__file__).resolve().parents[1] / "README.md"
-EXAMPLE_SECONDS = 4  # how long the example listens here (the README: 10)
+EXAMPLE_SECONDS = 2  # how long the example listens here (the README: 10)
 
 
 def _metrics_section() -> str:

@@ -1,5 +1,5 @@
 """A paced run is a real-time fleet: the sim starts a tick every period whether or not the agents have answered, and
-the agents act on what they have. A picker SIGSTOPped for 2 s does not hold the fleet: the ticks keep their period,
+the agents act on what they have. A picker SIGSTOPped for 1.5 s does not hold the fleet: the ticks keep their period,
 the others keep dispatching and delivering, the stopped agent's robot goes on with its mission, and the run completes
 with every row in its record and the truth in its last line."""
 
@@ -13,10 +13,10 @@ from services.monitor.recorder import read_metrics
 from services.monitor.service import ROW_GRACE_TICKS
 
 PERIOD = 0.05
-STEPS = 160
-PAUSED, AT, PAUSE_TICKS = 6, 40, 40  # tiny: AGVs 0-4, pickers 5-7; SIGSTOP at tick 40 for 40 periods (2 s)
+STEPS = 100
+PAUSED, AT, PAUSE_TICKS = 6, 25, 30  # tiny: AGVs 0-4, pickers 5-7; SIGSTOP at tick 25 for 30 periods (1.5 s)
 # what "keeps the period" means here: no two tick starts further apart than this (the stopped agent would make
-# it 2 s if the sim waited for it)
+# it 1.5 s if the sim waited for it)
 MAX_INTERVAL = 0.5
 
 pytestmark = pytest.mark.alone  # the period is wall-clock: the other pytest worker waits meanwhile

@@ -43,7 +43,7 @@ def test_the_check_sees_the_docs_and_the_code():
 def test_on_loadgroup_workers_every_test_carries_its_group(request):
     """tests/conftest.py groups the tests by file (and the users of a shared live run together) for pytest-xdist's
     ``--dist loadgroup``, which marks the group in the test's id. A pytest or xdist release that drops it does so
-    silently: a file's tests and a shared live run would be spread over both workers (seen with pytest 9.2)."""
+    silently: a file's tests and a shared live run would be spread over the workers (seen with pytest 9.2)."""
     if not os.environ.get("PYTEST_XDIST_WORKER") or not request.config.getoption("loadgroup", False):
         pytest.skip("not on a --dist loadgroup worker")
     assert request.node.nodeid.endswith("@test_repo_text"), request.node.nodeid

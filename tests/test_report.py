@@ -18,6 +18,8 @@ from services.monitor.report import load, numbers, write_report
 from services.runconfig import RunConfig
 from services.supervisor.graph import role_of
 
+from _procs import FEW_ROBOTS
+
 
 def test_the_report_renders_every_figure_and_the_gif(tmp_path):
     config = RunConfig(run_id="rep", scale="tiny", steps=120, policy="morph", output_dir=tmp_path, snapshot_every=40)
@@ -87,12 +89,13 @@ def test_a_killed_recorder_never_leaves_a_row_on_disk_without_its_positions_and_
     assert (on_disk > 0) == (flush_chars < 1 << 20)  # the size rule flushed on its own, before a second was up
 
 
-STEPS = 600  # the monitor is killed after KILL_AT rows: a gap of up to ~200 ticks, then ~300 ticks recorded again
+STEPS = 500  # the monitor is killed after KILL_AT rows: a gap of up to ~200 ticks, then ~200 ticks recorded again
 KILL_AT = 100
 
 
 def test_a_monitor_killed_and_restarted_mid_run_leaves_a_record_equal_apart_from_the_gap(tmp_path, live_run):
-    up = live_run("killed", "--steps", str(STEPS), "--seed", "5", "--policy", "morph",
+    # three robots: what the record keeps across the monitor's restart does not depend on the fleet
+    up = live_run("killed", "--steps", str(STEPS), "--seed", "5", "--policy", "morph", *FEW_ROBOTS,
                   output_dir=tmp_path / "live")
     up.wait_for_endpoint()
     up.wait_for_rows(KILL_AT)
@@ -107,12 +110,14 @@ def test_a_monitor_killed_and_restarted_mid_run_leaves_a_record_equal_apart_from
     killed = load(tmp_path / "live" / "killed")
     assert len(killed.gaps) == 1, killed.events
     first, last = killed.gaps[0]
-    config = RunConfig(run_id="calm", scale="tiny", steps=STEPS, seed=5, policy="morph", output_dir=tmp_path)
+    config = RunConfig(run_id="calm", scale="tiny", agvs=2, pickers=1, steps=STEPS, seed=5, policy="morph",
+                       output_dir=tmp_path)
     asyncio.run(run_local(config))
     calm = read_metrics(config.record_dir)
     rows = read_metrics(killed.dir)
     ts = [int(r["t"]) for r in rows]
     assert ts == [t for t in range(STEPS) if not first <= t <= last]  # every row once, only the gap missing
+    assert KILL_AT <= first and last < STEPS - 1, (first, last)  # rows before the gap, and after it again
     assert rows == [calm[t] for t in ts]  # every column, the cumulative ones included
     # every table outside the gap, byte for byte (positions: one line per tick, the final tick included)
     for name, ticks in (("links.csv", ts), ("positions.csv", ts + [STEPS])):

@@ -209,8 +209,8 @@ def test_full_shift_experiment_within_budget(tmp_path):
 def test_experiment_faults_cli_is_wired(tmp_path, capsys):
     """`experiment faults --quick` runs its reduced grid at every scale asked for and writes its record, figures and
     one table section per scale."""
-    rc = cli_main(["experiment", "faults", "--quick", "--scales", "tiny,small", "--out", str(tmp_path),
-                   "--run-id", "f", "--no-progress"])
+    rc = cli_main(["experiment", "faults", "--quick", "--scales", "tiny,small", "--steps", "40", "--out",
+                   str(tmp_path), "--run-id", "f", "--no-progress"])
     assert rc == 0
     assert (tmp_path / "f" / "faults.json").exists()
     assert (tmp_path / "f" / "faults_tiny.png").exists() and (tmp_path / "f" / "faults_small.png").exists()

@@ -1,5 +1,5 @@
-"""`morph-sim sweep` from the user's side: real CLI processes, interrupted and resumed, on local processes and on a
-Dask cluster (dask.distributed's LocalCluster in this process, loopback only), the services engine, bad input."""
+"""`morph-sim sweep` from the user's side: real CLI processes interrupted (the uninterrupted and resumed sweeps they are
+compared with run the CLI in this process), on local processes and on a Dask cluster (dask.distributed's LocalCluster in this process, loopback only), the services engine, bad input."""
 
 from __future__ import annotations
 
@@ -29,6 +29,20 @@ LONG = ["--set", "steps=400"]
 def _cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "morph_sim.cli", "sweep", *args], capture_output=True, text=True,
                           timeout=timeout)
+
+
+def _in_process(*args: str) -> subprocess.CompletedProcess:
+    """``morph-sim sweep`` in this process, as :func:`_cli` runs it in its own: for the runs that are only a
+    reference or a resume (the interrupted runs are processes of their own, as a user's terminal starts them)."""
+    import contextlib
+    import io
+
+    from morph_sim.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(["sweep", *args])
+    return subprocess.CompletedProcess(["sweep", *args], code, out.getvalue(), err.getvalue())
 
 
 def _main(*args: str, capsys) -> tuple[int, str, str]:
@@ -72,7 +86,7 @@ def _check_interrupted_then_resumed(tmp_path: Path, grid: list[str], total: int,
     """``whole``: the uninterrupted sweep of the same command line (its directory and its process), if one ran."""
     common = [*grid, "--out", str(tmp_path), "--no-progress", "--jobs", jobs]
     if whole is None:
-        whole = (tmp_path / "whole", _cli(*common, "--run-id", "whole"))
+        whole = (tmp_path / "whole", _in_process(*common, "--run-id", "whole"))
     whole_dir, done_whole = whole
     assert done_whole.returncode == 0, done_whole.stderr
     assert f"{total} episodes run, 0 already in the record" in done_whole.stdout.splitlines()[-1]
@@ -88,7 +102,7 @@ def _check_interrupted_then_resumed(tmp_path: Path, grid: list[str], total: int,
             "--run-id cut resumes it")
     assert not (tmp_path / "cut" / "results.csv").exists()
 
-    resumed = _cli(*common, "--run-id", "cut")
+    resumed = _in_process(*common, "--run-id", "cut")
     assert resumed.returncode == 0, resumed.stderr
     assert resumed.stdout.splitlines()[-1].startswith(f"sweep cut: {total - done} episodes run, {done} already in "
                                                       "the record")
@@ -102,10 +116,11 @@ def _check_interrupted_then_resumed(tmp_path: Path, grid: list[str], total: int,
 
 @pytest.fixture(scope="module")
 def reduced_sweep(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
-    """The reduced acceptance sweep (short episodes, two seeds) from the CLI on local processes, run to its end once:
-    the uninterrupted sweep that the interrupted one and the Dask one must equal. (Its directory, its process.)"""
+    """The reduced acceptance sweep (short episodes, two seeds) from the CLI (in this process) on local processes, run
+    to its end once: the uninterrupted sweep that the interrupted one and the Dask one must equal. (Its directory,
+    its outcome.)"""
     out = tmp_path_factory.mktemp("sweep")
-    done = _cli(*REDUCED, *SHORT, "--out", str(out), "--run-id", "whole", "--no-progress", "--jobs", "2")
+    done = _in_process(*REDUCED, *SHORT, "--out", str(out), "--run-id", "whole", "--no-progress", "--jobs", "2")
     return out / "whole", done
 
 
@@ -213,10 +228,10 @@ def test_services_engine_episodes_equal_morph_sim_run(tmp_path):
     assert len(rows) == 4
     records = sorted((tmp_path / "svc" / "episodes").glob("ep-*/summary.json"))
     assert len(records) == 4
-    twin = subprocess.run([sys.executable, "-m", "morph_sim.cli", "run", "--policy", "morph", "--seed", "3",
-                           "--steps", "40", "--output-dir", str(tmp_path), "--run-id", "twin"],
-                          capture_output=True, text=True, timeout=120)
-    assert twin.returncode == 0, twin.stderr
+    from morph_sim.cli import main
+
+    assert main(["run", "--quiet", "--policy", "morph", "--seed", "3", "--steps", "40", "--output-dir",
+                 str(tmp_path), "--run-id", "twin"]) == 0
     total = json.loads((tmp_path / "twin" / "summary.json").read_text())
     clean = next(r for r in rows if r["policy"] == "morph" and r["faults.loss.percent"] == "0")
     assert int(clean["deliveries"]) == total["deliveries_total"]
@@ -308,14 +323,16 @@ def test_an_unreachable_scheduler_is_one_error_line(tmp_path):
         DaskExecutor(f"tcp://127.0.0.1:{free_port()}", timeout=1)
 
 
-def test_the_scale_study_on_dask_equals_it_on_local_processes(tmp_path):
+def test_the_scale_study_on_dask_equals_it_on_local_processes(tmp_path, capsys):
     """The existing studies take the same executor: the scale study (with the Proximity calibration that gates some
-    episodes) from the CLI in its own process, on a LocalCluster, gives the same episodes as on local processes."""
+    episodes) from the CLI in its own process, on a LocalCluster, gives the same episodes as on local processes (the
+    CLI in this process: its pool's processes are the local ones)."""
+    from morph_sim.cli import main
+
     study = ["experiment", "scale", "--scales", "tiny", "--seeds", "1,2", "--steps", "25", "--conditions",
              "morph,proximity", "--out", str(tmp_path), "--no-progress"]
     cli = [sys.executable, "-m", "morph_sim.cli"]
-    local = subprocess.run([*cli, *study, "--run-id", "local"], capture_output=True, text=True, timeout=300)
-    assert local.returncode == 0, local.stderr
+    assert main([*study, "--run-id", "local"]) == 0, capsys.readouterr().err
     with _local_cluster() as cluster:
         dask = subprocess.run([*cli, *study, "--run-id", "dask", "--executor", "dask", "--scheduler",
                                cluster.scheduler_address], capture_output=True, text=True, timeout=300)
@@ -332,9 +349,9 @@ def test_the_scale_study_on_dask_equals_it_on_local_processes(tmp_path):
     a, b = episodes("local"), episodes("dask")
     assert len(a) == 4 and a == b
     assert (tmp_path / "dask" / "summary.csv").read_text() == (tmp_path / "local" / "summary.csv").read_text()
-    bad = subprocess.run([*cli, "experiment", "shift", "--executor", "dask", "--scheduler", "tcp://127.0.0.1:1"],
-                         capture_output=True, text=True, timeout=120)
-    assert bad.returncode == 2 and bad.stderr.strip() == (
+    capsys.readouterr()
+    assert main(["experiment", "shift", "--executor", "dask", "--scheduler", "tcp://127.0.0.1:1"]) == 2
+    assert capsys.readouterr().err.strip() == (
         "morph-sim experiment: error: executor: the dask executor runs the scale and ablation studies (and sweeps), "
         "not shift")
 

@@ -39,9 +39,9 @@ def test_up_runs_to_completion_and_leaves_no_process(shared_default_up):
     assert shared.left_behind == [], f"processes left behind: {shared.left_behind}"
 
 
-# An endless run that the restart test acts on and the SIGTERM test then ends (tests/conftest.py, shared_live_run:
-# either test started alone gets a run of its own).
-ENDLESS = ("endless", "--policy", "full", "--steps", "1000000", "--phase-timeout", "2")
+# The endless run the restart test acts on and the SIGTERM test ends (tests/conftest.py, endless_run: the run the
+# tests of other files may have used before, or a run of its own): three robots, paced.
+FLEET = 3
 
 
 def _first_rows(up) -> None:
@@ -49,8 +49,8 @@ def _first_rows(up) -> None:
     up.wait_until(lambda: metrics.exists() and metrics.stat().st_size > 200, UP_TIMEOUT, "the first rows")
 
 
-def test_up_restarts_an_agent_that_dies(shared_live_run):
-    up = shared_live_run(*ENDLESS, listen=False)
+def test_up_restarts_an_agent_that_dies(endless_run):
+    up = endless_run()
     _first_rows(up)
 
     def agent_pids(agent: int) -> list[int]:
@@ -66,6 +66,7 @@ def test_up_restarts_an_agent_that_dies(shared_live_run):
 
     victim = agent_pids(2)
     assert len(victim) == 1
+    before = up.rows()  # (rows on disk lag the run: the first rows without its ack may come later)
     os.kill(victim[0], signal.SIGKILL)
     restarted: list[int] = []
 
@@ -73,8 +74,8 @@ def test_up_restarts_an_agent_that_dies(shared_live_run):
         restarted[:] = [p for p in agent_pids(2) if p != victim[0]]
         if not restarted:
             return False
-        rows = read_metrics(up.record)
-        return len(rows) > 5 and int(rows[-1]["acks"]) == 8 and any(int(r["acks"]) == 7 for r in rows)
+        rows = read_metrics(up.record)[before:]
+        return len(rows) > 5 and int(rows[-1]["acks"]) == FLEET and any(int(r["acks"]) == FLEET - 1 for r in rows)
 
     up.wait_until(rejoined, 60, "agent 2 restarted and rejoined")
     events = up.record / "events.jsonl"
@@ -86,8 +87,8 @@ def test_up_restarts_an_agent_that_dies(shared_live_run):
     up.wait_until(recorded, 30, "the agent.restart event in the record")
 
 
-def test_sigterm_ends_every_process_within_5s(shared_live_run):
-    up = shared_live_run(*ENDLESS, listen=False)
+def test_sigterm_ends_every_process_within_5s(endless_run):
+    up = endless_run()
     try:
         _first_rows(up)
         up.seen |= descendants(up.pid)
@@ -103,7 +104,7 @@ def test_sigterm_ends_every_process_within_5s(shared_live_run):
     finally:
         left = up.left_behind()
         kill_all(left)
-    assert len(up.seen) >= 10
+    assert len(up.seen) >= FLEET + 2  # the sim, the agents and the monitor
     assert left == [], f"processes left behind: {left}"
     # the record of the interrupted run is complete up to where it stopped
     summary = (up.record / "summary.json").read_text()
