@@ -26,7 +26,7 @@ import pytest
 from morph_sim.local import run_local
 from schemas import Ack, AgentState, Commit, Event, FaultCommand, HelpReply, OnBoard, Stop, encode
 from schemas.keys import RunKeys
-from schemas.tick import encode_tick_body, tick_fields
+from schemas.tick import encode_tick_body, tick_fields, tick_number
 from services.bus.base import pack_header
 from services.bus.zenoh_bus import endpoint, free_port, zenoh_config
 from services.monitor.recorder import read_metrics
@@ -61,10 +61,10 @@ def _client(ep: str, credentials: Path | None, *, user: str | None = None, passw
 
 
 def _attack(session, keys: RunKeys, config: RunConfig, ticks: dict[int, bytes], *, secure: bool,
-            running=lambda: True, picker=None) -> dict[str, int]:
+            running=lambda: True, picker=None, now=lambda: 0) -> dict[str, int]:
     """Everything a hostile client tries, in order of harm; returns how many of each were sent. ``ticks``: forged
     Tick payloads by number, built before the run so the attack lands while it is young. ``picker``: a session with
-    picker 5's own credentials (secure), for an insider's commitments."""
+    picker 5's own credentials (secure), for an insider's commitments. ``now``: the run's latest tick seen."""
     sent: dict[str, int] = {}
 
     def put(what: str, key: str, payload: bytes, sender: str | None = "sim", seq: int = 1, via=None) -> None:
@@ -104,7 +104,10 @@ def _attack(session, keys: RunKeys, config: RunConfig, ticks: dict[int, bytes], 
         # names, bounded floods
         put("insider: ack after the run claiming 2**62 expiries", keys.ack(3),
             encode(Ack(t=config.steps + 1, agent=3, outcomes={"expired": 2**62})), sender="agent-3")
-        for t in range(100, 400):  # ahead of the young run: each would be the first ack of its row
+        # ahead of the run (which accepts one tick ahead): far enough that the run cannot reach them while the flood
+        # is on its way, each would be the first ack of its row
+        ahead = now() + 32
+        for t in range(ahead, min(ahead + 300, config.steps + 1)):
             put("insider: acks of ticks ahead", keys.ack(3),
                 encode(Ack(t=t, agent=3, requests_sent=[config.n_agvs], links=[0, 1], eta=9.0)), sender="agent-3")
         for k in range(1, 1001):
@@ -165,15 +168,23 @@ def _hostile_run(tmp_path: Path, *, secure: bool) -> None:
             assert all(oct(f.stat().st_mode & 0o777) == "0o600" for f in creds.iterdir())
         seen = threading.Event()
 
+        latest = [0]
+
         def on_tick(sample) -> None:
             if sample.attachment is not None:
+                try:
+                    t = tick_number(sample.payload.to_bytes())
+                except ValueError:
+                    return  # the attack's own 64 KB and 1 MB ticks
+                if t < STEPS:  # (the attack forges ticks STEPS and 100000)
+                    latest[0] = max(latest[0], t)
                 seen.set()
 
         sub = session.declare_subscriber(keys.tick, on_tick)
         assert seen.wait(60), "the run never started"
         picker = _client(ep, creds / "agent-5.json5") if secure else None  # a picker's own credentials
         sent = _attack(session, keys, config, forged_ticks, secure=secure, running=lambda: proc.poll() is None,
-                       picker=picker)
+                       picker=picker, now=lambda: latest[0])
         if picker is not None:
             picker.close()
         if secure and proc.poll() is None:  # (tests/test_secure_defaults.py checks this on an endpoint that stays)

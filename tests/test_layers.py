@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("schemas",),
     ("services.world", "services.policies", "services.protocol", "services.metrics"),  # the pure cores
-    ("services.bus", "services.faults", "services.credentials", "services.tickorder", "services.rejects",
+    ("services.bus", "services.faults", "services.credentials", "services.rejects",
      "services.intake", "services.inputs"),
     ("services.runconfig", "services.envconfig", "services.process"),  # what every service process shares
     ("services.sim", "services.agent", "services.monitor"),  # the three services

@@ -19,7 +19,7 @@ from schemas import Stop, encode
 from schemas.keys import RunKeys
 from services.bus.zenoh_bus import endpoint, free_port, zenoh_config
 from services.credentials import RunCredentials
-from services.tickorder import TickOrder
+from services.protocol.tickorder import TickOrder
 
 # isort: split
 import zenoh  # noqa: E402  (after zenoh_bus set the runtime environment)

@@ -44,7 +44,7 @@ from services.policies.interface import Fleet, state_message
 from services.protocol import dispatch as protocol
 from services.protocol.readiness import Readiness
 from services.runconfig import RunConfig
-from services.tickorder import TickOrder
+from services.protocol.tickorder import TickOrder
 
 log = logging.getLogger("morph_sim.agent")
 
@@ -97,7 +97,7 @@ class AgentService:
         self.brains = config.make_policy().brains(fleet, [agent_id], config.seed)
         self.counters = AgentCounters()
         self.last_t = -1
-        self._ticks = TickOrder(config.steps)  # which ticks this agent takes (services/tickorder.py)
+        self._ticks = TickOrder(config.steps)  # which ticks this agent takes (services/protocol/tickorder.py)
         self._stop = asyncio.Event()
         self._seq = 0
         self._stop_timer: asyncio.TimerHandle | None = None

@@ -43,7 +43,7 @@ from services.monitor.recorder import Recorder, read_metrics
 from services.monitor.streams import MessageStats, StreamPublisher
 from services.policies.interface import Fleet
 from services.runconfig import RunConfig
-from services.tickorder import TickOrder
+from services.protocol.tickorder import TickOrder
 
 __all__ = ["MonitorResult", "MonitorService", "ROW_GRACE_TICKS", "summary_of_rows"]
 
@@ -101,7 +101,7 @@ class MonitorService:
         self.rows = RowReducer(self.n, config.n_agvs, config.steps, state_every=config.state_every,
                                snapshot_every=config.snapshot_every, plastic=not config.make_policy().memoryless(
                                    Fleet(config.n_agvs, config.n_pickers, config.scale)))
-        self._ticks = TickOrder(config.steps)  # which ticks the record takes (services/tickorder.py)
+        self._ticks = TickOrder(config.steps)  # which ticks the record takes (services/protocol/tickorder.py)
         self._stop = asyncio.Event()
         self._done = False
         self._stop_timer: asyncio.TimerHandle | None = None

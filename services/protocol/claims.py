@@ -13,10 +13,10 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from services.tickorder import MAX_TICK_GAP
+from services.protocol.tickorder import MAX_TICK_GAP
 
 #: ticks behind the receiver's clock a message of a tick may still come: the fault layer delays messages by a few
-#: ticks at most (and the clock itself may jump this far, services/tickorder.py), so older than this is a replay
+#: ticks at most (and the clock itself may jump this far, services/protocol/tickorder.py), so older than this is a replay
 TICKS_BEHIND = MAX_TICK_GAP
 #: ticks ahead of the receiver's clock: an agent answers tick t once it has it, and the monitor may see an agent's
 #: message just before the sim's tick that caused it (different paths), so one tick ahead is all the protocol needs

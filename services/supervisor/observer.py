@@ -11,7 +11,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from services.tickorder import TickOrder
+from services.protocol.tickorder import TickOrder
 
 
 @dataclass
