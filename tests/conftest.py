@@ -29,7 +29,7 @@ KINDS: dict[str, tuple[str, ...]] = {
     "unit": (
         "test_bus_faults", "test_bus_local", "test_dependencies", "test_deploy_manifests", "test_errors",
         "test_faults_vtime", "test_hot_codec", "test_keys", "test_layout", "test_metrics", "test_network_model",
-        "test_plasticity", "test_policy_interface", "test_protocol", "test_readiness", "test_repo_text", "test_rows", "test_supervisor_units",
+        "test_fleet_brain", "test_plasticity", "test_policy_interface", "test_protocol", "test_readiness", "test_repo_text", "test_rows", "test_supervisor_units",
         "test_figures", "test_layers", "test_policies", "test_render", "test_schemas", "test_tick_step",
     ),
     "fidelity": (

@@ -45,7 +45,7 @@ def _trace(spec):
     def hook(obs, team):
         if obs.has_previous:
             s = team.state
-            if s.t % s.params.k == 0:
+            if s.t[0] % s.params.k == 0:
                 formed.append(int(s.formed[0]))
             h.append(team.h().copy())
 

@@ -80,8 +80,9 @@ def run_board_task(task: BoardTask) -> dict:
                "messages_per_delivery": s["messages_sent"] / d if d else None,
                "bytes_per_delivery": s["bytes_sent"] / d if d else None,
                "dispatch_delay": _finite(s.get("dispatch_delay")),
-               # the lab runs one brain per robot when views can be late (every profile here): the path that ran
-               "brains": "per-robot"}
+               # every profile here gives each robot its own view: one fleet brain where the policy has one
+               # (CoordinationPolicy.fleet_brains), else a brain per robot (the same numbers, slower)
+               "brains": s["brains"]}
     return {"key": task.key, "episode": episode, "wall_s": time.perf_counter() - t0,
             "cpu_s": time.process_time() - c0}
 
@@ -152,18 +153,19 @@ def write_board(run_dir: Path, rows: list[dict], board: dict[str, Any], version:
     md = [f"# Policy board v{version}", "",
           f"Cells: scales {', '.join(board['scales'])} × profiles {', '.join(board['profiles'])} × dispatch loss "
           f"{', '.join(f'{x:g} %' for x in board['loss_percent'])}; seeds {', '.join(map(str, board['seeds']))}; "
-          f"{board['steps']} steps; the lab, one brain per robot. Deliveries: mean over seeds of each seed's mean "
+          f"{board['steps']} steps; the lab, every robot learning from its own view (brains: one for the fleet, or "
+          f"one per robot where the policy has no fleet brain). Deliveries: mean over seeds of each seed's mean "
           f"over the cells, ± the 95 % t interval; Welch p against the best entry, **bold** below the Bonferroni "
           f"threshold {threshold:.3g}. Robustness: deliveries under a profile / under lan.", "",
           "| rank | policy | deliveries | p vs best | messages/delivery | bytes/delivery | dispatch delay (s) | "
-          + " | ".join(f"{p} / lan" for p in profiles) + " |",
-          "|---|---|---|---|---|---|---|" + "---|" * len(profiles)]
+          + " | ".join(f"{p} / lan" for p in profiles) + " | brains |",
+          "|---|---|---|---|---|---|---|" + "---|" * len(profiles) + "---|"]
     for i, r in enumerate(rows, 1):
         p = "best" if r["p_vs_best"] is None and i == 1 else p_text(r["p_vs_best"], threshold)
         md.append(f"| {i} | {r['policy']} | {r['deliveries']:.1f} ± {_fmt(r['ci95'])} | {p} | "
                   f"{_fmt(r['messages_per_delivery'])} | {_fmt(r['bytes_per_delivery'], '.0f')} | "
                   f"{_fmt(r['dispatch_delay'], '.2f')} | "
-                  + " | ".join(_fmt(r["robustness"].get(q), ".2f") for q in profiles) + " |")
+                  + " | ".join(_fmt(r["robustness"].get(q), ".2f") for q in profiles) + f" | {r['brains']} |")
     paths = [run_dir / "leaderboard.md", run_dir / "leaderboard.csv"]
     paths[0].write_text("\n".join(md) + "\n", encoding="utf-8")
     with open(paths[1], "w", newline="", encoding="utf-8") as f:

@@ -221,7 +221,10 @@ class LabDispatch:
     """One fleet's protocol endpoints on an :class:`EventNetwork`, stepped by the lab's tick loop."""
 
     def __init__(self, n_agvs: int, n_pickers: int, *, dt: float, timeout: float, network: EventNetwork,
-                 team_brain=None, agent_brains: list | None = None):
+                 team_brain=None, agent_brains: list | None = None, fleet_brain=None):
+        """One brain for the fleet: ``team_brain`` (every robot holds the sim's tick) or ``fleet_brain`` (every robot
+        learns from its own view, in one brain: CoordinationPolicy.fleet_brains); or a brain per robot with its own
+        view: ``agent_brains``."""
         self.n_agvs, self.n = n_agvs, n_agvs + n_pickers
         self.dt = dt
         self.net = network
@@ -229,7 +232,9 @@ class LabDispatch:
         self.ep = Endpoints(n_agvs, n_pickers, dt, timeout)
         self.team_brain = team_brain
         self.agent_brains = agent_brains
-        self.views = [FleetView() for _ in range(self.n)] if agent_brains is not None else None
+        self.fleet_brain = fleet_brain
+        own_views = agent_brains is not None or fleet_brain is not None
+        self.views = [FleetView() for _ in range(self.n)] if own_views else None
         self.mail = [Mailbox() for _ in range(self.n)]  # each robot's policy messages delivered, not yet taken
         # per tick: mean and max view age over the agents that hold a view, sim seconds (per-agent views only;
         # nan before any agent holds one) -- the monitor's view_age_mean / view_age_max columns
@@ -245,7 +250,9 @@ class LabDispatch:
         return self.ep.outcomes
 
     def brains(self):
-        return self.team_brain if self.team_brain is not None else Team(self.agent_brains)
+        if self.agent_brains is not None:
+            return Team(self.agent_brains)
+        return self.team_brain if self.team_brain is not None else self.fleet_brain
 
     # -- delivery -------------------------------------------------------------------------------------------------
     def _deliver(self, until: float) -> None:
@@ -279,7 +286,7 @@ class LabDispatch:
         """Tick start: the fleet broadcast goes out, what is due arrives, every agent learns from its view."""
         s = obs.t * self.dt
         self.net.observe(obs, self.dt)
-        if self.agent_brains is None:
+        if self.views is None:
             self._deliver(s)
             self.team_brain.learn(obs)
             self._hand_mail(obs.t, s)
@@ -289,11 +296,19 @@ class LabDispatch:
             self.net.send(self.keys.fleet, "sim", agent, FleetBroadcast(obs, s), s, seq=obs.t, size=size)
         self._deliver(s)
         ages = []
-        for brain, view in zip(self.agent_brains, self.views):
+        # the robots that take a new view now, by view: every copy of one broadcast is the same observation, so
+        # the fleet's brain steps each view's robots together
+        taking: dict[int, tuple[TickObservation, list[int]]] = {}
+        for robot, view in enumerate(self.views):
             new = view.take_new()
-            if new is not None and not (new.final and brain.memoryless):
-                brain.learn(new)
+            if new is not None and not (new.final and self._brain(robot).memoryless):
+                if self.agent_brains is not None:
+                    self.agent_brains[robot].learn(new)
+                else:
+                    taking.setdefault(id(new), (new, []))[1].append(robot)
             ages.append(view.age(s))
+        for new, robots in taking.values():
+            self.fleet_brain.learn_for(new, robots)
         self._hand_mail(obs.t, s)
         mean, top = view_age_stats(ages)
         self.view_ages.append(float("nan") if mean is None else mean)
@@ -301,7 +316,9 @@ class LabDispatch:
 
     # -- policy messages ----------------------------------------------------------------------------------------------
     def _brain(self, robot: int):
-        return self.team_brain if self.agent_brains is None else self.agent_brains[robot]
+        if self.agent_brains is not None:
+            return self.agent_brains[robot]
+        return self.team_brain if self.team_brain is not None else self.fleet_brain
 
     def _hand_mail(self, t: int, s: float) -> None:
         """At the tick's decision point, after learning: each robot's policy takes what was delivered to it."""
@@ -335,12 +352,12 @@ class LabDispatch:
 
     def _gating(self, agv: int, obs: TickObservation):
         """(brain, view) an AGV gates with: its fleet view, with its own cell and target from on board."""
-        if self.agent_brains is None:
+        if self.views is None:
             return self.team_brain, obs
         view = self.views[agv].view
         if view is None:
-            return self.agent_brains[agv], None
-        return self.agent_brains[agv], with_own_state(view, agv, obs.cells[agv], obs.target[agv])
+            return self._brain(agv), None
+        return self._brain(agv), with_own_state(view, agv, obs.cells[agv], obs.target[agv])
 
     def dispatch(self, obs: TickObservation, settle: Callable, count: DispatchStats,
                  draw: Callable[[int], float] | None = None) -> list[tuple[int, int]]:
@@ -384,7 +401,7 @@ class LabDispatch:
             view = obs if self.views is None else self.views[picker].view
             order = view.request_order if view is not None else ()
             rank = {int(a): i for i, a in enumerate(order)}
-            brain = self.team_brain if self.agent_brains is None else self.agent_brains[picker]
+            brain = self._brain(picker)
             commit, replies = endpoint.decide(s_pick, not obs.free_picker[picker], rank, out,
                                               policy_choice(brain, picker, view))
             if commit is not None:

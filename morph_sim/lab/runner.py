@@ -80,8 +80,12 @@ class EpisodeSpec(BaseModel):
     #: ``policy_options``; None: the condition's policy
     policy_name: str | None = None
     policy_options: dict[str, str | int | float | bool | None] = Field(default_factory=dict)
-    #: one brain per robot even where every robot holds the same view (the conformance kit compares the two)
+    #: every robot learns from its own view even where every robot holds the same one (the conformance kit
+    #: compares the two)
     per_robot_brains: bool = False
+    #: robots with views of their own learn in one brain for the fleet where the policy has one
+    #: (CoordinationPolicy.fleet_brains: vectorised across robots, the same numbers); False: a brain per robot
+    fleet_brain: bool = True
     #: count the ticks where the other dispatch mode would have committed otherwise (it replays every gate: the
     #: conformance kit, which watches each decision, turns it off)
     compare_dispatch: bool = True
@@ -202,8 +206,15 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=(), policy: C
     model = _network_model(spec, wh)
     if spec.dispatch == "concurrent":
         net = EventNetwork(faults, seed=spec.seed, model=model)
-        if net.touches(FLEET_KEY) or spec.per_robot_brains:
-            # the fleet broadcast can be late or lost: every agent learns and gates from its own view
+        own_views = net.touches(FLEET_KEY) or spec.per_robot_brains
+        # the fleet broadcast can be late or lost: every agent learns and gates from its own view, in one brain for
+        # the fleet where the policy has one (each robot's state stepped from its own view), else in a brain each
+        bank = policy.fleet_brains(fleet, spec.seed) if own_views and spec.fleet_brain else None
+        if bank is not None:
+            brains = bank
+            driver = LabDispatch(fleet.n_agvs, fleet.n_pickers, dt=DT, timeout=spec.request_timeout, network=net,
+                                 fleet_brain=bank)
+        elif own_views:
             agent_brains = [policy.brains(fleet, [i], spec.seed) for i in range(n)]
             brains = Team(agent_brains)
             driver = LabDispatch(fleet.n_agvs, fleet.n_pickers, dt=DT, timeout=spec.request_timeout, network=net,
@@ -321,7 +332,7 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=(), policy: C
         # the monitor's view_age_mean / view_age_max columns: with one team brain every agent holds the broadcast
         # of its own tick (age 0)
         for name, ages in (("view_age_mean", driver.view_ages), ("view_age_max", driver.view_age_max)):
-            cols[name] = np.array(ages[:T], dtype=float) if driver.agent_brains is not None else np.zeros(T)
+            cols[name] = np.array(ages[:T], dtype=float) if driver.views is not None else np.zeros(T)
     W = brains.team_weights()
     A = brains.team_links()
     blocks = measures.mean_w_by_block(W, is_agv)
@@ -332,6 +343,10 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=(), policy: C
         "seed": spec.seed,
         "steps": T,
         "n_agents": n,
+        # how the robots learnt: "team" (one brain, every robot holds the sim's tick), "fleet" (one brain, each robot
+        # stepped from its own view) or "per-robot" (a brain per robot, each with its own view)
+        "brains": ("team" if driver is None or driver.views is None
+                   else "fleet" if driver.fleet_brain is not None else "per-robot"),
         "deliveries": int(cta.deliveries),
         "mean_links": float(cols["links"].mean()),
         # the second half of the episode: the link count MORPH has converged to (the paper calibrates Proximity to it)

@@ -279,7 +279,7 @@ class AgentService:
             self.brains.receive(self.id, mail)
         asked = self._decide_on_board(ob, now, final)
         policy_to = self._send_mail(t)
-        eta = float(self.brains.state.eta) if isinstance(self.brains, MorphBrains) else None
+        eta = self.brains.eta(self.id) if isinstance(self.brains, MorphBrains) else None
         publish_state = t % self.config.state_every == 0 or final
         # encoded from plain values (no model round trip: the hot path, codec.encode_fields)
         ack = encode_fields(Ack, t=t, agent=self.id, phase=int(Phase.TICK), requests_sent=asked,

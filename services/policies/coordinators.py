@@ -42,7 +42,14 @@ W_FLOOR = 0.25  # the reference's gate floor for the memoryless gates (TSG, Prox
 # memoryless policies
 
 
-class _FullBrains(Coordinator):
+class _FixedBrains(Coordinator):
+    """Brains whose decisions read no view: nothing to learn, for any robot."""
+
+    def learn_for(self, obs, agents):
+        pass
+
+
+class _FullBrains(_FixedBrains):
     draws = False
 
     def probability(self, agv, picker, obs):
@@ -61,7 +68,7 @@ class _BroadcastBrains(_FullBrains):
     broadcast = True
 
 
-class _NoneBrains(Coordinator):
+class _NoneBrains(_FixedBrains):
     draws = False
 
     def probability(self, agv, picker, obs):
@@ -71,7 +78,7 @@ class _NoneBrains(Coordinator):
         return np.zeros((len(self.owners), self.fleet.n))
 
 
-class _ConstantBrains(Coordinator):
+class _ConstantBrains(_FixedBrains):
     def __init__(self, fleet, owners, seed, p: float) -> None:
         super().__init__(fleet, owners, seed)
         self.p = p
@@ -91,10 +98,15 @@ class _TopologyBrains(Coordinator):
         self._rows = np.zeros((len(self.owners), fleet.n))
 
     def learn(self, obs):
-        self._rows = self._topology(obs)
+        self._rows = self._topology(obs, self.owners)
+
+    def learn_for(self, obs, agents):
+        slots = [self.slot(a) for a in agents]
+        self._rows[slots] = self._topology(obs, self.owners[slots])
 
     @abstractmethod
-    def _topology(self, obs: TickObservation) -> np.ndarray: ...
+    def _topology(self, obs: TickObservation, agents: np.ndarray) -> np.ndarray:
+        """(len(agents), n) link rows of ``agents`` in ``obs``."""
 
     def probability(self, agv, picker, obs):
         return W_FLOOR + (1.0 - W_FLOOR) * float(self._rows[self.slot(agv), picker])
@@ -104,10 +116,10 @@ class _TopologyBrains(Coordinator):
 
 
 class _TSGBrains(_TopologyBrains):
-    def _topology(self, obs):
+    def _topology(self, obs, agents):
         # pairs sharing a current mission target (before dispatch): a free picker has none, so the
         # gate entry for the candidate is always 0 — TSG behaves as a constant 0.25 gate (docs/morph.md)
-        return obs.coassignment(previous=False)[self.owners]
+        return obs.coassignment(previous=False)[agents]
 
 
 class _ProximityBrains(_TopologyBrains):
@@ -115,12 +127,12 @@ class _ProximityBrains(_TopologyBrains):
         super().__init__(fleet, owners, seed)
         self.radius = radius
 
-    def _topology(self, obs):
+    def _topology(self, obs, agents):
         c = obs.cells
-        mine = c[self.owners]
+        mine = c[agents]
         d = np.abs(mine[:, None, 0] - c[None, :, 0]) + np.abs(mine[:, None, 1] - c[None, :, 1])
         rows = (d <= self.radius).astype(float)
-        rows[np.arange(len(self.owners)), self.owners] = 0.0
+        rows[np.arange(len(agents)), agents] = 0.0
         return rows
 
 
@@ -142,6 +154,9 @@ class _SimplePolicy(CoordinationPolicy):
 
     def brains(self, fleet, owners, seed):
         return self.BRAINS(fleet, owners, seed, *self.options().values())
+
+    def fleet_brains(self, fleet, seed):
+        return self.brains(fleet, range(fleet.n), seed)  # each robot's row depends on its own view alone
 
 
 @dataclass(frozen=True)
@@ -299,15 +314,24 @@ class MorphBrains(Coordinator):
             self.state = PaperState(params, fleet.n, self.owners, d_exp)
 
     def learn(self, obs: TickObservation) -> None:
+        self._learn(obs, None)
+
+    def learn_for(self, obs: TickObservation, agents) -> None:
+        """The reference preset with a replica per owned agent: only ``agents``' replicas take ``obs``."""
+        if self.preset != "reference" or len(set(self._rep.tolist())) != len(self.owners):
+            raise ValueError("learn_for: needs the reference preset with one replica per owned agent")
+        self._learn(obs, self._rep[[self.slot(a) for a in agents]])
+
+    def _learn(self, obs: TickObservation, replicas) -> None:
         p = self.params
         if obs.has_previous:
             if self.preset == "reference":
                 positions = pred = None
-                if self.state.structural_due():  # the only step that reads them (two of three are not)
+                if self.state.structural_due(replicas):  # the only step that reads them (two of three are not)
                     rows, cols = obs.grid_shape
                     positions = obs.cells / np.array([cols, rows], dtype=float)
                     pred = reference_hint(obs) if p.use_pred_hint else None
-                self.state.step(positions, obs.coassignment(previous=True), obs.deliveries, pred)
+                self.state.step(positions, obs.coassignment(previous=True), obs.deliveries, pred, replicas)
             else:
                 hint = open_request_hint(obs) if p.use_pred_hint else np.zeros((obs.n, obs.n))
                 self.state.step(
@@ -321,7 +345,15 @@ class MorphBrains(Coordinator):
                     )
                 )
         if p.reset_every and obs.t > 0 and obs.t % p.reset_every == 0 and not obs.final:
-            self.state.reset_links()
+            if replicas is None:
+                self.state.reset_links()
+            else:
+                self.state.reset_links(replicas)
+
+    def eta(self, agent: int) -> float:
+        """The arousal signal η of ``agent``'s last update."""
+        s = self.state
+        return float(s.eta[self._rep[self.slot(agent)]]) if self.preset == "reference" else float(s.eta)
 
     def _rows(self, arr: np.ndarray) -> np.ndarray:
         if self.preset == "reference":
@@ -368,15 +400,17 @@ class MorphBrains(Coordinator):
         if self.preset == "reference":
             r = self._rep[k]
             theta, age, h = s.theta_bcm[r, agent], s.age[r, agent], s.h[r, agent]
+            eta, dhat = s.eta[r], s.dhat[r]
             # the previous step's co-assignment: the credit of the next update
             scalars, rows = {}, {"j_prev": [float(v) for v in s.j_prev[r, agent]]}
         else:
             theta, age, h = s.theta_bcm[k], s.age[k], s.h[k]
+            eta, dhat = s.eta, s.dhat
             # the task labels of the mutual-information window (small integers), and how far it is filled
             scalars = {"filled": float(s.filled), "baseline": float(s.baseline)}
             rows = {f"history_{i}": [int(v) for v in s.history[i]] for i in range(len(s.history))}
         return SavedState(theta_row=[float(v) for v in theta], age_row=[int(v) for v in age], h=float(h),
-                          eta=float(s.eta), d_hat=float(s.dhat), scalars=scalars, rows=rows)
+                          eta=float(eta), d_hat=float(dhat), scalars=scalars, rows=rows)
 
     def restore(self, agent, states):
         """Paper preset (directed rows): the robot's own row of W, A, BCM thresholds and link ages, its h, η, d̂.
@@ -398,6 +432,8 @@ class MorphBrains(Coordinator):
                 s.h[r, j] = st.h
                 if "j_prev" in st.rows:  # a state published before it was saved restarts it empty
                     s.j_prev[r, j] = st.rows["j_prev"]
+            s.dhat[r], s.eta[r], s.t[r] = own.d_hat, own.eta, own.t
+            return own.t
         else:
             k = self.slot(agent)
             s.W[k] = own.w_row
@@ -417,8 +453,12 @@ class MorphBrains(Coordinator):
 
     def extra_metrics(self):
         s = self.state
+        if self.preset == "reference":  # the fleet's mean over robots, each robot's from its own replica
+            eta = float(s.eta[0]) if len(s.eta) == 1 else float(np.mean(s.eta[self._rep]))
+        else:
+            eta = float(s.eta)
         return {
-            "eta": float(s.eta),
+            "eta": eta,
             "h_mean": float(np.mean(self._h_rows())),
             "formed": float(s.formed.mean()),
             "pruned": float(s.pruned.mean()),
@@ -494,6 +534,14 @@ class MorphPolicy(CoordinationPolicy):
     def brains(self, fleet, owners, seed):
         preset = load_preset(self.preset)
         return MorphBrains(fleet, owners, seed, preset.rules, self.params, self.share_replicas)
+
+    def fleet_brains(self, fleet, seed):
+        # the reference preset: a replica per robot in one array, each stepped from its robot's view. The paper
+        # preset's mutual-information window is one per brain (a team brain keeps one for the fleet), so its
+        # robots with views of their own keep a brain each
+        if load_preset(self.preset).rules != "reference":
+            return None
+        return MorphBrains(fleet, range(fleet.n), seed, "reference", self.params, share_replicas=False)
 
     def describe(self):
         return {"name": self.name, "preset": self.preset, "ablation": self.ablation or "full"}

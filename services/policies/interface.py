@@ -158,6 +158,13 @@ class Coordinator(ABC):
     def learn(self, obs: TickObservation) -> None:  # noqa: B027 - memoryless default
         """Apply the update for step ``obs.t - 1`` (and refresh per-tick topology)."""
 
+    def learn_for(self, obs: TickObservation, agents: Sequence[int]) -> None:
+        """:meth:`learn` for the owned ``agents`` only, from ``obs`` (the view they hold): the other owned robots'
+        state is untouched. Brains that implement it let the lab keep one brain for a fleet whose robots hold
+        views of different ticks (:meth:`CoordinationPolicy.fleet_brains`); each robot's state must then evolve
+        exactly as it would in a brain of its own fed its own views."""
+        raise NotImplementedError(f"{type(self).__name__} learns the whole team at once")
+
     # -- an AGV's decision ------------------------------------------------------------------------------------------
     def candidate(self, agv: int, obs: TickObservation, free: np.ndarray | None = None) -> int:
         """The picker this AGV asks (-1: none): the nearest free one to its target (the reference's rule)."""
@@ -311,6 +318,13 @@ class CoordinationPolicy(ABC):
 
     @abstractmethod
     def brains(self, fleet: Fleet, owners, seed: int) -> Coordinator: ...
+
+    def fleet_brains(self, fleet: Fleet, seed: int) -> Coordinator | None:
+        """Brains owning every robot of ``fleet`` whose :meth:`Coordinator.learn_for` updates each robot from its
+        own view, exactly as one brain per robot would: the lab then runs a fleet of robots with views of their
+        own (late or lost broadcasts, a network profile) in one brain, vectorised across robots, instead of one
+        brain per robot. None (the default): the lab builds one brain per robot."""
+        return None
 
     def describe(self) -> dict:
         return {"name": self.name, **self.options()}

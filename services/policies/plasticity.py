@@ -95,12 +95,17 @@ class ReferenceState:
     theta_bcm: np.ndarray = field(init=False)
     j_prev: np.ndarray = field(init=False)
     h: np.ndarray = field(init=False)
-    dhat: float = field(init=False)
-    t: int = field(init=False)
+    # per replica: the delivery average d̂, the update count t and the last update's η. A replica that missed a
+    # view (its robot's broadcast was lost) has taken fewer updates than the others, so these differ between
+    # replicas once robots hold views of their own
+    dhat: np.ndarray = field(init=False)
+    t: np.ndarray = field(init=False)
+    eta: np.ndarray = field(init=False)
     # last update's bookkeeping, for metrics
-    eta: float = field(init=False, default=0.0)
     formed: np.ndarray = field(init=False)
     pruned: np.ndarray = field(init=False)
+
+    _ARRAYS = ("W", "A", "age", "theta_bcm", "j_prev", "h", "dhat", "t", "eta", "formed", "pruned")
 
     def __post_init__(self) -> None:
         shape = (self.replicas, self.n, self.n)
@@ -110,18 +115,65 @@ class ReferenceState:
         self.theta_bcm = np.zeros(shape)
         self.j_prev = np.zeros(shape)
         self.h = np.full((self.replicas, self.n), self.params.rho_target)
-        self.dhat = self.d_exp
-        self.t = 0
+        self.dhat = np.full(self.replicas, float(self.d_exp))
+        self.t = np.zeros(self.replicas, dtype=np.int64)
+        self.eta = np.zeros(self.replicas)
         self.formed = np.zeros(self.replicas, dtype=int)
         self.pruned = np.zeros(self.replicas, dtype=int)
+        self._setup()
+
+    def _setup(self) -> None:
         self._eye = np.eye(self.n, dtype=bool)
         self._offdiag = ~self._eye
 
-    def reset_links(self) -> None:
-        """MORPH-reset: clear W, A, θ_bcm, age and J_prev, h back to ρ_target; keep d̂ and t."""
+    def _take(self, rows: np.ndarray) -> ReferenceState:
+        """The replicas ``rows`` as a state of their own (copies), to be stepped and put back with :meth:`_put`."""
+        part = object.__new__(ReferenceState)
+        part.params, part.n, part.replicas, part.d_exp = self.params, self.n, len(rows), self.d_exp
+        for name in self._ARRAYS:
+            setattr(part, name, getattr(self, name)[rows])
+        part._setup()
+        return part
+
+    def _put(self, rows: np.ndarray, part: ReferenceState) -> None:
+        for name in self._ARRAYS:
+            getattr(self, name)[rows] = getattr(part, name)
+
+    def _some(self, rows) -> np.ndarray | None:
+        """``rows`` as an index array, or None when they are every replica (in order): the whole state is stepped."""
+        if rows is None:
+            return None
+        rows = np.asarray(rows, dtype=int)
+        if len(rows) == self.replicas and (rows == np.arange(self.replicas)).all():
+            return None
+        return rows
+
+    def reset_links(self, rows=None) -> None:
+        """MORPH-reset of the replicas ``rows`` (default all): clear W, A, θ_bcm, age and J_prev, h back to
+        ρ_target; keep d̂ and t."""
+        where = slice(None) if (rows := self._some(rows)) is None else rows
         for arr in (self.W, self.A, self.age, self.theta_bcm, self.j_prev):
-            arr[...] = 0.0
-        self.h[...] = self.params.rho_target
+            arr[where] = 0.0
+        self.h[where] = self.params.rho_target
+
+    def _neuromodulation(self, delivery: int):
+        """Advance d̂ and η of every replica; returns (α_eff, θ_adj): floats when every replica has the same d̂ and t
+        (always so for one replica, or replicas fed the same views), else per replica ((B, 1, 1) and (B,))."""
+        p, t, dhat = self.params, self.t, self.dhat
+        if self.replicas == 1 or ((t == t[0]).all() and (dhat == dhat[0]).all()):
+            d, eta, alpha_eff, theta_adj = neuromodulation(p, float(dhat[0]), delivery, self.d_exp, int(t[0]))
+            self.dhat[:] = d
+            self.eta[:] = eta
+            return alpha_eff, theta_adj
+        alpha = np.empty(self.replicas)
+        theta = np.empty(self.replicas)
+        done: dict[tuple[int, float], tuple] = {}  # replicas with the same (t, d̂) take the same values
+        for r, key in enumerate(zip(t.tolist(), dhat.tolist())):
+            out = done.get(key)
+            if out is None:
+                out = done[key] = neuromodulation(p, key[1], delivery, self.d_exp, key[0])
+            self.dhat[r], self.eta[r], alpha[r], theta[r] = out
+        return alpha[:, None, None], theta
 
     def step(
         self,
@@ -129,17 +181,36 @@ class ReferenceState:
         jaccard: np.ndarray,
         delivery: int,
         pred: np.ndarray | None,
+        rows=None,
     ) -> None:
-        """One ``MORPH.step`` of the reference code applied to every replica.
+        """One ``MORPH.step`` of the reference code applied to the replicas ``rows`` (default every one).
 
         positions: (n, 2) normalised (x/cols, y/rows); jaccard: (n, n) co-assignment of this step;
         delivery: deliveries in this step; pred: the predictive hint or None. Only the structural update reads
         ``positions`` and ``pred``: on the other steps (:meth:`structural_due` false) they may be None.
+        Each replica's arithmetic is the same whether it steps alone or with others.
         """
+        if (rows := self._some(rows)) is not None:
+            if 2 * len(rows) <= self.replicas:
+                part = self._take(rows)
+                part.step(positions, jaccard, delivery, pred)
+                self._put(rows, part)
+            else:  # most replicas: step them all in place and put the few others back as they were
+                stepped = np.zeros(self.replicas, dtype=bool)
+                stepped[rows] = True
+                others = np.flatnonzero(~stepped)
+                kept = self._take(others)
+                self._step(positions, jaccard, delivery, pred, stepped)
+                self._put(others, kept)
+            return
+        self._step(positions, jaccard, delivery, pred, None)
+
+    def _step(self, positions, jaccard, delivery, pred, stepped: np.ndarray | None) -> None:
+        """:meth:`step` of every replica; the structural update only of those ``stepped`` (a mask; None: all), the
+        others being put back afterwards."""
         p = self.params
         self.t += 1
-        self.dhat, eta, alpha_eff, theta_adj = neuromodulation(p, self.dhat, delivery, self.d_exp, self.t)
-        self.eta = eta
+        alpha_eff, theta_adj = self._neuromodulation(delivery)
         W, theta, A = self.W, self.theta_bcm, self.A
         # Element for element the reference's arithmetic, in the same order; fewer calls and no temporaries, because
         # each agent process runs this on a small (n, n) array every tick, where the per-call overhead is the cost.
@@ -185,20 +256,29 @@ class ReferenceState:
 
         self.formed[:] = 0
         self.pruned[:] = 0
-        if self.t % p.k == 0:
+        due = self.t % p.k == 0
+        if stepped is not None:
+            due &= stepped
+        if due.all():
             self._structural(positions, pred, theta_adj)
+        elif due.any():  # replicas that missed views run their structural steps at other ticks
+            self._structural(positions, pred, theta_adj, due)
 
         # age + 1 on links, 0 elsewhere (the reference's np.where, in place: age ≥ 0, so no −0.0 appears)
         age = self.age
         age += 1.0
         age *= A > 0
 
-    def structural_due(self) -> bool:
-        """Whether the next :meth:`step` runs the structural update (every k-th step), the only reader of the
-        positions and the hint: an agent builds them only for that step."""
-        return (self.t + 1) % self.params.k == 0
+    def structural_due(self, rows=None) -> bool:
+        """Whether the next :meth:`step` of the replicas ``rows`` (default all) runs the structural update of one of
+        them (every k-th step), the only reader of the positions and the hint: an agent builds them only then."""
+        t = self.t if (rows := self._some(rows)) is None else self.t[rows]
+        return bool(((t + 1) % self.params.k == 0).any())
 
-    def _structural(self, positions: np.ndarray | None, pred: np.ndarray | None, theta_adj: float) -> None:
+    def _structural(self, positions: np.ndarray | None, pred: np.ndarray | None, theta_adj,
+                    due: np.ndarray | None = None) -> None:
+        """Prune and form in every replica, or in those ``due`` (a mask); ``theta_adj`` is one threshold or one per
+        replica."""
         p = self.params
         n = self.n
         if positions is None:
@@ -209,20 +289,27 @@ class ReferenceState:
             np.fill_diagonal(mi, 0.0)
 
         prune = (self.A > 0) & (self.W < p.theta_prune) & (self.age > p.grace)
+        if due is not None:
+            prune &= due[:, None, None]
         if prune.any():  # rare: most structural steps prune nothing (self.pruned is 0 already)
             self.pruned[:] = prune.sum(axis=(1, 2)) // 2
             for arr in (self.A, self.W, self.theta_bcm, self.age):
                 arr[prune] = 0.0
 
-        gain = self.h[:, :, None] + self.h[:, None, :]
+        # the replicas that form links now: every one, or those due (the score of the others is never read)
+        sel = np.arange(self.replicas) if due is None else np.flatnonzero(due)
+        h = self.h if due is None else self.h[sel]
+        gain = h[:, :, None] + h[:, None, :]
         score = mi[None, :, :] * (1.0 + gain)
-        score[(self.A != 0) | self._eye] = -1.0
+        score[((self.A if due is None else self.A[sel]) != 0) | self._eye] = -1.0
         if self.replicas == 1:
-            self._form_one(score[0], p.max_new(n), theta_adj)
+            self._form_one(score[0], p.max_new(n), float(np.reshape(theta_adj, -1)[0]))
             return
-        flat = score.reshape(self.replicas, n * n)
-        rows = np.arange(self.replicas)
-        active = np.ones(self.replicas, dtype=bool)
+        if due is not None and not np.isscalar(theta_adj):
+            theta_adj = theta_adj[sel]
+        flat = score.reshape(len(sel), n * n)
+        rows = np.arange(len(sel))
+        active = np.ones(len(sel), dtype=bool)
         for _ in range(p.max_new(n)):
             idx = flat.argmax(axis=1)
             ok = active & (flat[rows, idx] >= theta_adj)
@@ -231,14 +318,15 @@ class ReferenceState:
                 break
             b = rows[ok]
             i, j = np.divmod(idx[ok], n)
-            self.A[b, i, j] = 1.0
-            self.A[b, j, i] = 1.0
-            self.age[b, i, j] = 0.0
-            self.age[b, j, i] = 0.0
             for x in (i, j):  # each agent gains at most one new link per structural step
                 score[b, x, :] = -1.0
                 score[b, :, x] = -1.0
-            self.formed[b] += 1
+            r = sel[b]
+            self.A[r, i, j] = 1.0
+            self.A[r, j, i] = 1.0
+            self.age[r, i, j] = 0.0
+            self.age[r, j, i] = 0.0
+            self.formed[r] += 1
 
     def _form_one(self, score: np.ndarray, max_new: int, theta_adj: float) -> None:
         """The greedy formation above for a single replica (an agent process): the same picks with scalar indices."""
