@@ -14,7 +14,8 @@ Everything of a run lives under ``morph/<run>/``::
     agent/<id>/state              AgentState      agent -> monitor
     metrics/<name>                MetricSample    monitor -> anyone
     state/**                      (queryable)     monitor: latest values for late joiners
-    ctl/faults                    FaultCommand    operator -> everyone (put) / fault list (query)
+    ctl/faults                    FaultCommand    operator -> everyone (put)
+    ctl/faults/<identity>         (queryable)     each process: a FaultCommand query, its FaultReply under its own key
     ctl/stop                      Stop            operator/supervisor -> everyone
     events/<source>               Event           anyone -> monitor
     registry                      (queryable)     sim: RegistrationRequest -> RegistrationReply
@@ -315,6 +316,17 @@ class RunKeys:
     @cached_property
     def faults(self) -> str:
         return self._k("ctl", "faults")
+
+    def fault_answers(self, identity: str) -> str:
+        """Where the process ``identity`` (its bus identity: sim, monitor, supervisor, agent-<id>) takes fault
+        queries and answers them. Access control lets only that process declare and reply there, so the key of an
+        answer says who gave it (an answer's own ``source`` field is only what its author claims)."""
+        return self._k("ctl", "faults", check_chunk(identity, "fault answer identity"))
+
+    @cached_property
+    def fault_queries(self) -> str:
+        """What ``morph-sim faults`` queries: every process's :meth:`fault_answers` key."""
+        return self._k("ctl", "faults", "*")
 
     @cached_property
     def stop(self) -> str:

@@ -44,6 +44,8 @@ PASSWORDS_FILE = "passwords.txt"
 WHERE_FILE = "where"
 OPERATOR = "operator"
 MONITOR = "monitor"
+#: the bus identity of `morph-sim up`'s supervisor (it connects with the operator's credentials)
+SUPERVISOR = "supervisor"
 
 # The embedded endpoint runs Zenoh's lowlatency transport, which cannot fragment: one message that does not fit a
 # link's batch closes that link. The endpoint reassembles a large message from a client that fragments and then
@@ -85,8 +87,6 @@ def access_control(run_id: str, n_agents: int) -> dict:
          "key_exprs": [f"{run}/**"]},
         {"id": "ask", "flows": ["ingress"], "permission": "allow", "messages": ["query"],
          "key_exprs": [f"{run}/registry", f"{run}/registry/policy", f"{run}/state/**"]},
-        {"id": "answer-fault-queries", "flows": ["ingress"], "permission": "allow",
-         "messages": ["declare_queryable", "reply"], "key_exprs": [f"{run}/ctl/faults"]},
         {"id": "monitor-publish", "flows": ["ingress"], "permission": "allow", "messages": pub,
          "key_exprs": [f"{run}/metrics/**", f"{run}/alive/{MONITOR}", f"{run}/events/{MONITOR}"]},
         {"id": "monitor-serve", "flows": ["ingress"], "permission": "allow",
@@ -98,11 +98,15 @@ def access_control(run_id: str, n_agents: int) -> dict:
     ]
     policies = [
         {"id": "everyone", "rules": ["observe", "receive", "ask"], "subjects": everyone},
-        # up's supervisor (operator credentials) carries out crash faults and answers for them
-        {"id": "fault-answers", "rules": ["answer-fault-queries"], "subjects": [OPERATOR, MONITOR, *agents]},
-        {"id": "monitor", "rules": ["monitor-publish", "monitor-serve"], "subjects": [MONITOR]},
-        {"id": "operator", "rules": ["operator-control", "operator-query"], "subjects": [OPERATOR]},
+        {"id": "monitor", "rules": ["monitor-publish", "monitor-serve", "monitor-fault-answers"], "subjects": [MONITOR]},
+        {"id": "operator", "rules": ["operator-control", "operator-query", "operator-fault-answers"],
+         "subjects": [OPERATOR]},
     ]
+    # each process answers fault queries under its own key only (schemas/keys.py fault_answers), so an answer's key
+    # says who gave it; up's supervisor (operator credentials) carries out crash faults and answers for them
+    for rule, identity in (("monitor-fault-answers", MONITOR), ("operator-fault-answers", SUPERVISOR)):
+        rules.append({"id": rule, "flows": ["ingress"], "permission": "allow", "messages": ["declare_queryable", "reply"],
+                      "key_exprs": [f"{run}/ctl/faults/{identity}"]})
     for agent, user in enumerate(agents):
         rules.append({"id": f"{user}-publish", "flows": ["ingress"], "permission": "allow", "messages": pub,
                       "key_exprs": [f"{run}/agent/{agent}/**", f"{run}/alive/{agent}", f"{run}/events/{agent}"]})
@@ -112,8 +116,10 @@ def access_control(run_id: str, n_agents: int) -> dict:
                       "messages": ["declare_subscriber"], "key_exprs": [onboard]})
         rules.append({"id": f"{user}-sensed", "flows": ["egress"], "permission": "allow", "messages": ["put"],
                       "key_exprs": [onboard]})
-        policies.append({"id": user, "rules": [f"{user}-publish", f"{user}-sense", f"{user}-sensed"],
-                         "subjects": [user]})
+        rules.append({"id": f"{user}-fault-answers", "flows": ["ingress"], "permission": "allow",
+                      "messages": ["declare_queryable", "reply"], "key_exprs": [f"{run}/ctl/faults/{user}"]})
+        policies.append({"id": user, "rules": [f"{user}-publish", f"{user}-sense", f"{user}-sensed",
+                                               f"{user}-fault-answers"], "subjects": [user]})
     return {
         "enabled": True,
         "default_permission": "deny",

@@ -48,10 +48,10 @@ async def test_query_reaches_every_process_and_events_carry_sim_time() -> None:
     await operator.subscribe(K.events, lambda s: events.append(s.decode(Event)))
     vt.advance(3.0)
     spec = FaultSpec(id="cut", partition=Partition(from_agents=[1], to_agents=["sim"], direction="to"), duration=2.0)
-    replies = [r.decode(FaultReply) for r in await operator.get(K.faults, payload=FaultCommand(op="set", spec=spec))]
+    replies = [r.decode(FaultReply) for r in await operator.get(K.fault_queries, payload=FaultCommand(op="set", spec=spec))]
     assert sorted(r.source for r in replies) == ["1", "2", "sim"] and all(r.ok for r in replies)
     assert all([s.id for s in layer.active()] == ["cut"] for _, layer, _ in procs.values())
-    listed = await operator.get(K.faults)  # a bare query lists
+    listed = await operator.get(K.fault_queries)  # a bare query lists
     assert all([s.id for s in r.decode(FaultReply).active] == ["cut"] for r in listed)
     for b in (3.5, 4.0, 4.5, 5.0):
         vt.advance(b)
@@ -69,15 +69,15 @@ async def test_reset_always_heals_everything_even_under_a_total_partition() -> N
     procs = await start_processes(net, vt)
     operator = net.session("operator")
     cmd = FaultCommand(op="set", spec=FaultSpec(id="dark", loss=Loss(percent=100)))
-    await operator.get(K.faults, payload=cmd)
-    await operator.get(K.faults, payload=FaultCommand(op="set", spec=FaultSpec(id="slow", latency=Latency(delay=9))))
+    await operator.get(K.fault_queries, payload=cmd)
+    await operator.get(K.fault_queries, payload=FaultCommand(op="set", spec=FaultSpec(id="slow", latency=Latency(delay=9))))
     await operator.publish(K.faults, FaultCommand(op="reset"))  # a put: control traffic is never faulted
     await drain()
     assert all(layer.active() == [] for _, layer, _ in procs.values())
-    bad = [r.decode(FaultReply) for r in await operator.get(K.faults, payload=FaultCommand(op="reset",
+    bad = [r.decode(FaultReply) for r in await operator.get(K.fault_queries, payload=FaultCommand(op="reset",
                                                                                           fault_id="nope"))]
     assert all(not r.ok and "nope" in r.error for r in bad)
-    junk = [r.decode(FaultReply) for r in await operator.get(K.faults, payload=b"\x93garbage")]
+    junk = [r.decode(FaultReply) for r in await operator.get(K.fault_queries, payload=b"\x93garbage")]
     assert all(not r.ok and r.error.startswith("bad fault command") for r in junk)
     for bus, _, _ in procs.values():
         await bus.close()
@@ -219,7 +219,7 @@ async def test_cli_over_zenoh_sets_lists_and_resets(capsys) -> None:
             layers[bus.identity] = layer = install(bus, FaultLayer(RUN, vtime=vt))
             await FaultController(bus, RUN, [layer], clock=vt.now, events=bus is sim).start()
         for _ in range(100):  # declarations propagate: wait until both controllers answer
-            if len(await sim.get(K.faults, timeout=0.5)) == 2:
+            if len(await sim.get(K.fault_queries, timeout=0.5)) == 2:
                 break
             await asyncio.sleep(0.05)
         code = await asyncio.to_thread(faults_cmd.run, cli_args(
@@ -259,3 +259,17 @@ def test_reset_by_id_succeeds_when_the_fault_is_gone_everywhere() -> None:
     assert [r.ok for r in unserved] == [True, False] and "nobody would carry the crash out" in unserved[-1].error
     alone = faults_cmd.verdict(crash, [], "r", "e")
     assert len(alone) == 1 and alone[0].error.startswith("crash: no supervisor of run 'r' answered on e")
+
+
+async def test_an_answer_counts_only_under_the_key_of_the_process_it_names(capsys) -> None:
+    """A robot answering fault queries under its own key but naming the sim as its source (on a secured endpoint it
+    can answer nowhere else) is left out of what `morph-sim faults` prints, and a line says so."""
+    net, vt = LocalNetwork(), VirtualTime(dt=1.0)
+    await start_processes(net, vt, names=("sim",))
+    robot = net.session("agent-3")
+    forged = FaultReply(ok=False, error="the sim is down", active=[], source="sim")
+    await robot.declare_queryable(K.fault_answers("agent-3"), lambda q: q.reply(K.fault_answers("agent-3"), forged))
+    replies = await faults_cmd.send("unused", RUN, FaultCommand(op="list"), timeout=0.2, bus=net.session("operator"))
+    assert [(r.source, r.ok) for r in replies] == [("sim", True)]
+    assert capsys.readouterr().err.strip() == ("morph-sim faults: ignored 1 answer(s) not given under the key of the "
+                                               f"process they name ({K.fault_answers('agent-3')})")

@@ -56,7 +56,7 @@ async def lockstep(open_bus, *, agents: int = 4, ticks: int = 40, seed: int = 5,
     await asyncio.sleep(settle)
     wall = time.monotonic() + 10
     while True:  # until every process's controller is discovered (re-setting the same id is idempotent)
-        replies = await sim_bus.get(K.faults, payload=FaultCommand(op="set", spec=SPEC))
+        replies = await sim_bus.get(K.fault_queries, payload=FaultCommand(op="set", spec=SPEC))
         if len(replies) == agents + 1 or time.monotonic() > wall:
             break
         await asyncio.sleep(0.1)

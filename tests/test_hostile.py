@@ -96,7 +96,7 @@ def _attack(session, keys: RunKeys, config: RunConfig, ticks: dict[int, bytes], 
         put("forged commit", keys.commit(5), encode(Commit(t=1, picker=5, agv=0, seq=1)), sender="agent-5")
         put("forged reply", keys.reply(6, 0), encode(HelpReply(t=1, picker=6, agv=0, accepted=True, seq=1)),
             sender="agent-6")
-        replies = list(session.get(keys.faults, payload=encode(FaultCommand(op="set", spec={
+        replies = list(session.get(keys.fault_queries, payload=encode(FaultCommand(op="set", spec={
             "id": "hostile-q", "loss": {"percent": 100}})), timeout=1.0))
         assert [r for r in replies if r.ok is not None] == [], "a robot's credentials set faults"
         sent["ctl/faults query"] = 1

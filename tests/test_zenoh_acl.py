@@ -155,23 +155,32 @@ def test_only_the_operator_changes_faults(router, observer):
     assert [p for k, p in seen if k == KEYS.faults] == [b"fault-by-operator"]
 
 
-def test_an_agent_answers_fault_queries_but_cannot_serve_the_registry(router):
-    """Every agent runs a fault controller on ctl/faults: the operator's `faults list` must reach it."""
+def test_an_agent_answers_fault_queries_under_its_own_key_only_and_cannot_serve_the_registry(router):
+    """Every agent runs a fault controller: the operator's `faults list` must reach it, under the agent's own key.
+    Under the sim's key (or the bare ctl/faults) it can neither take the query nor answer it: an answer's key says
+    whose it is."""
     agent = _open(router, "agent-0")
     operator = _open(router, "operator")
+    own, sims = KEYS.fault_answers("agent-0"), KEYS.fault_answers("sim")
     try:
-        agent.declare_queryable(KEYS.faults, lambda q: q.reply(KEYS.faults, b"agent-0 controller"))
+        agent.declare_queryable(sims, lambda q: q.reply(sims, b"forged sim answer"))  # refused first: had it been
+        agent.declare_queryable(KEYS.faults, lambda q: q.reply(KEYS.faults, b"forged bare answer"))  # allowed, it
+        agent.declare_queryable(own, lambda q: q.reply(own, b"agent-0 controller"))  # would be there before this
         agent.declare_queryable(KEYS.registry, lambda q: q.reply(KEYS.registry, b"fake registry"))
         deadline = time.monotonic() + 10.0
-        answers: list[bytes] = []
+        answers: list[tuple[str, bytes]] = []
         while not answers:  # declarations propagate asynchronously
             assert time.monotonic() < deadline, "the agent's fault controller never answered"
-            answers = [r.ok.payload.to_bytes() for r in operator.get(KEYS.faults, timeout=1.0) if r.ok is not None]
+            answers = [(str(r.ok.key_expr), r.ok.payload.to_bytes()) for r in operator.get(KEYS.fault_queries,
+                                                                                          timeout=1.0)
+                       if r.ok is not None]
+        bare = [r.ok.payload.to_bytes() for r in operator.get(KEYS.faults, timeout=1.0) if r.ok is not None]
         registry = [r.ok.payload.to_bytes() for r in operator.get(KEYS.registry, timeout=1.0) if r.ok is not None]
     finally:
         agent.close()
         operator.close()
-    assert answers == [b"agent-0 controller"]
+    assert answers == [(own, b"agent-0 controller")]
+    assert bare == []
     assert registry == []
 
 

@@ -126,7 +126,10 @@ def build_command(args: argparse.Namespace):
 
 
 async def send(endpoint: str, run: str, command, timeout: float = 2.0, bus=None, args=None) -> list:
-    """Send ``command`` as a query on ``morph/<run>/ctl/faults``; the FaultReply of every process that answered."""
+    """Send ``command`` as a query to every process's ``morph/<run>/ctl/faults/<identity>``; the FaultReply of every
+    process that answered. An answer counts only under the key of the process it names as its ``source``: on a
+    secured endpoint only that process may answer there, so a robot cannot speak for the sim. Others (and error
+    replies, which carry no key) are left out, and a line on stderr says how many."""
     from schemas.keys import RunKeys
     from schemas.messages import FaultReply
 
@@ -136,10 +139,21 @@ async def send(endpoint: str, run: str, command, timeout: float = 2.0, bus=None,
 
         bus = await open_operator_bus(f"faults-cli-{int(time.time() * 1000) % 10**9}", endpoint, args, run)
     try:
-        replies = await bus.get(RunKeys(run).faults, payload=command, timeout=timeout)
-        out = []
+        keys = RunKeys(run)
+        replies = await bus.get(keys.fault_queries, payload=command, timeout=timeout)
+        out, ignored = [], []
         for r in replies:
-            out.append(r.decode(FaultReply) if r.ok else FaultReply(ok=False, error=(r.error or b"").decode()))
+            try:
+                reply = r.decode(FaultReply) if r.ok else None
+            except ValueError:
+                reply = None
+            if reply is None or reply.source is None or r.key != keys.fault_answers(reply.source):
+                ignored.append(r.key or "(an error reply)")
+                continue
+            out.append(reply)
+        if ignored:
+            print(f"morph-sim faults: ignored {len(ignored)} answer(s) not given under the key of the process they "
+                  f"name ({', '.join(sorted(set(ignored))[:3])})", file=sys.stderr)
         return sorted(out, key=lambda r: r.source or "")
     finally:
         if own:
@@ -159,7 +173,7 @@ def merge(replies: list) -> list[dict]:
     return list(groups.values())
 
 
-SUPERVISOR = "supervisor"  # the bus identity of `morph-sim up`'s supervisor, which carries out crash faults
+from services.credentials import SUPERVISOR  # noqa: E402  (the bus identity of up's supervisor: it carries out crashes)
 
 
 def verdict(command, replies: list, run: str, endpoint: str) -> list:

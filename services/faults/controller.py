@@ -1,8 +1,9 @@
 """The ``ctl/faults`` controller (docs/faults.md): every process mounts one over its fault layers.
 
-* a queryable on ``morph/<run>/ctl/faults``: ``morph-sim faults set|list|reset`` sends a :class:`FaultCommand` as the
-  query payload; each process applies it to its own layers (each keeps its own seeded per-link streams) and replies
-  a :class:`FaultReply` naming itself, so the operator sees every process's answer;
+* a queryable on ``morph/<run>/ctl/faults/<identity>``: ``morph-sim faults set|list|reset`` sends a
+  :class:`FaultCommand` as the query payload to ``ctl/faults/*``; each process applies it to its own layers (each
+  keeps its own seeded per-link streams) and replies a :class:`FaultReply` under its own key, so the operator sees
+  every process's answer and knows whose it is (only that process may answer there);
 * a subscriber on the same key: a put reaches every process the same way (no reply);
 * a schedule (:mod:`.schedule`) applied locally at sim-time boundaries through :meth:`FaultController.advance`.
 
@@ -88,7 +89,7 @@ class FaultController:
             first.on_change = changed
 
     async def start(self) -> None:
-        await self.bus.declare_queryable(self.keys.faults, self._on_query)
+        await self.bus.declare_queryable(self.keys.fault_answers(self.bus.identity), self._on_query)
         await self.bus.subscribe(self.keys.faults, self._on_put)
 
     # -- commands ------------------------------------------------------------------------------------------------------
@@ -275,7 +276,7 @@ class FaultController:
         reply = (FaultReply(ok=False, error=command, active=self._active(), source=self.bus.identity)
                  if isinstance(command, str) else self.handle(command))
         if reply is not None:  # no verdict from a process the command does not concern
-            query.reply(self.keys.faults, reply)
+            query.reply(self.keys.fault_answers(self.bus.identity), reply)
 
     def _on_put(self, sample: Sample) -> None:
         command = self._decode(sample.payload)

@@ -13,6 +13,7 @@ import signal
 import time
 from collections.abc import Callable
 
+from services.credentials import SUPERVISOR
 from services.runconfig import RunConfig
 from services.supervisor.children import (
     RECORD_FAILED,
@@ -205,7 +206,7 @@ class Supervisor:
         from services.process import open_bus
 
         operator = None if self.credentials is None else str(self.credentials.operator)
-        return await open_bus("supervisor", connect=self.endpoint, config_file=operator)
+        return await open_bus(SUPERVISOR, connect=self.endpoint, config_file=operator)
 
     async def _watch(self, bus) -> int:
         """The run from the processes' start to its end: the observer feeds the progress from the bus, the crash
