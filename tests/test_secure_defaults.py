@@ -20,11 +20,12 @@ from schemas.keys import RunKeys
 from services.bus.zenoh_bus import endpoint, free_port, zenoh_config
 from services.credentials import RunCredentials
 from services.protocol.tickorder import TickOrder
+from services.supervisor.graph import role_of
 
 # isort: split
 import zenoh  # noqa: E402  (after zenoh_bus set the runtime environment)
 
-from _procs import kill_tree
+from _procs import descendants, kill_tree
 
 CLI = [sys.executable, "-m", "morph_sim.cli"]
 WAIT = 180  # seconds: a bound on each command and wait, for a hang (a loaded machine is slow, not stuck)
@@ -122,10 +123,52 @@ def test_credentials_are_owner_only_and_the_endpoint_enforces_them(tmp_path):
         host.close()
 
 
+SILENT_SOCKETS = 150  # connections that never say a word: each holds one of the endpoint's pending handshakes
+
+
+def _agent_pids(up, agent: int) -> list[int]:
+    import psutil
+
+    out = []
+    for pid in descendants(up.pid):
+        try:
+            cmd = psutil.Process(pid).cmdline()
+        except psutil.NoSuchProcess:
+            continue
+        if role_of(cmd) == "agent" and cmd[cmd.index("--id") + 1] == str(agent):
+            out.append(pid)
+    return out
+
+
 def test_the_operator_stops_a_secure_run_and_nobody_else_can(endless_run):
+    """...while 150 silent sockets are held open to the endpoint, which also lists faults and restarts a killed
+    agent as it would without them."""
     up = endless_run()  # secure (the default), until stopped, paced (tests/conftest.py)
     ep, run_id, record = up.endpoint, up.run_id, up.record
     up.wait_for_rows(3)
+    silent = [socket.create_connection(("127.0.0.1", up.port)) for _ in range(SILENT_SOCKETS)]
+    try:
+        _operate_among_silent_sockets(up, ep, run_id, record)
+    finally:
+        for s in silent:
+            s.close()
+
+
+def _operate_among_silent_sockets(up, ep, run_id, record) -> None:
+    # a killed robot is restarted and its new process opens a session: it rejoins the run
+    victim = _agent_pids(up, 1)
+    assert len(victim) == 1
+    os.kill(victim[0], 9)
+    up.wait_until(lambda: [p for p in _agent_pids(up, 1) if p != victim[0]] != [] and up.rows() > 0, 60,
+                  "agent 1 restarted")
+    rows = up.rows()
+    up.wait_until(lambda: up.rows() >= rows + 5, WAIT, "ticks after the restart")
+    # the operator's fault list gets every process's answer, well within its connect timeout
+    started = time.monotonic()
+    listed = subprocess.run([*CLI, "faults", "list", "--run", run_id, "--endpoint", ep, "--output-dir",
+                             str(record.parent)], capture_output=True, text=True, timeout=WAIT)
+    assert listed.returncode == 0, listed.stdout + listed.stderr
+    assert time.monotonic() - started < 8.0, "the fault list waited for a handshake slot"
     # with a robot's credentials the stop is refused by the endpoint (the command sends it, nobody hears it);
     # without credentials there is no session at all (both at once: neither may end the run)
     env = {k: v for k, v in os.environ.items() if k != "ZENOH_CONFIG"}

@@ -160,7 +160,32 @@ def zenoh_config(*, listen: str | Iterable[str] | None = None, connect: str | It
 
         cfg.insert_json5("low_pass_filter", json.dumps(size_limits()))
         cfg.insert_json5("transport/link/rx/max_message_size", json.dumps(2 * MAX_MESSAGE_BYTES))
+        # Connections that never finish their handshake (silent or half-open sockets) each hold a pending slot until
+        # the accept timeout; with Zenoh's defaults (100 slots, 10 s) 150 silent sockets kept every new session —
+        # the operator's stop, a restarted agent — waiting 10 s. More slots, freed sooner: a handshake takes
+        # milliseconds, so 5 s leaves a slow or busy client room, and starving the endpoint would take more than
+        # 200 new silent sockets a second.
+        cfg.insert_json5("transport/unicast/accept_timeout", json.dumps(ACCEPT_TIMEOUT_MS))
+        cfg.insert_json5("transport/unicast/accept_pending", json.dumps(accept_pending()))
     return cfg
+
+
+ACCEPT_TIMEOUT_MS = 5000
+ACCEPT_PENDING = 1024
+
+
+def accept_pending() -> int:
+    """Handshakes the endpoint keeps pending: :data:`ACCEPT_PENDING`, or fewer where the process may open few files
+    (each pending socket is a descriptor, and the endpoint's own sessions and records need some)."""
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    except (ImportError, OSError, ValueError):
+        return ACCEPT_PENDING
+    if soft == resource.RLIM_INFINITY:
+        return ACCEPT_PENDING
+    return max(16, min(ACCEPT_PENDING, soft // 2))
 
 
 # Sessions still open at interpreter shutdown are closed before Python joins non-daemon threads.
