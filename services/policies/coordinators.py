@@ -536,12 +536,10 @@ class MorphPolicy(CoordinationPolicy):
         return MorphBrains(fleet, owners, seed, preset.rules, self.params, self.share_replicas)
 
     def fleet_brains(self, fleet, seed):
-        # the reference preset: a replica per robot in one array, each stepped from its robot's view. The paper
-        # preset's mutual-information window is one per brain (a team brain keeps one for the fleet), so its
-        # robots with views of their own keep a brain each
-        if load_preset(self.preset).rules != "reference":
-            return None
-        return MorphBrains(fleet, range(fleet.n), seed, "reference", self.params, share_replicas=False)
+        # a replica per robot in one array, each stepped from its robot's view: the reference preset's whole
+        # symmetric state, the paper preset's task history, update count, d̂, baseline and η beside its own row
+        preset = load_preset(self.preset)
+        return MorphBrains(fleet, range(fleet.n), seed, preset.rules, self.params, share_replicas=False)
 
     def describe(self):
         return {"name": self.name, "preset": self.preset, "ablation": self.ablation or "full"}
