@@ -130,18 +130,18 @@ def test_bench_brains_prints_both_ways_and_the_ratio_to_proximity(capsys):
     from morph_sim.cli import main
 
     code = main(["bench", "brains", "--scale", "tiny", "--steps", "40", "--seeds", "1,2", "--profiles", "congested",
-                 "--policies", "morph,proximity"])
+                 "--policies", "morph,morph_paper,proximity"])
     out = capsys.readouterr().out.splitlines()
     assert code == 0, out
     rows = [line.split() for line in out if line.startswith("congested")]
-    assert [r[1] for r in rows] == ["morph", "proximity"]
+    assert [r[1] for r in rows] == ["morph", "morph_paper", "proximity"]
     for r in rows:
         fleet_s, robot_s, speedup = float(r[2]), float(r[3]), float(r[4].rstrip("×"))
         # the table rounds seconds to 1 ms and the speed-up to 0.01
         assert fleet_s > 0 and robot_s > 0
         assert (robot_s - 5e-4) / (fleet_s + 5e-4) - 0.005 <= speedup <= (robot_s + 5e-4) / (fleet_s - 5e-4) + 0.005
         assert r[-1] == "yes"  # the same episode both ways
-    assert rows[1][5] == "1.00×"  # Proximity against itself
+    assert rows[2][5] == "1.00×"  # Proximity against itself
 
 
 def test_bench_brains_refuses_bad_seeds_in_one_line(capsys):
