@@ -426,6 +426,21 @@ def _columns(n: int, ticks: int) -> np.ndarray:
     return cols[: n * ticks]
 
 
+_DENSE_LABELS = 1 << 16  # task ids up to this are indexed by counting; larger ones by sorting
+
+
+def _distinct(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(values, return_inverse=True)`` with a flat inverse: the sorted distinct labels and each value's
+    index among them. Task ids are small non-negative integers, which a count sorts faster than np.unique does (the
+    task sets are rebuilt from the whole window every tick)."""
+    flat = values.reshape(-1)
+    if flat.size and 0 <= flat.min() and flat.max() <= _DENSE_LABELS:
+        used = np.bincount(flat) > 0
+        return np.flatnonzero(used), np.cumsum(used)[flat] - 1
+    labels, inv = np.unique(flat, return_inverse=True)
+    return labels, inv.reshape(-1)
+
+
 def coassignment_rates(histories: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """:func:`coassignment_rate` of each row b from a history of its own: histories (B, T, n), rows (B,) → (B, n).
 
@@ -542,9 +557,9 @@ class PaperState:
         if self.replicas == 1:
             f = int(self.filled[0])
             hist = self.history[0, -min(f, p.task_window):] if f else self.history[0, -1:]
-            labels, inv = np.unique(hist, return_inverse=True)
+            labels, inv = _distinct(hist)
             member = np.zeros((n, labels.size), dtype=bool)
-            member[_columns(n, hist.shape[0]), inv.reshape(-1)] = True
+            member[_columns(n, hist.shape[0]), inv] = True
             member[:, labels == 0] = False  # idle is not a task
             m = member.astype(float)
             inter = m[self.owners] @ m.T
@@ -555,9 +570,9 @@ class PaperState:
             # intersections and sizes are counts (sums of 0/1 products), so exact, the same numbers as alone
             hist = self._window(np.maximum(np.minimum(self.filled, p.task_window), 1), p.task_window)
             r, ticks = hist.shape[:2]
-            labels, inv = np.unique(hist, return_inverse=True)
+            labels, inv = _distinct(hist)
             member = np.zeros((r, n, labels.size), dtype=bool)
-            member[np.repeat(np.arange(r), ticks * n), _columns(n, r * ticks), inv.reshape(-1)] = True
+            member[np.repeat(np.arange(r), ticks * n), _columns(n, r * ticks), inv] = True
             member[:, :, labels == 0] = False
             m = member.astype(float)
             rows = np.arange(r)
