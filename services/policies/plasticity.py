@@ -571,12 +571,12 @@ class PaperState:
             hist = self._window(np.maximum(np.minimum(self.filled, p.task_window), 1), p.task_window)
             r, ticks = hist.shape[:2]
             labels, inv = _distinct(hist)
-            member = np.zeros((r, n, labels.size), dtype=bool)
-            member[np.repeat(np.arange(r), ticks * n), _columns(n, r * ticks), inv] = True
-            member[:, :, labels == 0] = False
-            m = member.astype(float)
+            u = labels.size
+            m = np.zeros((r, n, u))  # replica × agent × task: 1.0 where the agent held the task in the window
+            m.reshape(-1)[(np.repeat(np.arange(r) * n, ticks * n) + _columns(n, r * ticks)) * u + inv] = 1.0
+            m[:, :, labels == 0] = 0.0
             rows = np.arange(r)
-            inter = (m[rows, self.owners][:, None, :] @ m.transpose(0, 2, 1))[:, 0]
+            inter = (m @ m[rows, self.owners][:, :, None])[:, :, 0]
             size = m.sum(axis=2)
             union = size[rows, self.owners][:, None] + size - inter
         jac = np.where(union > 0, inter / np.maximum(union, 1.0), 0.0)
