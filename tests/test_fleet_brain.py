@@ -3,8 +3,9 @@
 Under a network profile or faults on the fleet broadcast each robot learns from the view it holds (late, or a lost one
 never). The lab steps such a fleet in one brain (``CoordinationPolicy.fleet_brains``: every robot's state in one
 array) where the policy has one; these tests hold it to the brain-per-robot path on every shipped policy, the
-reference preset's ablations, fleet faults (views lost and late, so the robots' update counts and structural steps
-fall out of step) and every network profile. The full product of policies × profiles runs with ``-m slow``.
+reference preset's ablations, the paper preset, fleet faults (views lost and late, so the robots' update counts and
+structural steps fall out of step) and every network profile. The full product of policies × profiles runs with
+``-m slow``.
 """
 
 from __future__ import annotations
@@ -16,7 +17,6 @@ from morph_sim.lab.network import fleet_faults
 from morph_sim.lab.runner import EpisodeSpec, run_episode
 from schemas.faults import FaultSpec, Latency, Loss
 from services.faults.network import profile_names
-from services.policies.interface import Fleet
 from services.policies.presets import ABLATIONS
 
 POLICIES = ("morph", "tsg", "proximity", "full", "full-broadcast", "constant", "none")
@@ -92,14 +92,26 @@ def test_the_robots_fall_out_of_step_so_the_test_above_means_something():
     assert len({t % 3 for t in seen["t"].tolist()}) > 1  # structural steps at different ticks
 
 
-def test_the_paper_preset_keeps_a_brain_per_robot_and_says_so():
-    """Its mutual-information window is one per brain, so robots with their own views keep their own brains."""
-    from services.policies.coordinators import MorphPolicy
+@pytest.mark.parametrize("views", ("faults",) + PROFILES)
+def test_the_paper_preset_learns_the_same_in_one_fleet_brain(views):
+    """The paper preset's fleet brain keeps a task history (with t, d̂, baseline, η) per robot beside its row; under
+    the fleet faults and each network profile it steps robots whose histories, fill and structural phases differ."""
+    where = {"faults": FLEET_FAULTS} if views == "faults" else {"network": views}
+    seen = {"filled": 1, "formed": 0}
 
-    assert MorphPolicy(preset="paper").fleet_brains(Fleet(4, 2, "tiny"), 0) is None
-    result = run_episode(EpisodeSpec(scale="tiny", condition="morph", preset="paper", seed=1, steps=40,
-                                     faults=FLEET_FAULTS))
-    assert result.summary["brains"] == "per-robot"
+    def hook(obs, brains):
+        seen["filled"] = max(seen["filled"], len(set(brains.state.filled.tolist())))  # windows filled unequally
+        seen["t"] = set(brains.state.t.tolist())
+        seen["formed"] += int(brains.state.formed.sum())
+
+    fields = {"scale": "small", "condition": "morph", "preset": "paper", "seed": 4, "steps": 100, **where}
+    fleet = run_episode(EpisodeSpec(fleet_brain=True, **fields), trace_hook=hook)
+    robots = run_episode(EpisodeSpec(fleet_brain=False, **fields))
+    assert fleet.summary["brains"] == "fleet" and robots.summary["brains"] == "per-robot"
+    _assert_same(fleet, robots)
+    assert seen["formed"] > 0 and fleet.summary["deliveries"] > 0
+    if views != "lan":  # on the LAN every view arrives within its tick: the robots stay in step
+        assert len(seen["t"]) > 1 and len({t % 3 for t in seen["t"]}) > 1 and seen["filled"] > 1
 
 
 def test_a_team_run_says_it_ran_one_team_brain():
@@ -118,18 +130,18 @@ def test_bench_brains_prints_both_ways_and_the_ratio_to_proximity(capsys):
     from morph_sim.cli import main
 
     code = main(["bench", "brains", "--scale", "tiny", "--steps", "40", "--seeds", "1,2", "--profiles", "congested",
-                 "--policies", "morph,proximity"])
+                 "--policies", "morph,morph_paper,proximity"])
     out = capsys.readouterr().out.splitlines()
     assert code == 0, out
     rows = [line.split() for line in out if line.startswith("congested")]
-    assert [r[1] for r in rows] == ["morph", "proximity"]
+    assert [r[1] for r in rows] == ["morph", "morph_paper", "proximity"]
     for r in rows:
         fleet_s, robot_s, speedup = float(r[2]), float(r[3]), float(r[4].rstrip("×"))
         # the table rounds seconds to 1 ms and the speed-up to 0.01
         assert fleet_s > 0 and robot_s > 0
         assert (robot_s - 5e-4) / (fleet_s + 5e-4) - 0.005 <= speedup <= (robot_s + 5e-4) / (fleet_s - 5e-4) + 0.005
         assert r[-1] == "yes"  # the same episode both ways
-    assert rows[1][5] == "1.00×"  # Proximity against itself
+    assert rows[2][5] == "1.00×"  # Proximity against itself
 
 
 def test_bench_brains_refuses_bad_seeds_in_one_line(capsys):

@@ -179,3 +179,53 @@ def test_owned_rows_do_not_depend_on_other_owners(paper):
         full.step(x)
         solo.step(x)
     assert np.array_equal(full.W[3], solo.W[0]) and np.array_equal(full.A[3], solo.A[0])
+
+
+@pytest.mark.parametrize("estimator", ["coassignment_rate", "nmi"])
+def test_paper_replicas_step_each_row_as_a_state_of_its_own(paper, estimator):
+    """A replica per row (a fleet whose robots take views of their own): stepping any subset of rows leaves each row,
+    its task history, update count, d̂, baseline and η bit for bit where a one-row state fed the same steps is."""
+    n = 7
+    params = paper.params.model_copy(update={"mi_estimator": estimator})
+    fleet = PaperState(params, n, np.arange(n), 0.07, replicas=n)
+    alone = [PaperState(params, n, np.array([i]), 0.07) for i in range(n)]
+    rng = np.random.default_rng(3)
+    for i, s in enumerate(alone):  # restored windows whose older ticks are not the row's: only the filled part counts
+        s.history[0] = fleet.history[i] = rng.integers(0, 5, size=(params.mi_window, n))
+        s.filled[0] = fleet.filled[i] = 3 * i
+    for tick in range(150):
+        task = rng.integers(0, 5, size=n) * (rng.random(n) < 0.7)
+        delivered = rng.random(n) < 0.15
+        loader = np.where(delivered, rng.integers(0, n, size=n), -1)
+        x = _paper_inputs(n, task, reward=rng.random(n) * 0.2, delivered=delivered, loader=loader,
+                          hint=(rng.random((n, n)) < 0.2).astype(float))
+        # every row, most rows, a few, one, none: the rows fall out of step (t, filled, structural phase)
+        rows = np.flatnonzero(rng.random(n) < (1.0, 0.8, 0.3, 0.1, 0.0)[tick % 5])
+        fleet.step(x, rows)
+        for i in rows:
+            alone[i].step(x)
+        if tick % 50 == 49:  # links of a few rows cleared
+            fleet.reset_links(rows[:2])
+            for i in rows[:2]:
+                alone[i].reset_links()
+    assert len(set(fleet.t.tolist())) > 1 and len(set((fleet.t % params.k).tolist())) > 1
+    assert fleet.A.sum() > 0
+    for i, s in enumerate(alone):
+        for name in ("W", "A", "age", "theta_bcm", "h", "formed", "pruned"):
+            np.testing.assert_array_equal(getattr(fleet, name)[i], getattr(s, name)[0], err_msg=name)
+        for name in ("history", "filled", "dhat", "baseline", "t", "eta"):
+            np.testing.assert_array_equal(getattr(fleet, name)[i], getattr(s, name)[0], err_msg=name)
+
+
+def test_paper_replicas_fed_the_same_steps_equal_one_shared_history(paper):
+    n = 6
+    shared = PaperState(paper.params, n, np.arange(n), 0.07)
+    split = PaperState(paper.params, n, np.arange(n), 0.07, replicas=n)
+    rng = np.random.default_rng(5)
+    for _ in range(60):
+        x = _paper_inputs(n, rng.integers(0, 4, size=n), reward=rng.random(n) * 0.1)
+        shared.step(x)
+        split.step(x)
+    for name in ("W", "A", "age", "theta_bcm", "h", "formed", "pruned"):
+        np.testing.assert_array_equal(getattr(shared, name), getattr(split, name), err_msg=name)
+    assert (split.t == shared.t[0]).all() and (split.history == shared.history[0]).all()

@@ -19,7 +19,8 @@ import time
 NAME = "brains"
 HELP = "per-episode CPU of robots with views of their own: one fleet brain vs a brain per robot, against Proximity"
 
-DEFAULT_POLICIES = ("morph", "proximity", "tsg")
+# conditions (services/policies/conditions.py): morph is MORPH at the reference preset, morph_paper at the paper's
+DEFAULT_POLICIES = ("morph", "morph_paper", "proximity", "tsg")
 DEFAULT_PROFILES = ("wifi-fast-roaming", "congested")
 RADIUS = 4  # Proximity's link radius (RunConfig's default)
 
@@ -31,8 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profiles", default=",".join(DEFAULT_PROFILES),
                         help=f"comma-separated network profiles (default {','.join(DEFAULT_PROFILES)})")
     parser.add_argument("--policies", default=",".join(DEFAULT_POLICIES),
-                        help=f"comma-separated conditions; proximity is the baseline (default "
-                             f"{','.join(DEFAULT_POLICIES)})")
+                        help=f"comma-separated conditions (morph: MORPH's reference preset, morph_paper: its paper "
+                             f"preset); proximity is the baseline (default {','.join(DEFAULT_POLICIES)})")
 
 
 def _spec(policy: str, profile: str, seed: int, scale: str, steps: int, fleet_brain: bool):

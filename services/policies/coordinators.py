@@ -303,23 +303,24 @@ class MorphBrains(Coordinator):
         self.params = params
         d_exp = params.d_exp(fleet.scale)
         b = len(self.owners)
+        # Every owned agent has its own replica of what it learns from the ticks (reference: the whole symmetric
+        # state; paper: its task history, update count, d̂, baseline and η). Replicas created at the same tick and
+        # fed the same ticks are identical, so a bank that owns several agents may store them once
+        # (``share_replicas``); ``_rep[k]`` is where owned agent k's replica lives.
+        copies = 1 if (share_replicas and b > 0) else max(b, 1)
+        self._rep = np.zeros(b, dtype=int) if copies == 1 else np.arange(b)
         if preset == "reference":
-            # Every owned agent has its own replica of the symmetric state. Replicas created at the same tick
-            # and fed the same ticks are identical, so a bank that owns several agents may store them once
-            # (``share_replicas``); ``_rep[k]`` is where owned agent k's replica lives.
-            copies = 1 if (share_replicas and b > 0) else max(b, 1)
             self.state = ReferenceState(params, fleet.n, copies, d_exp)
-            self._rep = np.zeros(b, dtype=int) if copies == 1 else np.arange(b)
         else:
-            self.state = PaperState(params, fleet.n, self.owners, d_exp)
+            self.state = PaperState(params, fleet.n, self.owners, d_exp, replicas=copies)
 
     def learn(self, obs: TickObservation) -> None:
         self._learn(obs, None)
 
     def learn_for(self, obs: TickObservation, agents) -> None:
-        """The reference preset with a replica per owned agent: only ``agents``' replicas take ``obs``."""
-        if self.preset != "reference" or len(set(self._rep.tolist())) != len(self.owners):
-            raise ValueError("learn_for: needs the reference preset with one replica per owned agent")
+        """Brains with a replica per owned agent: only ``agents``' replicas take ``obs``."""
+        if len(set(self._rep.tolist())) != len(self.owners):
+            raise ValueError("learn_for: needs one replica per owned agent")
         self._learn(obs, self._rep[[self.slot(a) for a in agents]])
 
     def _learn(self, obs: TickObservation, replicas) -> None:
@@ -342,7 +343,8 @@ class MorphBrains(Coordinator):
                         loader=obs.loader,
                         deliveries=obs.deliveries,
                         hint=hint,
-                    )
+                    ),
+                    replicas,  # with a replica per owned agent, replica k is row k
                 )
         if p.reset_every and obs.t > 0 and obs.t % p.reset_every == 0 and not obs.final:
             if replicas is None:
@@ -353,7 +355,7 @@ class MorphBrains(Coordinator):
     def eta(self, agent: int) -> float:
         """The arousal signal η of ``agent``'s last update."""
         s = self.state
-        return float(s.eta[self._rep[self.slot(agent)]]) if self.preset == "reference" else float(s.eta)
+        return float(s.eta[self._rep[self.slot(agent)]])
 
     def _rows(self, arr: np.ndarray) -> np.ndarray:
         if self.preset == "reference":
@@ -404,11 +406,13 @@ class MorphBrains(Coordinator):
             # the previous step's co-assignment: the credit of the next update
             scalars, rows = {}, {"j_prev": [float(v) for v in s.j_prev[r, agent]]}
         else:
+            r = self._rep[k]
             theta, age, h = s.theta_bcm[k], s.age[k], s.h[k]
-            eta, dhat = s.eta, s.dhat
+            eta, dhat = s.eta[r], s.dhat[r]
             # the task labels of the mutual-information window (small integers), and how far it is filled
-            scalars = {"filled": float(s.filled), "baseline": float(s.baseline)}
-            rows = {f"history_{i}": [int(v) for v in s.history[i]] for i in range(len(s.history))}
+            scalars = {"filled": float(s.filled[r]), "baseline": float(s.baseline[r])}
+            history = s.history[r]
+            rows = {f"history_{i}": [int(v) for v in history[i]] for i in range(len(history))}
         return SavedState(theta_row=[float(v) for v in theta], age_row=[int(v) for v in age], h=float(h),
                           eta=float(eta), d_hat=float(dhat), scalars=scalars, rows=rows)
 
@@ -434,29 +438,25 @@ class MorphBrains(Coordinator):
                     s.j_prev[r, j] = st.rows["j_prev"]
             s.dhat[r], s.eta[r], s.t[r] = own.d_hat, own.eta, own.t
             return own.t
-        else:
-            k = self.slot(agent)
-            s.W[k] = own.w_row
-            s.A[k] = np.asarray(own.a_row, dtype=float)
-            s.theta_bcm[k] = own.theta_row
-            s.age[k] = own.age_row
-            s.h[k] = own.h
-            window = [own.rows.get(f"history_{i}") for i in range(len(s.history))]
-            if all(row is not None for row in window):
-                s.history[:] = np.asarray(window, dtype=np.int64)
-                s.filled = int(own.scalars.get("filled", s.filled))
-                s.baseline = float(own.scalars.get("baseline", s.baseline))
-        s.dhat = own.d_hat
-        s.eta = own.eta
-        s.t = own.t
+        k = self.slot(agent)
+        r = self._rep[k]
+        s.W[k] = own.w_row
+        s.A[k] = np.asarray(own.a_row, dtype=float)
+        s.theta_bcm[k] = own.theta_row
+        s.age[k] = own.age_row
+        s.h[k] = own.h
+        window = [own.rows.get(f"history_{i}") for i in range(s.history.shape[1])]
+        if all(row is not None for row in window):
+            s.history[r] = np.asarray(window, dtype=np.int64)
+            s.filled[r] = int(own.scalars.get("filled", s.filled[r]))
+            s.baseline[r] = float(own.scalars.get("baseline", s.baseline[r]))
+        s.dhat[r], s.eta[r], s.t[r] = own.d_hat, own.eta, own.t
         return own.t
 
     def extra_metrics(self):
         s = self.state
-        if self.preset == "reference":  # the fleet's mean over robots, each robot's from its own replica
-            eta = float(s.eta[0]) if len(s.eta) == 1 else float(np.mean(s.eta[self._rep]))
-        else:
-            eta = float(s.eta)
+        # the fleet's mean over robots, each robot's from its own replica
+        eta = float(s.eta[0]) if len(s.eta) == 1 else float(np.mean(s.eta[self._rep]))
         return {
             "eta": eta,
             "h_mean": float(np.mean(self._h_rows())),
@@ -536,12 +536,10 @@ class MorphPolicy(CoordinationPolicy):
         return MorphBrains(fleet, owners, seed, preset.rules, self.params, self.share_replicas)
 
     def fleet_brains(self, fleet, seed):
-        # the reference preset: a replica per robot in one array, each stepped from its robot's view. The paper
-        # preset's mutual-information window is one per brain (a team brain keeps one for the fleet), so its
-        # robots with views of their own keep a brain each
-        if load_preset(self.preset).rules != "reference":
-            return None
-        return MorphBrains(fleet, range(fleet.n), seed, "reference", self.params, share_replicas=False)
+        # a replica per robot in one array, each stepped from its robot's view: the reference preset's whole
+        # symmetric state, the paper preset's task history, update count, d̂, baseline and η beside its own row
+        preset = load_preset(self.preset)
+        return MorphBrains(fleet, range(fleet.n), seed, preset.rules, self.params, share_replicas=False)
 
     def describe(self):
         return {"name": self.name, "preset": self.preset, "ablation": self.ablation or "full"}

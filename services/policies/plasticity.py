@@ -10,7 +10,9 @@ Two rule sets share the parameter model (:mod:`.presets`):
 * :class:`PaperState` implements the paper as written (Eq. 1-4, Algorithm 1): each agent owns only its
   directed out-row (shape ``(B, n)`` for B owned agents), learns from its own reward, credits the partner
   that shared the delivered task, estimates MI from task-assignment histories, forms links against a
-  binding threshold and runs homeostasis every k steps from h = 0. docs/morph.md lists every choice.
+  binding threshold and runs homeostasis every k steps from h = 0. docs/morph.md lists every choice. What the rows
+  learn from the ticks (the task history, update count, d̂, baseline, η) is one replica shared by every row, or one per
+  row where each robot takes views of its own.
 
 Both are updated with arrays derived from a :class:`~.observation.TickObservation`; the translation
 lives in :mod:`.policies`.
@@ -412,76 +414,222 @@ class PaperInputs:
     hint: np.ndarray  # (n, n) 0/1 anticipated co-assignment (non-spatial)
 
 
+_COLUMNS: dict[int, np.ndarray] = {}
+
+
+def _columns(n: int, ticks: int) -> np.ndarray:
+    """``np.tile(np.arange(n), ticks)``: the column of each label of a (ticks, n) history, flattened; kept per fleet
+    size and grown as needed, because every agent builds its task sets from it every tick."""
+    cols = _COLUMNS.get(n)
+    if cols is None or cols.size < n * ticks:
+        cols = _COLUMNS[n] = np.tile(np.arange(n), max(ticks, 64))
+    return cols[: n * ticks]
+
+
+_DENSE_LABELS = 1 << 16  # task ids up to this are indexed by counting; larger ones by sorting
+
+
+def _distinct(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(values, return_inverse=True)`` with a flat inverse: the sorted distinct labels and each value's
+    index among them. Task ids are small non-negative integers, which a count sorts faster than np.unique does (the
+    task sets are rebuilt from the whole window every tick)."""
+    flat = values.reshape(-1)
+    if flat.size and 0 <= flat.min() and flat.max() <= _DENSE_LABELS:
+        used = np.bincount(flat) > 0
+        return np.flatnonzero(used), np.cumsum(used)[flat] - 1
+    labels, inv = np.unique(flat, return_inverse=True)
+    return labels, inv.reshape(-1)
+
+
+def coassignment_rates(histories: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """:func:`coassignment_rate` of each row b from a history of its own: histories (B, T, n), rows (B,) → (B, n).
+
+    A window shorter than T is given with its older ticks set to 0 (idle), which count in neither the busy ticks nor
+    the shared ones: the counts, and so the rates, are those of the short window alone.
+    """
+    b = np.arange(len(rows))
+    own = histories[b, :, rows]  # (B, T)
+    same = (own[:, :, None] == histories) & (own[:, :, None] > 0)
+    busy = (own > 0).sum(axis=1)
+    rate = same.sum(axis=1) / np.maximum(busy, 1)[:, None]
+    rate[b, rows] = 0.0
+    return rate
+
+
 @dataclass
 class PaperState:
-    """Directed out-rows of the agents ``owners`` (B of the n agents)."""
+    """Directed out-rows of the agents ``owners`` (B of the n agents), and the task history they learn from.
+
+    ``replicas`` is how many task histories (with the update count t, d̂, the delivery baseline and η) the rows
+    share: 1 — every row learns from the same ticks (a team brain, or one agent's brain) — or B, one per row, each
+    row stepped from the views its own robot took (:meth:`step`'s ``rows``; a fleet whose robots hold views of their
+    own). A row's arithmetic is the same whether it steps alone, with others, or with a history of its own.
+    """
 
     params: MorphParams
     n: int
     owners: np.ndarray
     d_exp: float
+    replicas: int = 1
     W: np.ndarray = field(init=False)
     A: np.ndarray = field(init=False)
     age: np.ndarray = field(init=False)
     theta_bcm: np.ndarray = field(init=False)
     h: np.ndarray = field(init=False)
-    history: np.ndarray = field(init=False)  # (window, n) task labels seen in ticks
-    filled: int = field(init=False)
-    dhat: float = field(init=False)
-    baseline: float = field(init=False)
-    t: int = field(init=False)
-    eta: float = field(init=False, default=0.0)
+    # per replica
+    history: np.ndarray = field(init=False)  # (replicas, window, n) task labels seen in ticks
+    filled: np.ndarray = field(init=False)  # how many of the window's ticks have been seen
+    dhat: np.ndarray = field(init=False)
+    baseline: np.ndarray = field(init=False)
+    t: np.ndarray = field(init=False)
+    eta: np.ndarray = field(init=False)
+    # last update's bookkeeping, per row
     formed: np.ndarray = field(init=False)
     pruned: np.ndarray = field(init=False)
+
+    _ROWS = ("owners", "W", "A", "age", "theta_bcm", "h", "formed", "pruned")
+    _REPLICA = ("history", "filled", "dhat", "baseline", "t", "eta")
 
     def __post_init__(self) -> None:
         self.owners = np.asarray(self.owners, dtype=int)
         b = len(self.owners)
+        if self.replicas not in (1, b):
+            raise ValueError(f"replicas: {self.replicas} (1, shared by the rows, or one per row: {b})")
         shape = (b, self.n)
         self.W = np.zeros(shape)
         self.A = np.zeros(shape)
         self.age = np.zeros(shape)
         self.theta_bcm = np.zeros(shape)
         self.h = np.zeros(b)
-        self.history = np.zeros((self.params.mi_window, self.n), dtype=np.int64)
-        self.filled = 0
-        self.dhat = self.d_exp
-        self.baseline = self.d_exp
-        self.t = 0
+        r = self.replicas
+        self.history = np.zeros((r, self.params.mi_window, self.n), dtype=np.int64)
+        self.filled = np.zeros(r, dtype=np.int64)
+        self.dhat = np.full(r, float(self.d_exp))
+        self.baseline = np.full(r, float(self.d_exp))
+        self.t = np.zeros(r, dtype=np.int64)
+        self.eta = np.zeros(r)
         self.formed = np.zeros(b, dtype=int)
         self.pruned = np.zeros(b, dtype=int)
-        self._self = (np.arange(b), self.owners)
+        self._setup()
 
-    def reset_links(self) -> None:
+    def _setup(self) -> None:
+        self._self = (np.arange(len(self.owners)), self.owners)
+
+    @property
+    def rep(self) -> np.ndarray:
+        """(B,) the replica of each row."""
+        return np.zeros(len(self.owners), dtype=int) if self.replicas == 1 else np.arange(self.replicas)
+
+    def _take(self, rows: np.ndarray) -> PaperState:
+        """The rows ``rows`` with their replicas (one per row) as a state of their own (copies), to be stepped and put
+        back with :meth:`_put`."""
+        part = object.__new__(PaperState)
+        part.params, part.n, part.d_exp, part.replicas = self.params, self.n, self.d_exp, len(rows)
+        for name in self._ROWS + self._REPLICA:
+            setattr(part, name, getattr(self, name)[rows])
+        part._setup()
+        return part
+
+    def _put(self, rows: np.ndarray, part: PaperState) -> None:
+        for name in self._ROWS[1:] + self._REPLICA:
+            getattr(self, name)[rows] = getattr(part, name)
+
+    def reset_links(self, rows=None) -> None:
+        """Clear the links of the rows ``rows`` (default all): W, A, ages, BCM thresholds, h = 0; the task history, d̂,
+        the baseline and t stay."""
+        where = slice(None) if rows is None else np.asarray(rows, dtype=int)
         for arr in (self.W, self.A, self.age, self.theta_bcm):
-            arr[...] = 0.0
-        self.h[...] = 0.0
+            arr[where] = 0.0
+        self.h[where] = 0.0
+
+    def _window(self, length: np.ndarray, size: int) -> np.ndarray:
+        """(replicas, size, n): the last ``size`` ticks of each replica's history with the ticks before its own last
+        ``length`` (per replica) set to 0, idle: what every rule below ignores."""
+        hist = self.history[:, -size:]
+        old = np.arange(size)[None, :] < (size - length)[:, None]
+        return np.where(old[:, :, None], 0, hist) if old.any() else hist
 
     def task_jaccard(self) -> np.ndarray:
-        """(B, n) Jaccard of task sets: T_i = the distinct tasks agent i held in the last ``task_window`` ticks."""
+        """(B, n) Jaccard of task sets: T_i = the distinct tasks agent i held in the last ``task_window`` ticks (of
+        its row's replica)."""
         p = self.params
-        hist = self.history[-min(self.filled, p.task_window):] if self.filled else self.history[-1:]
-        labels, inv = np.unique(hist, return_inverse=True)
-        member = np.zeros((self.n, labels.size), dtype=bool)
-        member[np.tile(np.arange(self.n), hist.shape[0]), inv.reshape(-1)] = True
-        member[:, labels == 0] = False  # idle is not a task
-        m = member.astype(float)
-        inter = m[self.owners] @ m.T
-        size = m.sum(axis=1)
-        union = size[self.owners][:, None] + size[None, :] - inter
+        n = self.n
+        if self.replicas == 1:
+            f = int(self.filled[0])
+            hist = self.history[0, -min(f, p.task_window):] if f else self.history[0, -1:]
+            labels, inv = _distinct(hist)
+            member = np.zeros((n, labels.size), dtype=bool)
+            member[_columns(n, hist.shape[0]), inv] = True
+            member[:, labels == 0] = False  # idle is not a task
+            m = member.astype(float)
+            inter = m[self.owners] @ m.T
+            size = m.sum(axis=1)
+            union = size[self.owners][:, None] + size[None, :] - inter
+        else:
+            # each replica's window as long as it alone takes (at least one tick), padded with idle ticks; the
+            # intersections and sizes are counts (sums of 0/1 products), so exact, the same numbers as alone
+            hist = self._window(np.maximum(np.minimum(self.filled, p.task_window), 1), p.task_window)
+            r, ticks = hist.shape[:2]
+            labels, inv = _distinct(hist)
+            u = labels.size
+            m = np.zeros((r, n, u))  # replica × agent × task: 1.0 where the agent held the task in the window
+            m.reshape(-1)[(np.repeat(np.arange(r) * n, ticks * n) + _columns(n, r * ticks)) * u + inv] = 1.0
+            m[:, :, labels == 0] = 0.0
+            rows = np.arange(r)
+            inter = (m @ m[rows, self.owners][:, :, None])[:, :, 0]
+            size = m.sum(axis=2)
+            union = size[rows, self.owners][:, None] + size - inter
         jac = np.where(union > 0, inter / np.maximum(union, 1.0), 0.0)
         jac[self._self] = 0.0
         return jac
 
-    def step(self, x: PaperInputs) -> None:
+    def step(self, x: PaperInputs, rows=None) -> None:
+        """One update of the rows ``rows`` (default every row) from ``x``. With ``rows``, each row has a replica of its
+        own (``replicas`` = B) and the other rows are untouched."""
+        if rows is not None:
+            rows = np.asarray(rows, dtype=int)
+            if len(rows) != self.replicas or (rows != np.arange(self.replicas)).any():
+                if self.replicas != len(self.owners):
+                    raise ValueError("step: rows need a replica per row")
+                part = self._take(rows)
+                part._step(x)
+                self._put(rows, part)
+                return
+        self._step(x)
+
+    def _neuromodulation(self, deliveries: int):
+        """Advance d̂, η and the baseline of every replica; returns θ_adj: a float with one replica, else (B,).
+        Replicas with the same (d̂, baseline, t) take the same values."""
+        p = self.params
+        if self.replicas == 1:  # plain floats: this runs every tick in every agent
+            baseline = float(self.baseline[0])
+            d, eta, _, theta_adj = neuromodulation(p, float(self.dhat[0]), deliveries, baseline, int(self.t[0]))
+            self.dhat[0], self.eta[0] = d, eta
+            self.baseline[0] = baseline + p.baseline_ema * (deliveries - baseline)
+            return theta_adj
+        theta_adj = np.empty(self.replicas)
+        done: dict[tuple, tuple] = {}
+        for r, key in enumerate(zip(self.dhat.tolist(), self.baseline.tolist(), self.t.tolist())):
+            out = done.get(key)
+            if out is None:
+                out = done[key] = neuromodulation(p, key[0], deliveries, key[1], key[2])
+            self.dhat[r], self.eta[r], _, theta_adj[r] = out
+        self.baseline += p.baseline_ema * (deliveries - self.baseline)
+        return theta_adj
+
+    def _step(self, x: PaperInputs) -> None:
         p = self.params
         own = self.owners
+        one = self.replicas == 1
         self.t += 1
 
         # the task history every agent keeps from the ticks (input of J and of MI)
-        self.history[:-1] = self.history[1:]
-        self.history[-1] = x.task
-        self.filled = min(self.filled + 1, p.mi_window)
+        self.history[:, :-1] = self.history[:, 1:]
+        self.history[:, -1] = x.task
+        if one:
+            self.filled[0] = min(int(self.filled[0]) + 1, p.mi_window)
+        else:
+            np.minimum(self.filled + 1, p.mi_window, out=self.filled)
 
         # R4a: BCM threshold before the Hebbian step; extra decay on mature links above it
         self.theta_bcm *= p.bcm_tau
@@ -492,7 +640,10 @@ class PaperState:
         retention = _clip(p.gamma - extra, 0.5, 1.0)
 
         # Algorithm 1 runs R4b after R1, so R1 uses the α modulated by the previous step's η
-        alpha_eff = p.alpha * (1.0 + p.neuromod_gain * max(self.eta, 0.0))
+        if one:
+            alpha_eff = p.alpha * (1.0 + p.neuromod_gain * max(float(self.eta[0]), 0.0))
+        else:
+            alpha_eff = np.array([p.alpha * (1.0 + p.neuromod_gain * max(e, 0.0)) for e in self.eta.tolist()])[:, None]
 
         # R1, Eq. 2: W ← γW + α J r A with J the Jaccard of recent task sets and r the agent's own step
         # reward (TA-RWARE's individual reward: +1 to the delivering AGV, +0.1 to the picker per load/unload,
@@ -513,28 +664,48 @@ class PaperState:
         self.W[self._self] = 0.0
 
         # R4b: η compares the delivery rate with a running baseline (fixed d_exp if baseline_ema = 0)
-        self.dhat, self.eta, _, theta_adj = neuromodulation(p, self.dhat, x.deliveries, self.baseline, self.t)
-        self.baseline += p.baseline_ema * (x.deliveries - self.baseline)
+        theta_adj = self._neuromodulation(x.deliveries)
 
         self.formed[:] = 0
         self.pruned[:] = 0
-        if self.t % p.k == 0:
-            self._structural(x, theta_adj)
-            # R2 every k steps, from h = 0
-            deg = self.A.sum(axis=1)
-            self.h += p.beta * (p.rho_target - deg / (self.n - 1))
-            _clip(self.h, p.h_min, p.h_max)
+        if one:
+            if int(self.t[0]) % p.k == 0:
+                self._structural(x, theta_adj, None)
+        elif (due := self.t % p.k == 0).all():
+            self._structural(x, theta_adj, None)
+        elif due.any():  # rows whose robots missed views run their structural steps at other ticks
+            self._structural(x, theta_adj, np.flatnonzero(due))
 
         self.age = np.where(self.A > 0, self.age + 1.0, 0.0)
 
-    def _structural(self, x: PaperInputs, theta_adj: float) -> None:
+    def _mi(self) -> np.ndarray:
+        """(B, n) MI estimate of every row from its replica's history."""
         p = self.params
         own = self.owners
-        hist = self.history[-self.filled :] if self.filled >= 2 else self.history[-2:]
-        if p.mi_estimator == "nmi":
-            mi = history_nmi(hist, own)
-        else:
-            mi = coassignment_rate(hist, own)
+        if self.replicas == 1:
+            f = int(self.filled[0])
+            hist = self.history[0, -f:] if f >= 2 else self.history[0, -2:]
+            return history_nmi(hist, own) if p.mi_estimator == "nmi" else coassignment_rate(hist, own)
+        if p.mi_estimator == "nmi":  # its entropies depend on the window's length: each replica's on its own
+            out = np.empty((self.replicas, self.n))
+            for r, f in enumerate(self.filled.tolist()):
+                hist = self.history[r, -f:] if f >= 2 else self.history[r, -2:]
+                out[r] = history_nmi(hist, own[r : r + 1])[0]
+            return out
+        # counts over each replica's window (at least two ticks, as alone), its older ticks idle
+        return coassignment_rates(self._window(np.maximum(self.filled, 2), p.mi_window), own)
+
+    def _structural(self, x: PaperInputs, theta_adj, rows: np.ndarray | None) -> None:
+        """Prune, form and homeostasis of every row, or of the rows ``rows`` (their replicas are at a k-th step);
+        ``theta_adj`` is one threshold or one per row."""
+        p = self.params
+        if rows is not None:
+            part = self._take(rows)
+            part._structural(x, theta_adj[rows], None)
+            self._put(rows, part)
+            return
+        own = self.owners
+        mi = self._mi()
         if p.use_pred_hint and p.pred_boost > 0.0:
             mi = mi + p.pred_boost * x.hint[own]
         # Eq. 3-4 prune (age ≥ g) then form; a pair pruned now waits for the next structural step
@@ -544,7 +715,7 @@ class PaperState:
             arr[prune] = 0.0
         # H_gain,ij = h_i + h_j; an agent knows only its own h, so it uses 2 h_i
         score = mi * (1.0 + 2.0 * self.h[:, None])
-        cand = (self.A == 0) & ~prune & (score >= theta_adj)
+        cand = (self.A == 0) & ~prune & (score >= (theta_adj if isinstance(theta_adj, float) else theta_adj[:, None]))
         cand[self._self] = False
         cap = p.max_new(self.n)
         if cap < self.n:
@@ -557,3 +728,7 @@ class PaperState:
         self.A[cand] = 1.0
         self.age[cand] = 0.0
         self.formed[:] = cand.sum(axis=1)
+        # R2 every k steps, from h = 0
+        deg = self.A.sum(axis=1)
+        self.h += p.beta * (p.rho_target - deg / (self.n - 1))
+        _clip(self.h, p.h_min, p.h_max)
