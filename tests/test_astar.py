@@ -63,6 +63,7 @@ def test_heap_ties_follow_libstdcxx_not_heapq():
     assert {0, 1, 2} <= turns  # the sample exercises several turn patterns, all matched above
 
 
+@pytest.mark.slow  # every pair: ~3 CPU-s; the default suite samples tiny as every other size, below
 def test_agv_free_grid_lengths_are_manhattan_tiny_exhaustive():
     """The heuristic computes AGV distances in closed form; this holds for every pair on tiny (the same check over
     every pair of small..extralarge was run once offline; sampled below)."""
@@ -76,7 +77,7 @@ def test_agv_free_grid_lengths_are_manhattan_tiny_exhaustive():
             assert len(p) - 1 == abs(s // W - g // W) + abs(s % W - g % W)
 
 
-@pytest.mark.parametrize("size", ["small", "medium", "large", "extralarge"])
+@pytest.mark.parametrize("size", ["tiny", "small", "medium", "large", "extralarge"])
 def test_agv_free_grid_lengths_are_manhattan_sampled(size):
     p = _planner(size)
     rng = random.Random(size)

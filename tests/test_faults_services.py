@@ -4,6 +4,8 @@ than dropped, the run never hangs or loses a tick, and the same seed and fault c
 
 from __future__ import annotations
 
+import pytest
+
 from morph_sim.local import run_local
 from schemas import FaultSpec, Latency, Loss, Scope
 from services.faults.runtime import FaultRuntime
@@ -40,6 +42,11 @@ async def test_services_under_dispatch_faults_are_live_reproducible_and_late_not
     assert [e.kind for e in rt.controller.log] == ["fault.set"] and rt.controller.log[0].t == 0
 
 
+# The same crash-and-restore cycle runs end to end in the default suite: tests/test_faults_up.py kills a real agent
+# process every 80 ticks under `morph-sim up`, and asserts every tick is in the record, each restarted agent resumed
+# with the W row its predecessor published last (a learnt one) and took part again. This in-process run takes ~30 s
+# of a worker's wall time.
+@pytest.mark.slow
 async def test_agent_killed_every_100_ticks_rejoins_with_its_state_and_no_tick_is_lost() -> None:
     """In-process crash: the agent's task is cancelled and its session closed (its liveliness token goes, as with
     SIGKILL); a new agent with the same id starts at once, restores its state from the real monitor and rejoins."""

@@ -26,8 +26,9 @@ UP_TIMEOUT = 150
 VICTIM = 6  # a picker at tiny (5 AGVs + 3 pickers)
 EVERY, COLD = 80, 120  # agent VICTIM is killed at ticks 80 and 160, agent 1 at 120 for a cold restart
 STEPS = 3 * EVERY
-PERIOD = 0.05  # paced: the 80 ticks after each kill take 4 s, more than a restarted agent (a fresh interpreter) needs
-# to start, restore and rejoin on a loaded machine (2.5 s were once too few)
+PERIOD = 0.08  # paced: the 80 ticks after each kill take 6.4 s, more than a restarted agent (a fresh interpreter) needs
+# to start, restore and rejoin on a loaded machine (2.5 s were once too few; with 4 s, on three workers, one was
+# restarted 1.1 s after its kill and acked its first tick 3.3 s later, 0.2 s before the next kill)
 
 
 def _events(record: Path) -> list[dict]:
