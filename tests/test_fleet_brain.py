@@ -58,7 +58,7 @@ def _policy_fields(policy: str) -> dict:
 
 @pytest.mark.parametrize("policy", POLICIES)
 def test_every_shipped_policy_learns_the_same_in_one_fleet_brain_under_fleet_faults(policy):
-    fleet, robots = _both(scale="small", seed=4, steps=100, faults=FLEET_FAULTS, **_policy_fields(policy))
+    fleet, robots = _both(scale="tiny", seed=4, steps=100, faults=FLEET_FAULTS, **_policy_fields(policy))
     assert fleet.summary["brains"] == "fleet" and robots.summary["brains"] == "per-robot"
     _assert_same(fleet, robots)
     if policy not in ("none",):
@@ -67,14 +67,14 @@ def test_every_shipped_policy_learns_the_same_in_one_fleet_brain_under_fleet_fau
 
 @pytest.mark.parametrize("ablation", ABLATIONS)
 def test_each_reference_ablation_learns_the_same_in_one_fleet_brain(ablation):
-    fleet, robots = _both(scale="small", seed=2, steps=100, faults=FLEET_FAULTS, condition=ablation)
+    fleet, robots = _both(scale="tiny", seed=2, steps=100, faults=FLEET_FAULTS, condition=ablation)
     assert fleet.summary["brains"] == "fleet"
     _assert_same(fleet, robots)
 
 
 @pytest.mark.parametrize("profile", PROFILES)
 def test_morph_learns_the_same_in_one_fleet_brain_under_each_network_profile(profile):
-    fleet, robots = _both(scale="small", seed=3, steps=100, network=profile, condition="morph")
+    fleet, robots = _both(scale="tiny", seed=3, steps=100, network=profile, condition="morph")
     _assert_same(fleet, robots)
 
 
@@ -87,7 +87,7 @@ def test_the_robots_fall_out_of_step_so_the_test_above_means_something():
         seen["t"] = brains.state.t.copy()
         seen["dhat"] = brains.state.dhat.copy()
 
-    run_episode(EpisodeSpec(scale="small", condition="morph", seed=4, steps=100, faults=FLEET_FAULTS), trace_hook=hook)
+    run_episode(EpisodeSpec(scale="tiny", condition="morph", seed=4, steps=100, faults=FLEET_FAULTS), trace_hook=hook)
     assert len(set(seen["t"].tolist())) > 1 and len(set(seen["dhat"].tolist())) > 1
     assert len({t % 3 for t in seen["t"].tolist()}) > 1  # structural steps at different ticks
 
@@ -104,7 +104,7 @@ def test_the_paper_preset_learns_the_same_in_one_fleet_brain(views):
         seen["t"] = set(brains.state.t.tolist())
         seen["formed"] += int(brains.state.formed.sum())
 
-    fields = {"scale": "small", "condition": "morph", "preset": "paper", "seed": 4, "steps": 100, **where}
+    fields = {"scale": "tiny", "condition": "morph", "preset": "paper", "seed": 4, "steps": 100, **where}
     fleet = run_episode(EpisodeSpec(fleet_brain=True, **fields), trace_hook=hook)
     robots = run_episode(EpisodeSpec(fleet_brain=False, **fields))
     assert fleet.summary["brains"] == "fleet" and robots.summary["brains"] == "per-robot"
