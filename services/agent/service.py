@@ -43,8 +43,8 @@ from services.policies.coordinators import MorphBrains
 from services.policies.interface import Fleet, state_message
 from services.protocol import dispatch as protocol
 from services.protocol.readiness import Readiness
-from services.runconfig import RunConfig
 from services.protocol.tickorder import TickOrder
+from services.runconfig import RunConfig
 
 log = logging.getLogger("morph_sim.agent")
 

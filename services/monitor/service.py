@@ -42,8 +42,8 @@ from services.monitor.latest import LatestState
 from services.monitor.recorder import Recorder, read_metrics
 from services.monitor.streams import MessageStats, StreamPublisher
 from services.policies.interface import Fleet
-from services.runconfig import RunConfig
 from services.protocol.tickorder import TickOrder
+from services.runconfig import RunConfig
 
 __all__ = ["MonitorResult", "MonitorService", "ROW_GRACE_TICKS", "summary_of_rows"]
 
