@@ -103,6 +103,23 @@ def test_cli_honours_scales_seeds_steps_targets_and_levels(tmp_path, capsys) -> 
     assert "16 episodes" in res.stderr and "T = 40" in res.stderr
 
 
+def test_a_policy_from_outside_enters_the_fault_study_by_the_name_policy_takes(tmp_path, capsys) -> None:
+    """`--conditions morph,package.module:Class`: the outside policy runs every cell beside MORPH, under its own
+    name, in the record, the table and the figure; an unknown name is one line."""
+    outside = "services.policies.coordinators:ConstantPolicy"
+    res = _cli(["--scales", "tiny", "--seeds", "1", "--steps", "40", "--conditions", f"morph,{outside}",
+                "--targets", "dispatch", "--loss-levels", "0,20", "--latency-levels", "1", "--out", str(tmp_path),
+                "--run-id", "o"], capsys)
+    assert res.returncode == 0, res.stderr
+    eps = json.loads((tmp_path / "o" / "faults.json").read_text())["episodes"]
+    assert {e["condition"] for e in eps} == {"MORPH (reference)", outside}
+    assert all(e["deliveries"] > 0 for e in eps if e["condition"] == outside)
+    assert f"| {outside} |" in res.stdout and (tmp_path / "o" / "faults_tiny.png").exists()
+    bad = _cli(["--quick", "--conditions", "morph,nope.mod:Thing", "--out", str(tmp_path)], capsys)
+    assert bad.returncode == 2 and bad.stderr.strip().splitlines()[-1].startswith(
+        "morph-sim experiment: error: conditions: unknown 'nope.mod:Thing'"), bad.stderr
+
+
 def test_cli_progress_and_resume_after_interrupt_give_the_same_tables(tmp_path, capsys) -> None:
     """Interrupted by Ctrl-C mid-grid: exit 130 and a line saying how to resume; resumed with the same --run-id it
     runs only the missing episodes, and its tables equal those of a grid that ran straight through. (The interrupted

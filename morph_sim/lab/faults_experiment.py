@@ -27,7 +27,7 @@ from morph_sim.lab.network import dispatch_faults, fleet_faults
 from morph_sim.lab.runner import EpisodeSpec, run_episode
 from schemas.faults import FaultSpec, Latency, Loss
 from services.metrics import catalogue
-from services.policies.conditions import DEFAULT_RADIUS, FAULT_STUDY, by_label, command_line_keys
+from services.policies.conditions import DEFAULT_RADIUS, FAULT_STUDY, by_label, command_line_keys, study_condition
 
 DT = 1.0
 
@@ -90,10 +90,17 @@ class FaultEpisode:
     view_age_mean: float = float("nan")  # mean age of the agents' fleet views, sim seconds (fleet/both targets)
 
 
+def condition_order(conditions) -> list[str]:
+    """The study's conditions in its table's order, then policies from outside in the order first seen."""
+    seen = list(dict.fromkeys(conditions))
+    return [c for c in CONDITIONS if c in seen] + [c for c in seen if c not in CONDITIONS]
+
+
 def run_fault_episode(condition: str, kind: str, level: float, seed: int, *, scale: str = "tiny",
                       steps: int = 500, target: str = "dispatch") -> FaultEpisode:
     spec = EpisodeSpec(scale=scale, seed=seed, steps=steps,
-                       **CONDITIONS[condition].episode_fields(radius=DEFAULT_RADIUS), fiedler_every=10**9,
+                       **study_condition(condition, CONDITIONS).episode_fields(radius=DEFAULT_RADIUS),
+                       fiedler_every=10**9,
                        faults=scoped(fault_spec(kind, level, seed), target))
     ep = run_episode(spec)
     s = ep.summary
@@ -182,9 +189,10 @@ def summarize(episodes: list[FaultEpisode]) -> list[dict]:
             groups[(sc, tg, c, k, 0.0)] = clean[(sc, c)]
     scales = list(dict.fromkeys(e.scale for e in episodes))
     kinds = ("bernoulli", "bursty", "latency")
+    order = condition_order(k[2] for k in groups)
     rows = []
     for (scale, target, condition, kind, level), eps in sorted(groups.items(), key=lambda kv: (
-            scales.index(kv[0][0]), TARGETS.index(kv[0][1]), kinds.index(kv[0][3]), list(CONDITIONS).index(kv[0][2]),
+            scales.index(kv[0][0]), TARGETS.index(kv[0][1]), kinds.index(kv[0][3]), order.index(kv[0][2]),
             kv[0][4])):
         row = {"scale": scale, "target": target, "condition": condition, "kind": kind, "level": level,
                "seeds": len(eps)}
@@ -221,7 +229,7 @@ def plot(rows: list[dict], path: str | Path, scale: str | None = None) -> Path:
     for i, (metric, mlabel) in enumerate(metrics):
         for j, kind in enumerate(kinds):
             ax = axes[i][j]
-            for ci, condition in enumerate(CONDITIONS):
+            for ci, condition in enumerate(condition_order(r["condition"] for r in rows)):
                 for target in TARGETS:
                     pts = [r for r in rows if r["condition"] == condition and r["kind"] == kind
                            and r["target"] == target]
@@ -282,7 +290,7 @@ def markdown(rows: list[dict]) -> str:
                 cost = ["", "Cost — dispatch delay (ticks) · dispatch messages / delivery · bytes / delivery"
                         + (" · fleet view age (s)" if target != "dispatch" else "") + ":", "", head,
                         "|" + "---|" * (len(levels) + 1)]
-                for condition in CONDITIONS:
+                for condition in condition_order(r["condition"] for r in kb):
                     by = {r["level"]: r for r in kb if r["condition"] == condition}
                     if not by:
                         continue
@@ -340,8 +348,7 @@ def grid_plan(*, quick: bool = False, scales=("tiny",), seeds=None, steps: int |
                 "latency": list(LATENCY_TICKS if latency is None else latency), "steps": steps or 800}
     plan["conditions"] = [CONDITION_KEYS.get(c, c) for c in plan["conditions"]]
     for c in plan["conditions"]:
-        if c not in CONDITIONS:
-            raise ValueError(f"conditions: unknown {c!r}; choose from {', '.join(CONDITION_KEYS)}")
+        study_condition(c, CONDITIONS)  # the study's own, or a policy from outside by name; else one line
     for t in plan["targets"]:
         if t not in TARGETS:
             raise ValueError(f"targets: unknown {t!r}; choose from {', '.join(TARGETS)}")
