@@ -120,8 +120,9 @@ def test_reset_at_boundary_clears_the_state(tmp_path):
 
 
 def test_suite_writes_records_tables_and_plots(tmp_path):
+    outside = "services.policies.coordinators:ConstantPolicy"  # a policy from outside, by the name --policy takes
     cfg = SuiteConfig(kind="scale", scales=("tiny",), seeds=(42, 7), steps=120,
-                      conditions=("none", "proximity", "tsg", "morph", "full"), jobs=2)
+                      conditions=("none", "proximity", "tsg", "morph", "full", outside), jobs=2)
     res = run_suite(cfg, tmp_path, "t1", show_progress=False, argv=["test"])
     run = tmp_path / "t1"
     manifest = json.loads((run / "manifest.json").read_text())
@@ -136,7 +137,8 @@ def test_suite_writes_records_tables_and_plots(tmp_path):
     full = next(r for r in table if r["condition"] == "full")
     assert float(full["pct_full"]) == pytest.approx(100.0)
     md = (run / "summary.md").read_text()
-    assert "MORPH" in md and "Full-Graph" in md and "Wall time" in md
+    assert "MORPH" in md and "Full-Graph" in md and "Wall time" in md and f"| {outside} |" in md
+    assert float(next(r for r in table if r["condition"] == outside)["mean"]) > 0  # deliveries
     for png in ("cumulative_deliveries.png", "link_usage.png", "deliveries_bars.png"):
         assert (run / "plots" / png).stat().st_size > 5000
     # tables are recomputable from the episode summaries alone

@@ -123,7 +123,9 @@ def test_shift_metrics_on_a_known_series():
 
 
 def test_shift_experiment_table_end_to_end(tmp_path):
-    cfg = ShiftConfig(seeds=(42, 7), phase_steps=80, conditions=("morph_paper", "reset_paper", "tsg"), jobs=1)
+    # the last one a policy from outside, by the name --policy takes
+    cfg = ShiftConfig(seeds=(42, 7), phase_steps=80, jobs=1,
+                      conditions=("morph_paper", "reset_paper", "tsg", "services.policies.coordinators:ConstantPolicy"))
     res = run_shift(cfg, tmp_path, "shift", show_progress=False)
     cols = table_columns(cfg)
     assert cols == ["P1", "P2", "P3", "P4", "P5", "P6", "delta_6_3", "r3", "r4", "r5", "r6"]
@@ -139,7 +141,7 @@ def test_shift_experiment_table_end_to_end(tmp_path):
         assert float(r["delta_6_3"]) == pytest.approx(float(r["P6"]) - float(r["P3"]))
     with open(d / "episodes.csv") as f:
         eps = list(csv.DictReader(f))
-    assert len(eps) == 6
+    assert len(eps) == 8
     for e in eps:  # per-phase deliveries add up to the episode's deliveries
         assert sum(int(e[f"P{p}"]) for p in range(1, 7)) == int(e["deliveries"])
     md = (d / "shift.md").read_text()
@@ -147,7 +149,7 @@ def test_shift_experiment_table_end_to_end(tmp_path):
     for name in ("delivery_rate.png", "recovery_bars.png"):
         assert (d / "plots" / name).stat().st_size > 10_000
     assert json.loads((d / "manifest.json").read_text())["kind"] == "shift"
-    assert len(list((d / "episodes").iterdir())) == 6
+    assert len(list((d / "episodes").iterdir())) == 8
     assert markdown_shift(cfg, res.rows).count("\n") >= 5
 
 

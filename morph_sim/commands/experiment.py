@@ -74,7 +74,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--latency-levels", default=None, help="faults: mean latencies in ticks, jitter ¼ of the "
                         "mean (default 0,0.1,0.25,0.5,1,2,5,10)")
     parser.add_argument("--conditions", default=None, help="scale/ablation/shift/faults: comma-separated "
-                        "conditions (default: the study's; faults: morph, morph-paper, full, tsg, proximity); faults and network also take "
+                        "conditions (default: the study's; faults: morph, morph-paper, full, tsg, proximity); scale, ablation, shift, faults and network also take "
                         "any policy --policy takes (an installed entry point, package.module:Class)")
     parser.add_argument("--dispatch", choices=("concurrent", "sequential"), default=None,
                         help="scale/ablation: picker resolution, concurrent (all pickers at once) or sequential "

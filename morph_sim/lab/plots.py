@@ -10,7 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from services.policies.conditions import CONDITIONS  # noqa: E402
+from services.policies.conditions import CONDITIONS, study_condition  # noqa: E402
 
 _COLOURS = {
     "morph": "#2a7ab9", "full": "#7f7f7f", "tsg": "#e08a2c", "proximity": "#3a9a4a", "none": "#c0392b",
@@ -37,7 +37,7 @@ def plot_suite(result, rows: list[dict], out_dir: Path) -> list[Path]:
         for ax, s in zip(axes[0], cfg.scales):
             for c in cfg.conditions:
                 y = result.series[(s, c)][what]
-                ax.plot(np.arange(len(y)), y, label=CONDITIONS[c].label, color=_COLOURS.get(c), lw=1.4)
+                ax.plot(np.arange(len(y)), y, label=study_condition(c, CONDITIONS).label, color=_COLOURS.get(c), lw=1.4)
             ax.set_title(s)
             ax.set_xlabel("step")
             ax.set_ylabel(ylabel)
@@ -58,7 +58,7 @@ def plot_suite(result, rows: list[dict], out_dir: Path) -> list[Path]:
     for m, c in enumerate(cfg.conditions):
         means = [next(r for r in rows if r["scale"] == s and r["condition"] == c)["mean"] for s in cfg.scales]
         stds = [next(r for r in rows if r["scale"] == s and r["condition"] == c)["std"] for s in cfg.scales]
-        ax.bar(x - 0.4 + width * (m + 0.5), means, width, yerr=stds, capsize=2, label=CONDITIONS[c].label,
+        ax.bar(x - 0.4 + width * (m + 0.5), means, width, yerr=stds, capsize=2, label=study_condition(c, CONDITIONS).label,
                color=_COLOURS.get(c))
     ax.set_xticks(x, [f"{s}" for s in cfg.scales])
     ax.set_ylabel(f"deliveries in {cfg.steps} steps")

@@ -27,13 +27,12 @@ from morph_sim.lab.runner import (
     REFERENCE_SEEDS,
     EpisodeResult,
     EpisodeSpec,
-    check_choices,
     check_nonempty,
     run_episode,
 )
 from morph_sim.lab.suite import _git_revision, _jsonable, _num, _versions
 from services.metrics import measures
-from services.policies.conditions import SHIFT_STUDY, select
+from services.policies.conditions import SHIFT_STUDY, select, study_condition
 
 #: the shift study's conditions: MORPH and MORPH-reset at both presets, Proximity and TSG
 SHIFT_CONDITIONS = select(SHIFT_STUDY)
@@ -66,7 +65,8 @@ class ShiftConfig(BaseModel):
     @field_validator("conditions")
     @classmethod
     def _conditions(cls, v):
-        check_choices(v, SHIFT_CONDITIONS, "shift condition")
+        for key in v:  # the study's own, or a policy from outside by the name --policy takes
+            study_condition(key, SHIFT_CONDITIONS)
         return check_nonempty(v, "condition")
 
     @field_validator("seeds")
@@ -83,7 +83,7 @@ class ShiftConfig(BaseModel):
 
     def spec(self, key: str, seed: int) -> EpisodeSpec:
         return EpisodeSpec(
-            scale=self.scale, seed=seed, **SHIFT_CONDITIONS[key].episode_fields(radius=self.radius),
+            scale=self.scale, seed=seed, **study_condition(key, SHIFT_CONDITIONS).episode_fields(radius=self.radius),
             steps=len(self.phases) * self.phase_steps,
             demand_phases=self.phases, phase_steps=self.phase_steps, demand_mode=self.demand_mode,
             loss_percent=self.loss_percent,
@@ -117,7 +117,7 @@ def summarise_shift(cfg: ShiftConfig, episodes: list[dict]) -> list[dict]:
     rows = []
     for key in cfg.conditions:
         eps = [e for e in episodes if e["shift_condition"] == key]
-        row = {"condition": key, "label": SHIFT_CONDITIONS[key].label, "n": len(eps)}
+        row = {"condition": key, "label": study_condition(key, SHIFT_CONDITIONS).label, "n": len(eps)}
         for col in table_columns(cfg):
             ms = measures.mean_std([e[col] for e in eps])
             row[col] = ms.mean
@@ -264,7 +264,7 @@ def plot_shift(result: ShiftResult, out_dir: Path) -> list[Path]:
             ax.axvline(p * L, color="k", lw=0.6, ls="--")
     for key in cfg.conditions:
         r = result.rates[key]
-        ax.plot(np.arange(r.size), r * cfg.window, lw=1.2, color=_COLOURS.get(key), label=SHIFT_CONDITIONS[key].label)
+        ax.plot(np.arange(r.size), r * cfg.window, lw=1.2, color=_COLOURS.get(key), label=study_condition(key, SHIFT_CONDITIONS).label)
     ax.set_xlabel("step")
     ax.set_ylabel(f"deliveries per {cfg.window} steps (trailing window)")
     ax.set_xlim(0, len(cfg.phases) * L)

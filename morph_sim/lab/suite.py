@@ -36,7 +36,7 @@ from morph_sim.lab.runner import (
     run_episode,
 )
 from services.metrics import measures
-from services.policies.conditions import CONDITIONS, SCALE_STUDY
+from services.policies.conditions import CONDITIONS, SCALE_STUDY, study_condition
 from services.policies.coordinators import PROXIMITY_RADII
 
 
@@ -67,7 +67,8 @@ class SuiteConfig(BaseModel):
     @field_validator("conditions")
     @classmethod
     def _conditions(cls, v):
-        check_choices(v, CONDITIONS, "condition")
+        for c in v:  # the study's table, or a policy from outside by the name --policy takes
+            study_condition(c, CONDITIONS)
         return check_nonempty(v, "condition")
 
     @field_validator("seeds")
@@ -76,10 +77,11 @@ class SuiteConfig(BaseModel):
         return check_nonempty(v, "seed")
 
     def spec(self, scale: str, condition: str, seed: int, radius: int | None = None, steps: int | None = None):
+        outside = {} if condition in CONDITIONS else {"policy_name": condition}
         return EpisodeSpec(
             scale=scale, condition=condition, seed=seed, steps=steps or self.steps, preset=self.preset,
             radius=radius, dispatch=self.dispatch, shared_stream=self.shared_stream,
-            fiedler_every=self.fiedler_every,
+            fiedler_every=self.fiedler_every, **outside,
         )
 
 
@@ -169,7 +171,7 @@ def _scheduler(jobs: int, executor: str, scheduler) -> _Scheduler | _DaskSchedul
 
 def _cost(spec: EpisodeSpec) -> float:
     size = {"tiny": 1.0, "small": 1.4, "medium": 2.0, "large": 2.8}.get(spec.scale, 2.0)
-    plastic = 1.6 if CONDITIONS[spec.condition].plastic else 1.0
+    plastic = 1.6 if study_condition(spec.condition, CONDITIONS).plastic else 1.0
     return size * plastic * spec.steps
 
 
@@ -282,7 +284,7 @@ def summarise(cfg: SuiteConfig, episodes: list[dict]) -> list[dict]:
             max_links = eps[0]["max_links"]
             rows.append({
                 "condition": c,
-                "label": CONDITIONS[c].label,
+                "label": study_condition(c, CONDITIONS).label,
                 "scale": s,
                 "n_agents": eps[0]["n_agents"],
                 "mean": ms.mean,
@@ -335,7 +337,7 @@ def markdown_table(cfg: SuiteConfig, rows: list[dict], wall_s: float | None = No
             if c != "morph" and r["p_vs_morph"] == r["p_vs_morph"]:
                 cell += f"; p={_fmt_p(r['p_vs_morph'])}"
             cells.append(cell)
-        lines.append(f"| {CONDITIONS[c].label} | " + " | ".join(cells) + " |")
+        lines.append(f"| {study_condition(c, CONDITIONS).label} | " + " | ".join(cells) + " |")
     notes = [
         "",
         f"preset `{cfg.preset}`, dispatch `{cfg.dispatch}`, gate stream "
