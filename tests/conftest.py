@@ -189,7 +189,7 @@ def live_run(tmp_path):
 
 
 # -- shared live runs ----------------------------------------------------------------------------------------------------
-# A live `morph-sim up` costs ~6 CPU-s before its first tick and ~20 CPU-ms a tick at tiny scale: tests that only read
+# A live `morph-sim up` costs ~2 CPU-s before its first tick and ~10 CPU-ms a tick at tiny scale: tests that only read
 # a run of the same kind read one. Each shared run starts, with the observers that must see it from the start or join
 # it mid-run, when the first test asks for it, and is followed to its end in the background (tests/_procs.py,
 # SharedRun); every test then asserts its own property on the outcome.
