@@ -30,6 +30,19 @@ ARGV = ["--scales", "tiny", "--seeds", "301,302", "--steps", "40", "--profiles",
         "--conditions", "morph,full,tsg", "--jobs", "2"]
 
 
+def test_a_policy_from_outside_runs_under_wifi_roaming_by_the_name_policy_takes(tmp_path, capsys) -> None:
+    """"How does my allocator do under Wi-Fi roaming?" is one command: the outside policy runs every cell beside
+    MORPH, under its name in the record and the tables."""
+    outside = "services.policies.coordinators:ConstantPolicy"
+    res = _cli(["--scales", "tiny", "--seeds", "301", "--steps", "40", "--profiles", "wifi-legacy-roaming",
+                "--conditions", f"morph,{outside}", "--out", str(tmp_path), "--run-id", "o"], capsys)
+    assert res.returncode == 0, res.stderr
+    eps = json.loads((tmp_path / "o" / "network.json").read_text())["episodes"]
+    assert sorted(e["condition"] for e in eps) == sorted(["MORPH (reference)", outside])
+    assert all(e["network_handovers"] > 0 for e in eps)
+    assert f"| wifi-legacy-roaming | {outside} | " in res.stdout
+
+
 def test_cli_runs_the_grid_asked_for_with_tables_figure_and_progress(tmp_path, capsys) -> None:
     res = _cli([*ARGV, "--out", str(tmp_path), "--run-id", "n"], capsys)
     assert res.returncode == 0, res.stderr
