@@ -21,10 +21,14 @@ class Intake:
     ``on_refused(total)`` is called after every refusal, for a service that reports the count in its own result."""
 
     def __init__(self, bus, keys: RunKeys, log: logging.Logger, owner: str,
-                 on_refused: Callable[[int], None] | None = None):
+                 on_refused: Callable[[int], None] | None = None, flood=None,
+                 on_flood: Callable[[int, int], None] | None = None):
+        """``flood`` (a :class:`services.protocol.claims.FloodWatch`) counts each robot's refused messages, by the
+        key they came on; ``on_flood(robot, refused)`` is called once when a robot crosses its threshold."""
         self.keys = keys
         self.rejects = Rejects(log, owner)
         self.on_refused = on_refused
+        self.flood, self.on_flood = flood, on_flood
         bus.reject_hook = self.refuse  # what the bus refuses on arrival counts here too
 
     @property
@@ -36,6 +40,14 @@ class Intake:
         self.rejects.count(what, why)
         if self.on_refused is not None:
             self.on_refused(self.rejects.total)
+        if self.flood is not None:
+            try:
+                author = self.keys.sender_of(what)
+            except ValueError:  # not a key of this run: nobody's robot
+                return
+            crossed = self.flood.note(author)
+            if crossed is not None and self.on_flood is not None:
+                self.on_flood(author, crossed)
 
     def decode(self, sample, model: type, author: str | None = None, what: str = ""):
         """``sample`` decoded as ``model``, or None (counted) when it does not decode or, with ``author`` (the field

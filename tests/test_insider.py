@@ -110,6 +110,11 @@ async def test_insider_new_sender_names_and_sequence_jumps(tmp_path, baseline):
     # the sim judges names too (1,000) and refuses the other 1,000 as second acks of tick AT (nothing taken)
     run, summary, _ = await _attacked(tmp_path, baseline, attack, sim_refused=2000, monitor_refused=2000)
     assert summary["sequence_gaps"] == 0
+    # the sim reports the flood once, naming the robot, in the record (the run itself goes on unchanged)
+    assert run.sim.flooding == [3] and baseline[0].sim.flooding == []
+    events = [json.loads(line) for line in (tmp_path / "insider" / "events.jsonl").read_text().splitlines()]
+    floods = [e for e in events if e["kind"] == "agent.flooding"]
+    assert [(e["source"], e["details"]["agent"], e["details"]["refused"]) for e in floods] == [("sim", 3, 256)]
 
 
 async def test_insider_states_of_ticks_that_do_not_exist(tmp_path, baseline):

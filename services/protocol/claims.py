@@ -163,3 +163,25 @@ class SeqWindow:
         self._jump = None
         self.last = seq
         return seq - last - 1
+
+
+#: refusals of one robot's messages after which the receiver reports it as flooding (once per run): a robot that
+#: follows the protocol has none (late and duplicate copies are ignored, not refused), so this many is no accident
+FLOOD_REFUSALS = 256
+
+
+class FloodWatch:
+    """Counts the refusals of each robot's messages; :meth:`note` says when a robot crosses :data:`FLOOD_REFUSALS`
+    (once). Robots only (ints below ``n_agents``): the table is bounded by the fleet."""
+
+    def __init__(self, n_agents: int, threshold: int = FLOOD_REFUSALS):
+        self.n_agents, self.threshold = int(n_agents), int(threshold)
+        self.refused: dict[int, int] = {}
+
+    def note(self, author: object) -> int | None:
+        """Count one refusal of ``author``'s; its count when this one reaches the threshold, else None."""
+        if not isinstance(author, int) or isinstance(author, bool) or not 0 <= author < self.n_agents:
+            return None
+        count = self.refused.get(author, 0) + 1
+        self.refused[author] = count
+        return count if count == self.threshold else None

@@ -39,7 +39,14 @@ from services.bus.base import Bus, Sample
 from services.bus.registry import mount_registry
 from services.intake import Intake
 from services.protocol import dispatch as protocol
-from services.protocol.claims import OncePerTick, OutcomeBound, SenderBinding, check_tick, outcome_step_bound
+from services.protocol.claims import (
+    FloodWatch,
+    OncePerTick,
+    OutcomeBound,
+    SenderBinding,
+    check_tick,
+    outcome_step_bound,
+)
 from services.protocol.tick import TickStep
 from services.runconfig import RunConfig
 from services.sim.phases import PhaseBarrier, PhaseCollection
@@ -68,7 +75,9 @@ class SimService(Presence, PhaseCollection):
         self.faults = faults
         self.bus = bus
         self.keys = RunKeys(config.run_id)
-        self.intake = Intake(bus, self.keys, log, "sim", on_refused=self._count_refused)
+        self._floods: list[tuple[int, int]] = []  # robots seen flooding, reported at the next tick's start
+        self.intake = Intake(bus, self.keys, log, "sim", on_refused=self._count_refused,
+                             flood=FloodWatch(config.n_agents), on_flood=self._flooding)
         self.n = config.n_agents
         self._onboard_keys = [self.keys.onboard(robot) for robot in range(self.n)]  # named every tick
         self.wait_for_monitor = wait_for_monitor
@@ -112,6 +121,12 @@ class SimService(Presence, PhaseCollection):
     # -- control ------------------------------------------------------------------------------------------------------
     def _count_refused(self, total: int) -> None:
         self.result.rejected = total
+
+    def _flooding(self, robot: int, refused: int) -> None:
+        # (on the bus's receive path: the report is published from the tick loop)
+        log.warning("sim: robot %d floods the run: %d of its messages refused", robot, refused)
+        self._floods.append((robot, refused))
+        self.result.flooding.append(robot)
 
     def _on_stop(self, sample: Sample) -> None:
         msg = self.intake.decode(sample, Stop)
@@ -373,6 +388,9 @@ class SimService(Presence, PhaseCollection):
                 await self._keep_monitor_window(self.result.steps)
             started = time.monotonic()
             spent = self.result.phase_seconds
+            while self._floods:  # reported in the record as an event naming the robot
+                robot, refused = self._floods.pop(0)
+                await self._event("agent.flooding", agent=robot, refused=refused)
             obs = self.step.begin()
             t = obs.t
             if self.on_tick is not None:
