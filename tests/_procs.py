@@ -37,6 +37,19 @@ def descendants(pid: int) -> set[int]:
         return set()
 
 
+def agent_pids(root: int, agent: int) -> list[int]:
+    """The pids of robot ``agent``'s agent processes among the descendants of ``root`` (a run's ``up``)."""
+    out = []
+    for pid in descendants(root):
+        try:
+            cmd = psutil.Process(pid).cmdline()
+        except psutil.NoSuchProcess:
+            continue
+        if role_of(cmd) == "agent" and cmd[cmd.index("--id") + 1] == str(agent):
+            out.append(pid)
+    return out
+
+
 def alive(pids) -> list[int]:
     out = []
     for pid in pids:

@@ -20,12 +20,11 @@ from schemas.keys import RunKeys
 from services.bus.zenoh_bus import endpoint, free_port, zenoh_config
 from services.credentials import RunCredentials
 from services.protocol.tickorder import TickOrder
-from services.supervisor.graph import role_of
 
 # isort: split
 import zenoh  # noqa: E402  (after zenoh_bus set the runtime environment)
 
-from _procs import descendants, kill_tree
+from _procs import agent_pids, kill_tree
 
 CLI = [sys.executable, "-m", "morph_sim.cli"]
 WAIT = 180  # seconds: a bound on each command and wait, for a hang (a loaded machine is slow, not stuck)
@@ -126,20 +125,6 @@ def test_credentials_are_owner_only_and_the_endpoint_enforces_them(tmp_path):
 SILENT_SOCKETS = 150  # connections that never say a word: each holds one of the endpoint's pending handshakes
 
 
-def _agent_pids(up, agent: int) -> list[int]:
-    import psutil
-
-    out = []
-    for pid in descendants(up.pid):
-        try:
-            cmd = psutil.Process(pid).cmdline()
-        except psutil.NoSuchProcess:
-            continue
-        if role_of(cmd) == "agent" and cmd[cmd.index("--id") + 1] == str(agent):
-            out.append(pid)
-    return out
-
-
 def test_the_operator_stops_a_secure_run_and_nobody_else_can(endless_run):
     """...while 150 silent sockets are held open to the endpoint, which also lists faults and restarts a killed
     agent as it would without them."""
@@ -156,10 +141,10 @@ def test_the_operator_stops_a_secure_run_and_nobody_else_can(endless_run):
 
 def _operate_among_silent_sockets(up, ep, run_id, record) -> None:
     # a killed robot is restarted and its new process opens a session: it rejoins the run
-    victim = _agent_pids(up, 1)
+    victim = agent_pids(up.pid, 1)
     assert len(victim) == 1
     os.kill(victim[0], 9)
-    up.wait_until(lambda: [p for p in _agent_pids(up, 1) if p != victim[0]] != [] and up.rows() > 0, 60,
+    up.wait_until(lambda: [p for p in agent_pids(up.pid, 1) if p != victim[0]] != [] and up.rows() > 0, 60,
                   "agent 1 restarted")
     rows = up.rows()
     up.wait_until(lambda: up.rows() >= rows + 5, WAIT, "ticks after the restart")

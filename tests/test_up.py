@@ -12,14 +12,12 @@ import os
 import signal
 import time
 
-import psutil
 import pytest
 
 from services.monitor.recorder import read_metrics
 from services.runconfig import RunConfig
-from services.supervisor.graph import role_of
 
-from _procs import alive, descendants, kill_all
+from _procs import agent_pids, alive, descendants, kill_all
 
 UP_TIMEOUT = 120
 
@@ -53,25 +51,14 @@ def test_up_restarts_an_agent_that_dies(endless_run):
     up = endless_run()
     _first_rows(up)
 
-    def agent_pids(agent: int) -> list[int]:
-        out = []
-        for pid in descendants(up.pid):
-            try:
-                cmd = psutil.Process(pid).cmdline()
-            except psutil.NoSuchProcess:
-                continue
-            if role_of(cmd) == "agent" and cmd[cmd.index("--id") + 1] == str(agent):
-                out.append(pid)
-        return out
-
-    victim = agent_pids(2)
+    victim = agent_pids(up.pid, 2)
     assert len(victim) == 1
     before = up.rows()  # (rows on disk lag the run: the first rows without its ack may come later)
     os.kill(victim[0], signal.SIGKILL)
     restarted: list[int] = []
 
     def rejoined() -> bool:
-        restarted[:] = [p for p in agent_pids(2) if p != victim[0]]
+        restarted[:] = [p for p in agent_pids(up.pid, 2) if p != victim[0]]
         if not restarted:
             return False
         rows = read_metrics(up.record)[before:]
