@@ -233,6 +233,7 @@ class LabDispatch:
         self.team_brain = team_brain
         self.agent_brains = agent_brains
         self.fleet_brain = fleet_brain
+        self._one = team_brain if team_brain is not None else fleet_brain  # the fleet's one brain, if it has one
         own_views = agent_brains is not None or fleet_brain is not None
         self.views = [FleetView() for _ in range(self.n)] if own_views else None
         self.mail = [Mailbox() for _ in range(self.n)]  # each robot's policy messages delivered, not yet taken
@@ -250,9 +251,7 @@ class LabDispatch:
         return self.ep.outcomes
 
     def brains(self):
-        if self.agent_brains is not None:
-            return Team(self.agent_brains)
-        return self.team_brain if self.team_brain is not None else self.fleet_brain
+        return Team(self.agent_brains) if self.agent_brains is not None else self._one
 
     # -- delivery -------------------------------------------------------------------------------------------------
     def _deliver(self, until: float) -> None:
@@ -316,9 +315,7 @@ class LabDispatch:
 
     # -- policy messages ----------------------------------------------------------------------------------------------
     def _brain(self, robot: int):
-        if self.agent_brains is not None:
-            return self.agent_brains[robot]
-        return self.team_brain if self.team_brain is not None else self.fleet_brain
+        return self.agent_brains[robot] if self.agent_brains is not None else self._one
 
     def _hand_mail(self, t: int, s: float) -> None:
         """At the tick's decision point, after learning: each robot's policy takes what was delivered to it."""
