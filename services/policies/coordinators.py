@@ -347,10 +347,7 @@ class MorphBrains(Coordinator):
                     replicas,  # with a replica per owned agent, replica k is row k
                 )
         if p.reset_every and obs.t > 0 and obs.t % p.reset_every == 0 and not obs.final:
-            if replicas is None:
-                self.state.reset_links()
-            else:
-                self.state.reset_links(replicas)
+            self.state.reset_links(replicas)
 
     def eta(self, agent: int) -> float:
         """The arousal signal η of ``agent``'s last update."""
@@ -399,16 +396,14 @@ class MorphBrains(Coordinator):
 
     def save(self, agent):
         s, k = self.state, self.slot(agent)
+        r = self._rep[k]
+        eta, dhat = s.eta[r], s.dhat[r]
         if self.preset == "reference":
-            r = self._rep[k]
             theta, age, h = s.theta_bcm[r, agent], s.age[r, agent], s.h[r, agent]
-            eta, dhat = s.eta[r], s.dhat[r]
             # the previous step's co-assignment: the credit of the next update
             scalars, rows = {}, {"j_prev": [float(v) for v in s.j_prev[r, agent]]}
         else:
-            r = self._rep[k]
             theta, age, h = s.theta_bcm[k], s.age[k], s.h[k]
-            eta, dhat = s.eta[r], s.dhat[r]
             # the task labels of the mutual-information window (small integers), and how far it is filled
             scalars = {"filled": float(s.filled[r]), "baseline": float(s.baseline[r])}
             history = s.history[r]
