@@ -25,6 +25,15 @@ MAX_PAYLOAD = 16 * 1024 * 1024  # refuse absurd payloads before unpacking them
 # (kind, version) -> function turning a version-`version` field map into a version+1 field map.
 Upgrader = Callable[[dict[str, Any]], dict[str, Any]]
 _UPGRADES: dict[tuple[str, int], Upgrader] = {}
+# kind -> message class that ``decode`` reads; filled by :mod:`schemas.messages` (which imports the Tick module, whose
+# fast decoder falls back to ``decode``: the contract hands its classes over instead of being imported here).
+_KINDS: dict[str, type[Message]] = {}
+
+
+def register_kinds(*classes: type[Message]) -> None:
+    """Teach the decoder the wire kinds of ``classes`` (each class's ``KIND``)."""
+    for cls in classes:
+        _KINDS[cls.KIND] = cls
 
 
 def register_upgrade(kind: str, from_version: int, upgrade: Upgrader) -> None:
@@ -85,12 +94,8 @@ def decode(data, expect=None):
 
     Raises :class:`DecodeError` (a ValueError) naming the bad field.
     """
-    # The registry is read at call time: schemas.messages imports the Tick module, whose fast decoder falls back to
-    # this function, so neither module may need the other while it loads.
-    from schemas.messages import MESSAGES
-
     kind, body = unpack_envelope(data)
-    cls = MESSAGES.get(kind)
+    cls = _KINDS.get(kind)
     if cls is None:
         raise DecodeError(KIND_FIELD, f"unknown message kind {kind[:64]!r}")
     if expect is not None and cls is not expect:

