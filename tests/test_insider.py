@@ -16,12 +16,12 @@ import time
 import pytest
 
 from morph_sim.local import run_local
-from schemas import Ack, AgentState, Commit, encode
+from schemas import Ack, AgentState, Commit, Event, encode
 from schemas.keys import RunKeys
 from services.bus.base import Sample
 from services.bus.local import LocalNetwork
 from services.monitor.recorder import read_metrics
-from services.protocol.claims import SEQ_WINDOW
+from services.protocol.claims import ROBOT_EVENTS_PER_TICK, SEQ_WINDOW, robot_event_bytes
 from services.protocol.dispatch import MAX_HELD_PER_PICKER
 from services.runconfig import RunConfig
 
@@ -142,3 +142,24 @@ async def test_insider_picker_commits_far_ticks_and_forged_numbers(tmp_path, bas
 
     run, _, _ = await _attacked(tmp_path, baseline, attack, sim_refused=4000, monitor_refused=4000)
     assert MAX_HELD_PER_PICKER < 4000
+
+
+def _events(tmp_path) -> list[dict]:
+    return [json.loads(line) for line in (tmp_path / "insider" / "events.jsonl").read_text().splitlines()]
+
+
+async def test_insider_events_fill_neither_the_record_nor_memory(tmp_path, baseline):
+    """Robot 3's own events key: 2,000 events of 4 KB (more than any robot's event needs: refused before they are
+    decoded) and 2,000 small ones in one tick (a tick's budget recorded, the rest refused)."""
+    def attack(put, keys, config, t):
+        big = Event(kind="agent.note", source=3, details={"junk": "x" * 4000})
+        assert len(encode(big)) > robot_event_bytes(config.n_agents)
+        for _ in range(2000):
+            put(keys.event(3), big)
+        for k in range(2000):
+            put(keys.event(3), Event(kind="agent.note", source=3, details={"k": k}))
+
+    await _attacked(tmp_path, baseline, attack, sim_refused=0, monitor_refused=4000 - ROBOT_EVENTS_PER_TICK)
+    # what a robot may legitimately say of itself: a tick's budget of events under its own name, in the record
+    notes = [e for e in _events(tmp_path) if e["kind"] == "agent.note"]
+    assert [(e["source"], e["details"]["k"]) for e in notes] == [(3, k) for k in range(ROBOT_EVENTS_PER_TICK)]

@@ -480,3 +480,22 @@ def test_a_flood_is_reported_once_per_robot_at_the_threshold_and_only_for_robots
     assert [watch.note(3) for _ in range(5)] == [None, None, 3, None, None]
     assert [watch.note(who) for who in ("sim", "monitor", 8, -1, True, None)] == [None] * 6
     assert set(watch.refused) == {3}  # bounded by the fleet
+
+
+def test_a_robots_events_are_bounded_in_size_and_per_tick_and_its_budget_comes_back_next_tick():
+    from services.protocol.claims import EventBudget, robot_event_bytes
+
+    budget = EventBudget(n_agents=8, per_tick=2)
+    assert budget.max_bytes == robot_event_bytes(8) >= 2048 + 16 * 8  # a restore event's W row of 8 fits
+    budget.check_size(3, budget.max_bytes)
+    with pytest.raises(ValueError, match="event of robot 3: .* bytes, at most"):
+        budget.check_size(3, budget.max_bytes + 1)
+    budget.take(3, 10)
+    budget.take(3, 10)
+    with pytest.raises(ValueError, match="more than 2 in tick 10"):
+        budget.take(3, 10)
+    budget.take(4, 10)  # another robot's budget is its own
+    budget.take(3, 11)  # the next tick's budget
+    with pytest.raises(ValueError, match="outside 0..7"):
+        budget.take(8, 11)
+    assert set(budget._used) == {3, 4}  # one counter per robot of the fleet

@@ -17,11 +17,21 @@ from schemas.tick import TickArrays, decode_tick
 from services.bus.base import Sample
 from services.metrics.rows import RowReducer
 from services.monitor.streams import MessageStats
-from services.protocol.claims import OncePerTick, OutcomeBound, SenderBinding, check_tick, outcome_step_bound
+from services.protocol.claims import (
+    EventBudget,
+    OncePerTick,
+    OutcomeBound,
+    SenderBinding,
+    check_tick,
+    outcome_step_bound,
+)
 from services.runconfig import RunConfig
 
 if TYPE_CHECKING:
     from services.faults.linkstats import LinkMeter
+
+#: events that steer the run's start and the sim's window, never recorded
+QUIET_EVENTS = ("ready.probe", "ready.ack", "record.progress")
 
 #: what the monitor acts on: the sim's tick, an agent's ack (phase TICK), commit or state, an event, a stop
 Checked = Union[TickArrays, Ack, Commit, AgentState, Event, Stop]
@@ -47,6 +57,7 @@ class Ingest:
         self._senders = SenderBinding()
         self._once = OncePerTick()
         self._outcomes = OutcomeBound(outcome_step_bound(self.n))  # before the row reducer takes a robot's counts
+        self._events = EventBudget(self.n)  # what a robot may put into events.jsonl
 
     def take(self, sample: Sample) -> Checked | None:
         """The message ``sample`` carries, checked; None for one the monitor does not act on."""
@@ -113,7 +124,12 @@ class Ingest:
                 return state
             return None
         if head == "events" and len(rel) == 2:
-            return self._event(sample.decode(Event), rel[1])
+            if isinstance(author, int):  # before decoding: a flood of large events costs a length check each
+                self._events.check_size(author, len(sample.payload))
+            event = self._event(sample.decode(Event), rel[1])
+            if isinstance(author, int) and event.kind not in QUIET_EVENTS:  # what goes into events.jsonl
+                self._events.take(author, max(self.rows.last_tick, 0))
+            return event
         if head == "ctl" and rel[1:] == ["stop"]:
             return sample.decode(Stop)
         return None

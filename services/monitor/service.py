@@ -37,7 +37,7 @@ from schemas.tick import TickArrays
 from services.bus.base import Bus, Query, Sample
 from services.intake import Intake
 from services.metrics.rows import ROW_GRACE_TICKS, ClosedRow, RowReducer, Snapshot, summary_of_rows
-from services.monitor.ingest import Ingest
+from services.monitor.ingest import QUIET_EVENTS, Ingest
 from services.monitor.latest import LatestState
 from services.monitor.recorder import Recorder, read_metrics
 from services.monitor.streams import MessageStats, StreamPublisher
@@ -50,7 +50,6 @@ __all__ = ["MonitorResult", "MonitorService", "ROW_GRACE_TICKS", "summary_of_row
 log = logging.getLogger("morph_sim.monitor")
 
 STOP_GRACE = 3.0  # seconds the monitor waits for the sim's end of run after someone else's stop
-QUIET_EVENTS = ("ready.probe", "ready.ack", "record.progress")
 #: every this many rows the monitor says how far its record is (event ``record.progress``, t = rows written): the
 #: lockstep sim keeps at most its window of ticks ahead of it (services/sim/service.py, MONITOR_WINDOW)
 PROGRESS_EVERY = 50

@@ -185,3 +185,43 @@ class FloodWatch:
         count = self.refused.get(author, 0) + 1
         self.refused[author] = count
         return count if count == self.threshold else None
+
+
+#: events of one robot recorded in one tick: a robot's recorded events are a restore or cold start (once per process
+#: start) and its fault layer's windows (one per command that reached it); more than this in one tick is a flood, not
+#: a report (its ready answers are not recorded and not counted here)
+ROBOT_EVENTS_PER_TICK = 16
+
+
+def robot_event_bytes(n_agents: int) -> int:
+    """The largest event payload a robot needs: a restore event carries its W row (a float per robot)."""
+    return 2048 + 16 * max(1, int(n_agents))
+
+
+class EventBudget:
+    """Per robot, the events it may have recorded: payloads up to :func:`robot_event_bytes` and at most
+    :data:`ROBOT_EVENTS_PER_TICK` a tick (the receiver's tick: a robot's events carry no tick of their own that could
+    be trusted). Over either, the event is refused, so a robot cannot fill the record or the receiver's memory with
+    events. Holds one counter per robot of the fleet."""
+
+    def __init__(self, n_agents: int, per_tick: int = ROBOT_EVENTS_PER_TICK):
+        self.n_agents, self.per_tick = int(n_agents), int(per_tick)
+        self.max_bytes = robot_event_bytes(n_agents)
+        self._used: dict[int, tuple[int, int]] = {}  # robot -> (tick, events taken in it)
+
+    def check_size(self, robot: int, size: int) -> None:
+        """ValueError for an event payload of ``size`` bytes that no robot needs (checked before it is decoded)."""
+        if size > self.max_bytes:
+            raise ValueError(f"event of robot {robot}: {size} bytes, at most {self.max_bytes}")
+
+    def take(self, robot: int, now: int) -> None:
+        """Count one event of robot ``robot`` to be recorded at the receiver's tick ``now``; ValueError when the robot
+        has used up this tick's budget (or is not of the fleet)."""
+        if not 0 <= robot < self.n_agents:
+            raise ValueError(f"event of robot {robot}: outside 0..{self.n_agents - 1}")
+        t, used = self._used.get(robot, (now, 0))
+        if t != now:
+            t, used = now, 0
+        if used >= self.per_tick:
+            raise ValueError(f"event of robot {robot}: more than {self.per_tick} in tick {now}")
+        self._used[robot] = (t, used + 1)
