@@ -24,11 +24,13 @@ class Intake:
                  on_refused: Callable[[int], None] | None = None, flood=None,
                  on_flood: Callable[[int, int], None] | None = None):
         """``flood`` (a :class:`services.protocol.claims.FloodWatch`) counts each robot's refused messages, by the
-        key they came on; ``on_flood(robot, refused)`` is called once when a robot crosses its threshold."""
+        key they came on; ``on_flood(robot, refused)`` is called once when a robot crosses each threshold."""
         self.keys = keys
         self.rejects = Rejects(log, owner)
         self.on_refused = on_refused
         self.flood, self.on_flood = flood, on_flood
+        #: robots whose messages are refused unread from now on (cut off for flooding)
+        self.cut_off: set[int] = set()
         bus.reject_hook = self.refuse  # what the bus refuses on arrival counts here too
 
     @property
@@ -41,18 +43,23 @@ class Intake:
         if self.on_refused is not None:
             self.on_refused(self.rejects.total)
         if self.flood is not None:
-            try:
-                author = self.keys.sender_of(what)
-            except ValueError:  # not a key of this run: nobody's robot
-                return
+            author = self._author(what)
             crossed = self.flood.note(author)
             if crossed is not None and self.on_flood is not None:
                 self.on_flood(author, crossed)
+
+    def _author(self, key: str) -> int | str | None:
+        try:
+            return self.keys.sender_of(key)
+        except ValueError:  # not a key of this run: nobody's
+            return None
 
     def decode(self, sample, model: type, author: str | None = None, what: str = ""):
         """``sample`` decoded as ``model``, or None (counted) when it does not decode or, with ``author`` (the field
         that names who sent it), when that author is not the owner of the key it came on."""
         try:
+            if self.cut_off and self._author(sample.key) in self.cut_off:
+                raise ValueError("a robot cut off for flooding")
             msg = sample.decode(model)
             if author is not None:
                 self.keys.check_author(sample.key, getattr(msg, author), what)

@@ -21,7 +21,13 @@ from schemas.keys import RunKeys
 from services.bus.base import Sample
 from services.bus.local import LocalNetwork
 from services.monitor.recorder import read_metrics
-from services.protocol.claims import ROBOT_EVENTS_PER_TICK, SEQ_WINDOW, robot_event_bytes
+from services.protocol.claims import (
+    CUT_OFF_REFUSALS,
+    FLOOD_REFUSALS,
+    ROBOT_EVENTS_PER_TICK,
+    SEQ_WINDOW,
+    robot_event_bytes,
+)
 from services.protocol.dispatch import MAX_HELD_PER_PICKER
 from services.runconfig import RunConfig
 
@@ -163,3 +169,31 @@ async def test_insider_events_fill_neither_the_record_nor_memory(tmp_path, basel
     # what a robot may legitimately say of itself: a tick's budget of events under its own name, in the record
     notes = [e for e in _events(tmp_path) if e["kind"] == "agent.note"]
     assert [(e["source"], e["details"]["k"]) for e in notes] == [(3, k) for k in range(ROBOT_EVENTS_PER_TICK)]
+
+
+async def test_insider_a_robot_that_floods_past_the_cut_off_is_held_and_the_run_goes_on(tmp_path, baseline):
+    """5,000 commitments of tick 10**9 on a picker's own key in one tick: reported at FLOOD_REFUSALS refusals, cut
+    off at CUT_OFF_REFUSALS — from then on its messages are refused unread and its robot is held, as a crashed
+    robot's — and the run completes. What the cut-off changes is the liar's own part: its acks, and the deliveries
+    that needed it."""
+    p = _config(tmp_path, "insider").n_agvs
+
+    def attack(put, keys, config, t):
+        for k in range(5000):
+            put(keys.commit(p), Commit(t=10**9, picker=p, agv=0, seq=k + 1), sender=f"agent-{p}")
+
+    run, rows, _, summary, _ = await _run(tmp_path, "insider", attack)
+    base_run, base_rows = baseline[0], baseline[1]
+    assert run.sim.steps == STEPS and run.sim.stopped_early is None
+    assert run.sim.flooding == [p] and run.sim.cut_off == [p] and base_run.sim.cut_off == []
+    cut = [e for e in _events(tmp_path) if e["kind"] in ("agent.flooding", "agent.cut_off")]
+    assert [(e["kind"], e["source"], e["details"]["agent"], e["details"]["refused"]) for e in cut] == [
+        ("agent.flooding", "sim", p, FLOOD_REFUSALS), ("agent.cut_off", "sim", p, CUT_OFF_REFUSALS)]
+    at = cut[1]["t"]
+    assert AT < at <= AT + 2  # reported at the start of the tick after the flood
+    assert rows[:AT] == base_rows[:AT]  # before the attack: the same run
+    # held from the cut on: every tick's acks are the other seven robots' (the monitor takes nothing of it either)
+    assert all(int(r["acks"]) == 7 for r in rows[at + 1:]), [r["acks"] for r in rows[at + 1:]]
+    assert all(int(r["acks"]) == 8 for r in base_rows[at + 1:])
+    # its genuine messages after the cut are refused too: more than the flood itself
+    assert run.sim.rejected > 5000 and summary["steps"] == STEPS

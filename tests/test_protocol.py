@@ -476,8 +476,8 @@ def test_desk_refuses_far_commitments_and_bounds_what_it_holds():
 def test_a_flood_is_reported_once_per_robot_at_the_threshold_and_only_for_robots():
     from services.protocol.claims import FloodWatch
 
-    watch = FloodWatch(n_agents=8, threshold=3)
-    assert [watch.note(3) for _ in range(5)] == [None, None, 3, None, None]
+    watch = FloodWatch(n_agents=8, threshold=3, cut_off=5)
+    assert [watch.note(3) for _ in range(7)] == [None, None, 3, None, 5, None, None]  # reported, then cut off
     assert [watch.note(who) for who in ("sim", "monitor", 8, -1, True, None)] == [None] * 6
     assert set(watch.refused) == {3}  # bounded by the fleet
 

@@ -58,6 +58,8 @@ class Ingest:
         self._once = OncePerTick()
         self._outcomes = OutcomeBound(outcome_step_bound(self.n))  # before the row reducer takes a robot's counts
         self._events = EventBudget(self.n)  # what a robot may put into events.jsonl
+        #: robots the sim cut off for flooding (its agent.cut_off event): the record takes nothing more of theirs
+        self.cut_off: set[int] = set()
 
     def take(self, sample: Sample) -> Checked | None:
         """The message ``sample`` carries, checked; None for one the monitor does not act on."""
@@ -71,6 +73,8 @@ class Ingest:
         self.counts[kind] = self.counts.get(kind, 0) + 1
         self.sizes[kind] = self.sizes.get(kind, 0) + len(sample.payload)
         author = self.keys.sender_of(sample.key)
+        if author in self.cut_off:
+            raise ValueError(f"robot {author} is cut off for flooding")
         if isinstance(author, int):
             # before its sequence number is counted: a robot opens no stream under a name that is not its own
             self._senders.check(author, sample.sender)

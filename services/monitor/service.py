@@ -283,6 +283,8 @@ class MonitorService:
                 self.bus.put(self.keys.event("monitor"), Event(
                     kind="ready.ack", source="monitor", details={"round": event.details.get("round", 0)}))
             return
+        if event.kind == "agent.cut_off" and event.source == "sim" and isinstance(event.details.get("agent"), int):
+            self.ingest.cut_off.add(event.details["agent"])  # (events of "sim" come on the sim's key alone)
         self.fault_windows.add({"kind": event.kind, "t": event.t, "details": event.details})
         if event.kind == "run.finished":
             self.result.finished = {**(self.result.finished or {}), **event.details}

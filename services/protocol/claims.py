@@ -168,23 +168,28 @@ class SeqWindow:
 #: refusals of one robot's messages after which the receiver reports it as flooding (once per run): a robot that
 #: follows the protocol has none (late and duplicate copies are ignored, not refused), so this many is no accident
 FLOOD_REFUSALS = 256
+#: refusals after which the sim cuts the robot off for the rest of the run: its messages are refused unread and its
+#: robot is held, as a crashed robot's; the run goes on without it. Far above what a robot's faulty moment produces,
+#: so that only a flood that would cost the run its pace or its memory ends there.
+CUT_OFF_REFUSALS = 16 * FLOOD_REFUSALS
 
 
 class FloodWatch:
     """Counts the refusals of each robot's messages; :meth:`note` says when a robot crosses :data:`FLOOD_REFUSALS`
-    (once). Robots only (ints below ``n_agents``): the table is bounded by the fleet."""
+    (reported) and :data:`CUT_OFF_REFUSALS` (cut off), once each. Robots only (ints below ``n_agents``): the table is
+    bounded by the fleet."""
 
-    def __init__(self, n_agents: int, threshold: int = FLOOD_REFUSALS):
-        self.n_agents, self.threshold = int(n_agents), int(threshold)
+    def __init__(self, n_agents: int, threshold: int = FLOOD_REFUSALS, cut_off: int = CUT_OFF_REFUSALS):
+        self.n_agents, self.threshold, self.cut_off = int(n_agents), int(threshold), int(cut_off)
         self.refused: dict[int, int] = {}
 
     def note(self, author: object) -> int | None:
-        """Count one refusal of ``author``'s; its count when this one reaches the threshold, else None."""
+        """Count one refusal of ``author``'s; its count when this one reaches a threshold, else None."""
         if not isinstance(author, int) or isinstance(author, bool) or not 0 <= author < self.n_agents:
             return None
         count = self.refused.get(author, 0) + 1
         self.refused[author] = count
-        return count if count == self.threshold else None
+        return count if count in (self.threshold, self.cut_off) else None
 
 
 #: events of one robot recorded in one tick: a robot's recorded events are a restore or cold start (once per process

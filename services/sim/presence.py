@@ -30,7 +30,8 @@ class Presence:
     """Presence and readiness of a run's participants (a mixin of :class:`services.sim.service.SimService`)."""
 
     def present(self) -> set[int]:
-        return {a for a in self.ready if isinstance(a, int) and a in self.alive}
+        cut = self.intake.cut_off  # a robot cut off for flooding takes part no more, whatever it answers
+        return {a for a in self.ready if isinstance(a, int) and a in self.alive and a not in cut}
 
     def _on_alive(self, event: LivelinessEvent) -> None:
         try:

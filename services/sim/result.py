@@ -49,6 +49,7 @@ class SimResult:
     rejected: int = 0
     absences: int = 0
     flooding: list[int] = field(default_factory=list)  # robots reported for flooding (agent.flooding events)
+    cut_off: list[int] = field(default_factory=list)  # robots cut off for flooding (agent.cut_off events)
     wall_seconds: float = 0.0
     stopped_early: str | None = None
     protocol: dict[str, int] = field(default_factory=dict)  # the dispatch protocol's outcome counters (sim + robots)

@@ -75,7 +75,8 @@ class SimService(Presence, PhaseCollection):
         self.faults = faults
         self.bus = bus
         self.keys = RunKeys(config.run_id)
-        self._floods: list[tuple[int, int]] = []  # robots seen flooding, reported at the next tick's start
+        # robots seen flooding or cut off (robot, refusals, event kind), reported at the next tick's start
+        self._floods: list[tuple[int, int, str]] = []
         self.intake = Intake(bus, self.keys, log, "sim", on_refused=self._count_refused,
                              flood=FloodWatch(config.n_agents), on_flood=self._flooding)
         self.n = config.n_agents
@@ -124,8 +125,16 @@ class SimService(Presence, PhaseCollection):
 
     def _flooding(self, robot: int, refused: int) -> None:
         # (on the bus's receive path: the report is published from the tick loop)
+        if refused >= self.intake.flood.cut_off:
+            # the rest of the run goes on without it: its messages refused unread, its robot held as a crashed one's
+            log.warning("sim: robot %d cut off for flooding: %d of its messages refused", robot, refused)
+            self.intake.cut_off.add(robot)
+            self._absent(robot, "cut off for flooding")
+            self._floods.append((robot, refused, "agent.cut_off"))
+            self.result.cut_off.append(robot)
+            return
         log.warning("sim: robot %d floods the run: %d of its messages refused", robot, refused)
-        self._floods.append((robot, refused))
+        self._floods.append((robot, refused, "agent.flooding"))
         self.result.flooding.append(robot)
 
     def _on_stop(self, sample: Sample) -> None:
@@ -389,8 +398,8 @@ class SimService(Presence, PhaseCollection):
             started = time.monotonic()
             spent = self.result.phase_seconds
             while self._floods:  # reported in the record as an event naming the robot
-                robot, refused = self._floods.pop(0)
-                await self._event("agent.flooding", agent=robot, refused=refused)
+                robot, refused, kind = self._floods.pop(0)
+                await self._event(kind, agent=robot, refused=refused)
             obs = self.step.begin()
             t = obs.t
             if self.on_tick is not None:
