@@ -16,7 +16,7 @@ import time
 import pytest
 
 from morph_sim.local import run_local
-from schemas import Ack, AgentState, Commit, Event, encode
+from schemas import Ack, AgentState, Commit, Event, MetricSample, encode
 from schemas.keys import RunKeys
 from services.bus.base import Sample
 from services.bus.local import LocalNetwork
@@ -40,7 +40,7 @@ def _config(tmp_path, run_id: str) -> RunConfig:
                      state_every=10, snapshot_every=20)
 
 
-async def _run(tmp_path, run_id: str, attack=None):
+async def _run(tmp_path, run_id: str, attack=None, refused_stream: list | None = None):
     """The run, with ``attack(put, keys, config, t)`` called at the start of tick :data:`AT`; ``put(key, message,
     sender, seq)`` sends under any header (``sender`` defaults to robot 3's own name)."""
     config = _config(tmp_path, run_id)
@@ -61,6 +61,10 @@ async def _run(tmp_path, run_id: str, attack=None):
             attack(put, keys, config, t)
 
     insider = net.session("agent-3")  # the compromised robot's credentials: its own name, on its own keys
+    if refused_stream is not None:  # a user's client on the monitor's stream of refusals by robot
+        observer = net.session("observer")
+        await observer.subscribe(keys.metric("refused_by_robot"),
+                                 lambda sample: refused_stream.append(sample.decode(MetricSample)))
     run = await run_local(config, network=net, progress=progress)
     record = config.record_dir
     snapshots = sorted(p.name for p in (record / "snapshots").glob("t*.npz"))
@@ -182,8 +186,13 @@ async def test_insider_a_robot_that_floods_past_the_cut_off_is_held_and_the_run_
         for k in range(5000):
             put(keys.commit(p), Commit(t=10**9, picker=p, agv=0, seq=k + 1), sender=f"agent-{p}")
 
-    run, rows, _, summary, _ = await _run(tmp_path, "insider", attack)
+    stream: list[MetricSample] = []
+    run, rows, _, summary, _ = await _run(tmp_path, "insider", attack, refused_stream=stream)
     base_run, base_rows = baseline[0], baseline[1]
+    # the monitor's stream names it (the rest of the fleet has nothing refused) once it floods, and its last value is
+    # the record's count
+    assert stream and set(stream[-1].labels) == {str(p)} and stream[-1].value == run.monitor.rejected
+    assert not stream[0].labels and stream[0].value == 0
     assert run.sim.steps == STEPS and run.sim.stopped_early is None
     assert run.sim.flooding == [p] and run.sim.cut_off == [p] and base_run.sim.cut_off == []
     cut = [e for e in _events(tmp_path) if e["kind"] in ("agent.flooding", "agent.cut_off")]

@@ -84,6 +84,9 @@ CATALOGUE: tuple[Metric, ...] = (
            "morph_messages", "counter"),
     Metric("drops_total", "messages", "messages lost: sequence gaps per sender and key, plus rejected payloads",
            "messages", "morph_dropped_messages", "counter"),
+    Metric("refused_by_robot", "messages", "robots' messages the monitor refused, cumulative; labels: count per robot "
+           "id (a robot that floods the run stands out by name)", "messages", "morph_refused_robot_messages",
+           "counter"),
     Metric("latency_seconds", "s", "bus latency publish→monitor over the last second: values = [p50, p90, p99]",
            "messages", "morph_bus_latency_seconds", "histogram"),
     *(Metric(f"link/{c}", "messages", f"cumulative {what} per key class; labels: key, receiver", "link")

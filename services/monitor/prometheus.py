@@ -19,7 +19,7 @@ from services.faults.linkstats import QUANTILES
 from services.metrics import catalogue
 
 #: exported from the monitor's message statistics (labels per kind or reason, histograms), not from a stream's value
-FROM_STATS = ("messages_total", "drops_total", "latency_seconds", "dispatch_delay")
+FROM_STATS = ("messages_total", "drops_total", "refused_by_robot", "latency_seconds", "dispatch_delay")
 #: the streams exported as one gauge or counter each, with the catalogue's name and help
 EXPORTED = tuple(m for m in catalogue.CATALOGUE if m.prometheus and m.name not in FROM_STATS)
 #: the link meter's quantile streams (``link/latency/p50`` …) as a summary's ``quantile`` label values
@@ -61,6 +61,12 @@ class MonitorCollector:
         drops.add_metric([run, "sequence_gap"], stats.gaps)
         drops.add_metric([run, "rejected"], stats.rejected)
         yield drops
+        refused = CounterMetricFamily(by["refused_by_robot"].prometheus, "Robots' messages refused by the monitor",
+                                      labels=["run", "robot"])
+        by_robot = dict(stats.refused_by_robot)
+        for robot in range(stats.n):  # every robot's series from the start (a counter that appears at its first count
+            refused.add_metric([run, str(robot)], by_robot.get(robot, 0))  # has no rate to show for it)
+        yield refused
         faults = GaugeMetricFamily("morph_faults_active", "Faults in force (set and not yet healed or reset)",
                                    labels=["run"])
         faults.add_metric([run], mon.fault_windows.active)

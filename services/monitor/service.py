@@ -42,6 +42,7 @@ from services.monitor.latest import LatestState
 from services.monitor.recorder import Recorder, read_metrics
 from services.monitor.streams import MessageStats, StreamPublisher
 from services.policies.interface import Fleet
+from services.protocol.claims import FloodWatch
 from services.protocol.tickorder import TickOrder
 from services.runconfig import RunConfig
 
@@ -92,7 +93,9 @@ class MonitorService:
         self.tap = tap
         self.bus = bus
         self.keys = RunKeys(config.run_id)
-        self.intake = Intake(bus, self.keys, log, "monitor", on_refused=self._count_refused)
+        # counts each robot's refused messages for the refused_by_robot stream (the sim reports and cuts off floods)
+        self.intake = Intake(bus, self.keys, log, "monitor", on_refused=self._count_refused,
+                             flood=FloodWatch(config.n_agents))
         self.n = config.n_agents
         self.recorder = Recorder(config) if record else None
         self.keep_rows = keep_rows
@@ -105,6 +108,7 @@ class MonitorService:
         self._done = False
         self._stop_timer: asyncio.TimerHandle | None = None
         self.stats = MessageStats(self.n, config.dt)  # message streams (counts, drops, latency, dispatch)
+        self.stats.refused_by_robot = self.intake.flood.refused
         # per key class sent / delivered / dropped / duplicated / late and latency, from the samples'
         # own headers, published as link/* metrics every k (state_every) ticks
         from services.faults.linkstats import LinkMeter

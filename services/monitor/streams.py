@@ -69,6 +69,8 @@ class MessageStats:
         self.total = 0
         self.gaps = 0
         self.rejected = 0
+        #: refusals per robot (services.protocol.claims.FloodWatch.refused, bounded by the fleet)
+        self.refused_by_robot: dict[int, int] = {}
         self.clock = "wall"  # clock of the latencies: "wall" seconds or "sim" seconds (virtual time)
         self._seq: dict[tuple[str, str], SeqWindow] = {}
         self._latency: deque[tuple[float, float]] = deque()  # (receive time, latency)
@@ -140,6 +142,8 @@ class MessageStats:
                    labels={k: str(v) for k, v in sorted(self.by_kind.items())}),
             sample("drops_total", t, sim_time, value=float(self.gaps + self.rejected),
                    labels={"sequence_gaps": str(self.gaps), "rejected": str(self.rejected)}),
+            sample("refused_by_robot", t, sim_time, value=float(sum(self.refused_by_robot.values())),
+                   labels={str(robot): str(n) for robot, n in sorted(self.refused_by_robot.items())}),
             sample("agents_alive", t, sim_time, value=float(values.get("acks") or 0)),
         ]
         if self._dispatch_row is not None:
