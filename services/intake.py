@@ -32,6 +32,7 @@ class Intake:
         #: robots whose messages are refused unread from now on (cut off for flooding)
         self.cut_off: set[int] = set()
         bus.reject_hook = self.refuse  # what the bus refuses on arrival counts here too
+        bus.inbox_author = self._author  # each robot's share of what waits to be read
 
     @property
     def refused(self) -> int:

@@ -17,7 +17,7 @@ import time
 
 import pytest
 
-from schemas import Ack, RunKeys
+from schemas import Ack, RunKeys, encode
 from services.bus import LivelinessEvent, wait_for_alive
 from services.bus.zenoh_bus import (
     RUNTIME_SINGLE_THREAD,
@@ -278,3 +278,43 @@ def test_a_free_port_lies_below_the_range_outgoing_connections_draw_from_and_can
     with socket.socket() as s:
         s.bind(("127.0.0.1", ports.pop()))
         s.listen()
+
+
+async def test_one_robots_flood_gets_its_share_of_the_inbox_and_the_rest_is_refused() -> None:
+    """While a session's loop is busy, what arrives waits in its inbox: a robot's samples beyond its share are refused
+    on arrival (and counted), so a robot publishing as fast as it can does not fill the receiver's memory; another
+    robot's samples still all arrive."""
+    from services.bus.zenoh_bus import INBOX_PER_ROBOT
+
+    ep = endpoint(free_port())
+    hub = await ZenohBus.open("monitor", listen=ep)
+    robots = await ZenohBus.open("agent-3", connect=ep, connect_timeout=5)
+    refused: list[str] = []
+    hub.inbox_author = K.sender_of  # what the services' intake sets
+    hub.reject_hook = lambda key, why: refused.append(why)
+    got: dict[int, int] = {}
+    sub = await hub.subscribe(K.acks, lambda s: got.__setitem__(K.sender_of(s.key), got.get(K.sender_of(s.key), 0) + 1))
+    try:
+        await robots.wait_for_subscribers(K.ack(3), timeout=5)
+        flood = INBOX_PER_ROBOT + 2000
+        payload = encode(Ack(t=0, agent=3))
+        for _ in range(flood):
+            robots.put(K.ack(3), payload)
+        for _ in range(10):
+            robots.put(K.ack(1), encode(Ack(t=0, agent=1)))
+        # the loop is busy (blocked here) while everything arrives on Zenoh's threads
+        deadline = time.monotonic() + 10
+        while len(hub._inbox) + len(refused) < flood + 10 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert len(hub._inbox) <= INBOX_PER_ROBOT + 10
+        deadline = time.monotonic() + 10
+        while sum(got.values()) < INBOX_PER_ROBOT + 10 and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)
+        assert got == {3: INBOX_PER_ROBOT, 1: 10}, got
+        assert len(refused) == flood - INBOX_PER_ROBOT and hub.counters.rejected == len(refused)
+        assert refused[0] == f"robot 3 has {INBOX_PER_ROBOT} messages waiting to be read: over its share"
+        assert hub._waiting == {}  # every share given back once read
+    finally:
+        await sub.close()
+        await robots.close()
+        await hub.close()

@@ -357,6 +357,9 @@ class Bus(ABC):
         # The owning service's reject counter (``hook(key, reason)``): refusals made here, before any handler sees
         # the message, are counted with the service's own rejects.
         self.reject_hook: Callable[[str, str], None] | None = None
+        # The owning service's reading of a key's author (a robot id, or None for anything else): where samples wait
+        # for the loop (ZenohBus's inbox), each robot gets a bounded share, so one robot's flood cannot fill memory.
+        self.inbox_author: Callable[[str], object] | None = None
 
     # -- lifecycle ------------------------------------------------------------------------------------------------
     @property

@@ -74,6 +74,9 @@ log = logging.getLogger("morph_sim.bus.zenoh")
 
 CLOSE_TIMEOUT = 3.0
 DRAIN_BATCH = 256  # inbox items delivered per loop turn (see ZenohBus._drain)
+#: samples of one robot that may wait in a session's inbox for the loop: a robot sends a few messages a tick and the
+#: monitor may read a few hundred ticks behind; more waiting is a flood, refused on arrival (Bus.inbox_author)
+INBOX_PER_ROBOT = 4096
 DEFAULT_PORT = 7447
 
 
@@ -275,6 +278,8 @@ class ZenohBus(Bus):
         self._loop = loop
         self._express = express
         self._inbox: deque[tuple[Callable[..., None], tuple]] = deque()
+        self._waiting: dict[int, int] = {}  # robot -> its samples in the inbox (see _post_sample)
+        self._waiting_lock = threading.Lock()
         self._drain_pending = False
         self._publishers: dict[tuple[str, bool], Any] = {}
         # Serializes inline handlers across subscriptions (each Zenoh callback subscriber has its own thread).
@@ -321,6 +326,37 @@ class ZenohBus(Bus):
                 self._loop.call_soon_threadsafe(self._drain)
             except RuntimeError:  # loop closed: the process is shutting down
                 pass
+
+    def _post_sample(self, sub: Subscription[Sample], sample: Sample) -> None:
+        """Called on a Zenoh callback thread: queue ``sample`` for ``sub`` on the loop, within its robot's share of
+        the inbox (:data:`INBOX_PER_ROBOT`; a sample over it is refused and counted)."""
+        author_of = self.inbox_author
+        robot = None
+        if author_of is not None:
+            try:
+                robot = author_of(sample.key)
+            except ValueError:
+                robot = None
+        if type(robot) is not int:
+            self._post(self._ingress, sub, sample)
+            return
+        with self._waiting_lock:
+            waiting = self._waiting.get(robot, 0)
+            if waiting < INBOX_PER_ROBOT:
+                self._waiting[robot] = waiting + 1
+        if waiting >= INBOX_PER_ROBOT:
+            self._refuse(sample, f"robot {robot} has {INBOX_PER_ROBOT} messages waiting to be read: over its share")
+            return
+        self._post(self._ingress_counted, sub, sample, robot)
+
+    def _ingress_counted(self, sub: Subscription[Sample], sample: Sample, robot: int) -> None:
+        with self._waiting_lock:
+            left = self._waiting.get(robot, 1) - 1
+            if left > 0:
+                self._waiting[robot] = left
+            else:
+                self._waiting.pop(robot, None)
+        self._ingress(sub, sample)
 
     def _drain(self) -> None:
         """Deliver what is in the inbox now, at most ``DRAIN_BATCH`` items, then give the loop a turn.
@@ -407,7 +443,7 @@ class ZenohBus(Bus):
         return deliver_locked
 
     def _declare_subscriber(self, key_expr: str, sub: Subscription[Sample]) -> Callable[[], None]:
-        post, ingress, put_kind = self._post, self._ingress, zenoh.SampleKind.PUT
+        post_sample, ingress, put_kind = self._post_sample, self._ingress, zenoh.SampleKind.PUT
         inline = sub.inline
 
         def on_sample(zs: Any) -> None:  # Zenoh thread
@@ -421,7 +457,7 @@ class ZenohBus(Bus):
             elif inline:
                 ingress(sub, sample)  # straight to the handler on this thread (deliver_locked serializes)
             else:
-                post(ingress, sub, sample)
+                post_sample(sub, sample)
 
         zsub = self.session.declare_subscriber(key_expr, on_sample)
         self._sample_subs.append(sub)
@@ -460,13 +496,13 @@ class ZenohBus(Bus):
         except ValueError as exc:
             self._refuse(carrier, str(exc))
             return
-        ingress, post = self._ingress, self._post
+        ingress, post_sample = self._ingress, self._post_sample
         for sample in samples:
             for target in self._route(sample.key):
                 if target.inline:
                     ingress(target, sample)
                 else:
-                    post(ingress, target, sample)
+                    post_sample(target, sample)
 
     def _declare_queryable(self, key_expr: str, handler: Callable[[Query], Awaitable[None] | None]
                            ) -> Callable[[], None]:
