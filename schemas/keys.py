@@ -183,6 +183,30 @@ def parse_agent_id(chunk: str) -> int | str:
     return int(chunk) if chunk.isdigit() else chunk
 
 
+#: what a robot publishes under its own keys ``agent/<id>/<kind>``; ``request``, ``reply`` and ``policy`` name their
+#: receiver in one more chunk (a robot id; ``policy`` also ``all``), the others end there
+ROBOT_KINDS = ("ack", "skip", "request", "reply", "policy", "commit", "state")
+ADDRESSED_KINDS = ("request", "reply", "policy")
+
+
+def check_robot_key(rel: list[str], n_agents: int) -> None:
+    """ValueError unless ``rel`` (a key's chunks after the run, ``["agent", id, kind, ...]``) is a key a robot of a
+    fleet of ``n_agents`` publishes on: a receiver that takes every key of the run keeps per-key state (counts,
+    sequence numbers) only for these, never for new sub-keys a robot makes up."""
+    if len(rel) < 3 or rel[2] not in ROBOT_KINDS:
+        raise ValueError(f"no message kind {'/'.join(rel[2:])[:64]!r} under a robot's keys")
+    robot = parse_agent_id(rel[1])
+    if not isinstance(robot, int) or not 0 <= robot < n_agents:
+        raise ValueError(f"robot {rel[1][:16]!r} outside 0..{n_agents - 1}")
+    if rel[2] in ADDRESSED_KINDS:
+        to = rel[3] if len(rel) == 4 else ""
+        receiver = parse_agent_id(to)
+        if not (to == "all" and rel[2] == "policy" or isinstance(receiver, int) and 0 <= receiver < n_agents):
+            raise ValueError(f"{rel[2]} to {'/'.join(rel[3:])[:32]!r}: not a robot of the fleet")
+    elif len(rel) != 3:
+        raise ValueError(f"no message kind {'/'.join(rel[2:])[:64]!r} under a robot's keys")
+
+
 class RunKeys:
     """Key expressions of one run. ``RunKeys("r1").tick == "morph/r1/sim/tick"``. (The keys without arguments are
     built once: handlers on the hot path name them for every message.)"""

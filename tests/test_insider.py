@@ -206,3 +206,18 @@ async def test_insider_a_robot_that_floods_past_the_cut_off_is_held_and_the_run_
     assert all(int(r["acks"]) == 8 for r in base_rows[at + 1:])
     # its genuine messages after the cut are refused too: more than the flood itself
     assert run.sim.rejected > 5000 and summary["steps"] == STEPS
+
+
+async def test_insider_new_sub_keys_under_its_own_prefix_are_refused_before_anything_is_kept_per_key(tmp_path,
+                                                                                                   baseline):
+    """Robot 3's own prefix admits any sub-key: 1,500 acks on made-up kinds (``agent/3/k<i>``) and 1,500 requests to
+    made-up receivers. The monitor (which takes every key of the run) refuses each before counting it by kind or
+    keeping a sequence number for its key; nobody else subscribes to such keys."""
+    def attack(put, keys, config, t):
+        ack = encode(Ack(t=t, agent=3))
+        for i in range(1500):
+            put(f"{keys.agent_prefix(3)[:-3]}/k{i}", ack)
+            put(f"{keys.agent_prefix(3)[:-3]}/request/x{i}", ack)
+
+    _, summary, _ = await _attacked(tmp_path, baseline, attack, sim_refused=0, monitor_refused=3000)
+    assert set(summary["messages"]) == set(baseline[3]["messages"]), summary["messages"]

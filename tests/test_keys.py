@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 from hypothesis import given, settings, strategies as st
 
@@ -183,3 +185,19 @@ def test_sender_of_answers_the_same_every_time_refuses_other_runs_every_time_and
     for i in range(5000):  # a fuzzer's keys
         assert k.sender_of(f"morph/r1/agent/{i}/x{i}") == i
     assert len(k._senders) <= 4096
+
+
+def test_a_robots_keys_are_the_protocols_and_nothing_it_makes_up():
+    from schemas.keys import check_robot_key
+
+    k = RunKeys("r")
+    for key in (k.ack(3), k.skip(3), k.request(1, 5), k.reply(5, 1), k.policy(3, None), k.policy(3, 4), k.commit(5),
+                k.agent_state(3)):
+        check_robot_key(k.relative(key), 8)
+    for key, why in (("agent/3/k1", "no message kind 'k1'"), ("agent/3/ack/x", "no message kind 'ack/x'"),
+                     ("agent/3", "no message kind ''"), ("agent/9/ack", "robot '9' outside 0..7"),
+                     ("agent/monitor/ack", "robot 'monitor' outside"), ("agent/3/request", "request to ''"),
+                     ("agent/3/request/zz", "request to 'zz'"), ("agent/3/request/8", "request to '8'"),
+                     ("agent/3/reply/all", "reply to 'all'"), ("agent/3/policy/all/x", "policy to 'all/x'")):
+        with pytest.raises(ValueError, match=re.escape(why)):
+            check_robot_key(k.relative(f"morph/r/{key}"), 8)

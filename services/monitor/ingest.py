@@ -12,7 +12,7 @@ import time
 from typing import TYPE_CHECKING, Union
 
 from schemas import Ack, AgentState, Commit, Event, Phase, Stop
-from schemas.keys import RunKeys
+from schemas.keys import RunKeys, check_robot_key
 from schemas.tick import TickArrays, decode_tick
 from services.bus.base import Sample
 from services.metrics.rows import RowReducer
@@ -69,7 +69,9 @@ class Ingest:
             return None
         rel = self.keys.relative(sample.key)
         head = rel[0]
-        kind = head if head != "agent" or len(rel) < 3 else rel[2]
+        if head == "agent":  # before anything is counted or kept per key: only the keys the protocol has
+            check_robot_key(rel, self.n)
+        kind = head if head != "agent" else rel[2]
         self.counts[kind] = self.counts.get(kind, 0) + 1
         self.sizes[kind] = self.sizes.get(kind, 0) + len(sample.payload)
         author = self.keys.sender_of(sample.key)
