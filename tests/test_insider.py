@@ -16,7 +16,7 @@ import time
 import pytest
 
 from morph_sim.local import run_local
-from schemas import Ack, AgentState, Commit, Event, MetricSample, encode
+from schemas import Ack, AgentState, Commit, Event, HelpRequest, MetricSample, encode
 from schemas.keys import RunKeys
 from services.bus.base import Sample
 from services.bus.local import LocalNetwork
@@ -221,3 +221,26 @@ async def test_insider_new_sub_keys_under_its_own_prefix_are_refused_before_anyt
 
     _, summary, _ = await _attacked(tmp_path, baseline, attack, sim_refused=0, monitor_refused=3000)
     assert set(summary["messages"]) == set(baseline[3]["messages"]), summary["messages"]
+
+
+async def test_insider_an_agv_asks_a_picker_once_a_tick_however_often_it_sends(tmp_path, baseline):
+    """AGV 3's own request key to picker 5: 3,000 requests for the current tick, numbered 1..3,000 (its genuine
+    stream's numbers too). The picker takes the first — an AGV's own request is its own to make, for whatever cell
+    it names — and refuses the other 2,999 unread by its decision (no thousands of answers, no copies counted, no
+    genuine request later taken for a copy of a forged number)."""
+    picker = _config(tmp_path, "insider").n_agvs + 1
+
+    def attack(put, keys, config, t):
+        for seq in range(1, 3001):
+            put(keys.request(3, picker), HelpRequest(t=t, agv=3, picker=picker, target_x=3, target_y=4, seq=seq))
+
+    run, rows, _, _, _ = await _run(tmp_path, "insider", attack)
+    base_run, base_rows = baseline[0], baseline[1]
+    assert run.sim.steps == STEPS and run.sim.stopped_early is None
+    assert run.agents[picker].rejected == base_run.agents[picker].rejected + 2999
+    assert rows[:AT] == base_rows[:AT]
+    # what one more request of AGV 3's can change: the picker's answer to it, and what the fleet does after that
+    # differently (who asks whom next); never thousands of answers or copies
+    for row, base in zip(rows, base_rows):
+        assert abs(int(row["dispatch_declined"]) - int(base["dispatch_declined"])) < 10
+        assert int(row["dispatch_duplicates"]) == int(base["dispatch_duplicates"]) == 0

@@ -499,3 +499,20 @@ def test_a_robots_events_are_bounded_in_size_and_per_tick_and_its_budget_comes_b
     with pytest.raises(ValueError, match="outside 0..7"):
         budget.take(8, 11)
     assert set(budget._used) == {3, 4}  # one counter per robot of the fleet
+
+
+def test_a_picker_takes_one_request_of_an_agv_a_tick_its_copies_a_few_times_and_a_reused_number_at_another_tick():
+    from services.protocol.dispatch import MAX_REQUEST_COPIES, Outcomes, PickerEndpoint, Request
+
+    ep, out = PickerEndpoint(5), Outcomes()
+    ep.receive(Request(3, 5, (1, 2), 10.0, 7), 10.0, out)
+    for _ in range(MAX_REQUEST_COPIES - 1):  # the network's copies: counted at the next decision point
+        ep.receive(Request(3, 5, (1, 2), 10.0, 7), 10.0, out)
+    with pytest.raises(ValueError, match=f"received more than {MAX_REQUEST_COPIES} times"):
+        ep.receive(Request(3, 5, (1, 2), 10.0, 7), 10.0, out)
+    with pytest.raises(ValueError, match="a second request of AGV 3 sent at 10 s"):
+        ep.receive(Request(3, 5, (6, 6), 10.0, 8), 10.0, out)
+    ep.receive(Request(4, 5, (1, 2), 10.0, 7), 10.0, out)  # another AGV's number 7 is its own
+    ep.receive(Request(3, 5, (1, 2), 11.0, 7), 11.0, out)  # number 7 again a tick later: a request, not a copy
+    assert [(r.agv, r.sent_at) for _, r in ep.inbox] == [(3, 10.0), (4, 10.0), (3, 11.0)]
+    assert len(ep.copies) == MAX_REQUEST_COPIES - 1

@@ -269,7 +269,10 @@ class LabDispatch:
                 continue
             self.net.observe_delay(due, msg.sent_at)
             if isinstance(msg, Request):
-                ep.pickers[receiver].receive(msg, due, out)
+                try:
+                    ep.pickers[receiver].receive(msg, due, out)
+                except ValueError:  # more copies of a request than a picker takes: its agent refuses them too
+                    pass
             elif isinstance(msg, Commitment):
                 ep.desk.receive(msg, due, out)
             elif isinstance(msg, Reply):

@@ -77,7 +77,11 @@ class PickerService(AgentService):
         # never dropped for being late: it waits in the endpoint's inbox for this picker's next decision point
         req = protocol.Request(msg.agv, msg.picker, (msg.target_x, msg.target_y), msg.t * self.config.dt, msg.seq)
         with self._lock:
-            self.endpoint.receive(req, self._due(sample, req.sent_at), self.outcomes)
+            try:
+                self.endpoint.receive(req, self._due(sample, req.sent_at), self.outcomes)
+            except ValueError as exc:  # a second request of the AGV for its tick, or too many copies of one
+                self.intake.refuse(sample.key, exc)
+                return
             self.readiness.request(msg.t, msg.agv)
             self._try_decide()
 

@@ -258,8 +258,20 @@ class AgvEndpoint:
         return req
 
 
+#: receptions of one AGV's request a picker takes: the request and the network's copies of it (each fault in force
+#: on a link delivers a message at most twice); more is not an AGV's traffic
+MAX_REQUEST_COPIES = 8
+#: requests a picker remembers having received (per AGV and tick), to tell a second request from a copy: more than
+#: a large fleet's AGVs ask in the ticks a copy may come late
+REQUESTS_REMEMBERED = 16384
+
+
 class PickerEndpoint:
-    """One picker's side: an inbox of delivered requests and at most one commitment in flight."""
+    """One picker's side: an inbox of delivered requests and at most one commitment in flight.
+
+    An AGV asks a picker at most once a tick: a second, different request of that AGV for the same tick, or more
+    than :data:`MAX_REQUEST_COPIES` receptions of one, is refused (ValueError) rather than held and answered, so an
+    AGV cannot make a picker hold, weigh and answer thousands of requests in one decision."""
 
     def __init__(self, picker: int, timeout: float = DEFAULT_REQUEST_TIMEOUT,
                  next_seq: Callable[[], int] | None = None):
@@ -269,7 +281,9 @@ class PickerEndpoint:
         self.inbox: list[tuple[float, Request]] = []  # (delivery time, request)
         self.pending: Commitment | None = None
         self.refusals: list[tuple[float, Refusal]] = []  # (delivery time, refusal) not yet taken into account
-        self._seen: set[tuple[int, int]] = set()  # (agv, seq) of every request delivered
+        # (agv, sent_at) -> (seq, receptions) of the requests delivered: the first is the request, the others copies
+        # (told by the AGV and the tick as well as the number, so a number reused for another tick is no copy)
+        self._asked: dict[tuple[int, float], tuple[int, int]] = {}
         # delivery times of copies of requests already seen, counted at the first decision point at or after them:
         # when a copy reaches a robot's process is a matter of threads, its decision points are not
         self.copies: list[float] = []
@@ -277,14 +291,26 @@ class PickerEndpoint:
 
     def receive(self, msg: Request | Refusal, due: float, outcomes: Outcomes) -> None:
         if isinstance(msg, Request):
-            key = (msg.agv, msg.seq)
-            if key in self._seen:
+            if self._count_reception(msg) > 1:
                 self.copies.append(due)
                 return
-            self._seen.add(key)
             self.inbox.append((due, msg))
         elif isinstance(msg, Refusal):
             self.refusals.append((due, msg))  # takes effect at the first decision point after it was delivered
+
+    def _count_reception(self, msg: Request) -> int:
+        """How many times ``msg`` has been received, this one included; ValueError for one a picker does not take."""
+        slot = (msg.agv, msg.sent_at)
+        seq, received = self._asked.get(slot, (msg.seq, 0))
+        if seq != msg.seq:
+            raise ValueError(f"a second request of AGV {msg.agv} sent at {msg.sent_at:g} s (number {msg.seq}; it "
+                             f"asked with number {seq})")
+        if received >= MAX_REQUEST_COPIES:
+            raise ValueError(f"request {msg.seq} of AGV {msg.agv} received more than {MAX_REQUEST_COPIES} times")
+        self._asked[slot] = (seq, received + 1)
+        while len(self._asked) > REQUESTS_REMEMBERED:  # the oldest first (insertion order)
+            del self._asked[next(iter(self._asked))]
+        return received + 1
 
     def check_pending(self, now: float, assigned: bool, outcomes: Outcomes) -> None:
         """At the picker's decision point ``now``: a commitment in flight ends when its refusal was delivered by
