@@ -4,7 +4,7 @@ and the lines they print, and the run record afterwards.
 * a crash set ~70 ticks ahead is carried out at that tick (the supervisor kills and restarts the agent), is in the
   events once, and the report draws one crash line for it; the CLI exits 0 with the supervisor's verdict alone;
 * a crash at a tick already past is refused with one line naming ``crash.at_tick`` (exit 1) and never happens;
-* ``--agents 99`` on an 8-agent run is refused naming the field (exit 1);
+* ``--agents 99`` on a 3-robot run is refused naming the field (exit 1);
 * ``reset --id`` of a fault that was set succeeds (exit 0).
 
 The run is paced (a CLI process needs one to two seconds to start and connect on a loaded machine, so "70 ticks
@@ -26,12 +26,14 @@ from services.bus.zenoh_bus import endpoint, free_port
 from services.monitor.recorder import read_metrics
 from services.monitor.report import load
 
-from _procs import alive, descendants, kill_all
+from _procs import FEW_ROBOTS, alive, descendants, kill_all
 
 STEPS = 160  # the crash comes about tick 80, the last command ends by tick ~110 (12.8 s in all)
 PERIOD = 0.08  # s per tick: 70 ticks = 5.6 s, more than a CLI process needs to answer on a loaded machine
 AHEAD = 70
 VICTIM = 1
+# three robots: the commands' verdicts and the crash are the same whatever the fleet (robot ids 0..2, AGVs 0 and 1)
+ROBOTS = 3
 UP_TIMEOUT = 120
 
 
@@ -55,7 +57,7 @@ async def test_faults_cli_verdicts_and_a_crash_carried_out_at_its_tick(tmp_path)
     run_id = "faultcli"
     argv = [sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", "tiny", "--run-id", run_id,
             "--output-dir", str(tmp_path), "--policy", "full", "--seed", "3", "--steps", str(STEPS),
-            "--mode", "paced", "--period", str(PERIOD), "--phase-timeout", "3", "--listen", ep]
+            "--mode", "paced", "--period", str(PERIOD), "--phase-timeout", "3", *FEW_ROBOTS, "--listen", ep]
     up = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     seen: set[int] = set()
     ticks: list[int] = []
@@ -107,8 +109,8 @@ async def test_faults_cli_verdicts_and_a_crash_carried_out_at_its_tick(tmp_path)
         # meanwhile, and each such list is a line of its own
         refusals = [json.loads(line) for line in lines]
         assert code == 1 and 1 <= len(refusals) <= 2, (code, lines, err)
-        assert all(not r["ok"] and r["error"].startswith("scope.agents: agent 99 is not in this run (robot ids 0..7")
-                   for r in refusals), refusals
+        refused = f"scope.agents: agent 99 is not in this run (robot ids 0..{ROBOTS - 1}"
+        assert all(not r["ok"] and r["error"].startswith(refused) for r in refusals), refusals
 
         code, lines, err = set_l1
         assert code == 0 and json.loads(lines[0])["ok"], (code, lines, err)
@@ -155,8 +157,8 @@ async def test_faults_cli_verdicts_and_a_crash_carried_out_at_its_tick(tmp_path)
     # Before it, the fleet is whole — but paced: a robot descheduled past its period on a loaded machine (the three
     # CLI processes above start in these very ticks) misses that tick's ack, and the sim goes on without it
     before = [acks[t] for t in range(at - 20, at)]
-    assert min(before) >= 7 and sum(a == 8 for a in before) >= 15, before
-    assert min(acks[at + 1], acks[at + 2]) < 8, [acks[t] for t in range(at, at + 5)]
+    assert min(before) >= ROBOTS - 1 and sum(a == ROBOTS for a in before) >= 15, before
+    assert min(acks[at + 1], acks[at + 2]) < ROBOTS, [acks[t] for t in range(at, at + 5)]
     assert load(record).crashes() == [(float(at), str(VICTIM))]  # the report draws this crash and no other
     windows = load(record).fault_windows()
     assert [label for _, _, label in windows] == ["L1"]  # the loss window closed by its reset

@@ -92,12 +92,20 @@ def _events(record: Path) -> list[dict]:
     return [json.loads(x) for x in (record / "events.jsonl").read_text().splitlines() if x.strip()]
 
 
-def test_localbus_faulted_run_is_the_same_twice_and_differs_from_the_clean_run(tmp_path):
+@pytest.fixture(scope="module")
+def faulted_local(tmp_path_factory):
+    """``morph-sim run`` (LocalBus) under the fault schedule: its result and its record. The first test below shows it
+    is the same run every time; the tests that compare ``up`` with it read this one."""
+    tmp = tmp_path_factory.mktemp("faulted-local")
+    return local(config(tmp, schedule_file(tmp))), tmp / "fd"
+
+
+def test_localbus_faulted_run_is_the_same_twice_and_differs_from_the_clean_run(tmp_path, faulted_local):
     sched = schedule_file(tmp_path)
-    first = local(config(tmp_path / "a", sched))
+    first, record = faulted_local
     second = local(config(tmp_path / "b", sched))
     clean = local(config(tmp_path / "c", None))
-    a, b, c = (tmp_path / x / "fd" / "metrics.csv" for x in "abc")
+    a, b, c = (record / "metrics.csv", *(tmp_path / x / "fd" / "metrics.csv" for x in "bc"))
     assert a.read_bytes() == b.read_bytes()
     assert first.sim.per_tick_deliveries == second.sim.per_tick_deliveries
     assert first.sim.commits_applied == second.sim.commits_applied
@@ -226,15 +234,13 @@ def run_up(live_run, out: Path, sched: Path, timeout: float = 120) -> None:
     assert up.wait(timeout=timeout) == 0, up.stderr()[-3000:]
 
 
-def check_up_equals_localbus(tmp_path: Path, live_run, ups: int) -> None:
+def check_up_equals_localbus(tmp_path: Path, live_run, ups: int, loc: Path) -> None:
     """Real ``morph-sim up`` (one OS process per agent over Zenoh) under the fault schedule, ``ups`` times, and
-    ``morph-sim run`` (LocalBus) with the same config: identical metrics.csv, tick for tick."""
+    ``morph-sim run`` (LocalBus) with the same config (its record ``loc``): identical metrics.csv, tick for tick."""
     sched = schedule_file(tmp_path)
     for i in range(1, ups + 1):
         run_up(live_run, tmp_path / f"up{i}", sched)
-    local(config(tmp_path / "local", sched))
     runs = [tmp_path / f"up{i}" / "fd" for i in range(1, ups + 1)]
-    loc = tmp_path / "local" / "fd"
     rows = [read_metrics(r) for r in (*runs, loc)]
     assert len(rows[0]) == len(rows[-1]) == STEPS
     for name in COLUMNS:
@@ -245,16 +251,16 @@ def check_up_equals_localbus(tmp_path: Path, live_run, ups: int) -> None:
     assert fault_events[0] == fault_events[1] and len(fault_events[0]) == 7
 
 
-def test_up_with_faults_gives_the_localbus_run(tmp_path, live_run):
+def test_up_with_faults_gives_the_localbus_run(tmp_path, live_run, faulted_local):
     """The acceptance, once: up under the fault schedule equals the LocalBus run, which is the same run every time
     (test_localbus_faulted_run_is_the_same_twice_and_differs_from_the_clean_run), so an up that differed from one run
     to the next would differ from it. The slow test below runs up twice."""
-    check_up_equals_localbus(tmp_path, live_run, ups=1)
+    check_up_equals_localbus(tmp_path, live_run, ups=1, loc=faulted_local[1])
 
 
 @pytest.mark.slow
-def test_up_with_faults_gives_the_same_run_twice_and_the_localbus_run(tmp_path, live_run):
-    check_up_equals_localbus(tmp_path, live_run, ups=2)
+def test_up_with_faults_gives_the_same_run_twice_and_the_localbus_run(tmp_path, live_run, faulted_local):
+    check_up_equals_localbus(tmp_path, live_run, ups=2, loc=faulted_local[1])
 
 
 def test_up_in_wall_time_sleeps_for_real(tmp_path, live_run):

@@ -20,7 +20,7 @@ from services.bus.local import LocalNetwork
 from services.monitor.recorder import read_metrics, read_snapshots
 from services.runconfig import RunConfig
 
-from _procs import kill_tree
+from _procs import FEW_ROBOTS, kill_tree
 
 
 def fuzz_keys(keys: RunKeys, n_agvs: int, n: int) -> list[str]:
@@ -106,17 +106,18 @@ async def test_fuzzed_local_run_equals_the_clean_run(tmp_path):
 
 def test_fuzzed_distributed_run_equals_the_clean_run(tmp_path):
     """The same over Zenoh: ``morph-sim up --insecure`` (an open endpoint: the services' own checks are all that
-    stands) while an intruder session floods every key."""
+    stands) while an intruder session floods every key. Three robots: every kind of service and key is there (the
+    sim, the monitor, AGVs and a picker, every request and reply key between them)."""
     from services.bus.zenoh_bus import ZenohBus, endpoint, free_port
 
     steps = 150
     ep = endpoint(free_port())
     argv = [sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", "tiny", "--policy", "morph",
             "--steps", str(steps), "--seed", "3", "--run-id", "fz", "--output-dir", str(tmp_path / "up"),
-            "--listen", ep, "--insecure"]
+            "--listen", ep, "--insecure", *FEW_ROBOTS]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     keys = RunKeys("fz")
-    config = RunConfig(run_id="fz", scale="tiny", policy="morph", steps=steps, seed=3)
+    config = RunConfig(run_id="fz", scale="tiny", agvs=2, pickers=1, policy="morph", steps=steps, seed=3)
 
     async def flood() -> int:
         deadline = asyncio.get_running_loop().time() + 60

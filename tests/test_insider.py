@@ -31,7 +31,7 @@ from services.protocol.claims import (
 from services.protocol.dispatch import MAX_HELD_PER_PICKER
 from services.runconfig import RunConfig
 
-STEPS = 120
+STEPS = 80  # the attack at tick AT, then 50 ticks of the run that must not take any of it
 AT = 30  # the tick the attack lands at: the run is under way, rows before and after it are compared
 
 

@@ -14,7 +14,7 @@ from morph_sim.lab.network import dispatch_faults
 from services.metrics import catalogue
 from services.monitor.recorder import read_metrics
 
-from _procs import OPERATOR_CLIENT
+from _procs import FEW_ROBOTS, OPERATOR_CLIENT
 
 # A default-settings Zenoh client with the run's operator credentials (the README's subscriber): every sample of the
 # dispatch outcome streams, and the end of the run.
@@ -51,11 +51,12 @@ print(json.dumps(got))
 
 def test_a_live_up_streams_every_outcome_every_tick_and_ends_on_the_record(tmp_path, live_run):
     """``morph-sim up`` with 2.5 ticks of dispatch latency (and loss): a user's Zenoh client receives the outcome
-    streams tick after tick, each value the record's for that tick, the last ones the run's totals."""
+    streams tick after tick, each value the record's for that tick, the last ones the run's totals. Three robots (two
+    AGVs asking one picker): the streams and the record are the monitor's whatever the fleet."""
     steps = 300
     (tmp_path / "faults.toml").write_text(schedule_toml((*dispatch_faults(LATE), *dispatch_faults(BURSTY))))
     up = live_run("live-oc", "--policy", "full", "--seed", "5", "--steps", str(steps), "--max-rate", "0",
-                  "--phase-timeout", "20", "--fault-schedule", str(tmp_path / "faults.toml"))
+                  "--phase-timeout", "20", "--fault-schedule", str(tmp_path / "faults.toml"), *FEW_ROBOTS)
     env = {k: v for k, v in os.environ.items() if not k.startswith("ZENOH_")}
     sub = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, str(up.port), "live-oc",
                             str(up.record / "credentials" / "operator.json5"), "120", str(steps - 1)],

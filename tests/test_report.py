@@ -22,7 +22,8 @@ from _procs import FEW_ROBOTS
 
 
 def test_the_report_renders_every_figure_and_the_gif(tmp_path):
-    config = RunConfig(run_id="rep", scale="tiny", steps=120, policy="morph", output_dir=tmp_path, snapshot_every=40)
+    # 80 ticks: the fault window, W snapshots at 0, 40 and the end, and a GIF frame per tick (under its 200-frame cap)
+    config = RunConfig(run_id="rep", scale="tiny", steps=80, policy="morph", output_dir=tmp_path, snapshot_every=40)
     asyncio.run(run_local(config))
     with open(config.record_dir / "events.jsonl", "a") as f:  # a fault window to shade
         f.write('{"kind": "fault.set", "t": 30, "details": {"fault_id": "f1"}}\n')
@@ -35,7 +36,7 @@ def test_the_report_renders_every_figure_and_the_gif(tmp_path):
             assert im.size[0] > 300 and len(np.unique(np.asarray(im.convert("L")))) > 20  # a drawn figure, not blank
     assert "f1 [30, 60)" in text
     with Image.open(tmp_path / "report" / "warehouse_0.gif") as gif:
-        assert gif.n_frames == 120
+        assert gif.n_frames == config.steps
     rec = load(config.record_dir)
     assert numbers(rec)["deliveries"] == int(read_metrics(config.record_dir)[-1]["deliveries_total"])
     assert len(rec.positions()) == config.steps + 1 and len(rec.links()) == config.steps
