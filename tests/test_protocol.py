@@ -389,11 +389,13 @@ def test_claims_outcome_bound_per_tick_with_restart():
 
 
 def test_claims_once_per_tick_copies_and_seconds():
-    from services.protocol.claims import OncePerTick
+    from services.protocol.claims import MAX_COPIES, OncePerTick
 
     once = OncePerTick()
     assert once.admit(3, 10, 0, seq=7)
-    assert not once.admit(3, 10, 0, seq=7)  # the network's copy
+    assert [once.admit(3, 10, 0, seq=7) for _ in range(MAX_COPIES)] == [False] * MAX_COPIES  # the network's copies
+    with pytest.raises(ValueError, match=f"more than {MAX_COPIES} copies"):
+        once.admit(3, 10, 0, seq=7)
     with pytest.raises(ValueError, match="second answer"):
         once.admit(3, 10, 0, seq=8)
     assert once.admit(3, 10, 1, seq=9) and once.admit(4, 10, 0, seq=8)

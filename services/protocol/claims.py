@@ -77,24 +77,33 @@ class OutcomeBound:
         self._last[who] = (t, dict(counts))
 
 
+#: copies of one answer a receiver ignores quietly: each fault in force on a link delivers a message at most twice;
+#: more copies than this are not the network's, and are refused (and so counted towards a flood)
+MAX_COPIES = 8
+
+
 class OncePerTick:
-    """One answer per (author, tick, phase): a copy the network made (same header sequence number) is ignored, a
-    second, different answer is refused rather than taken or preferred. Remembers ``keep`` ticks."""
+    """One answer per (author, tick, phase): a copy the network made (same header sequence number) is ignored, up to
+    :data:`MAX_COPIES` of them; a second, different answer is refused rather than taken or preferred. Remembers
+    ``keep`` ticks."""
 
     def __init__(self, keep: int = TICKS_BEHIND + TICKS_AHEAD + 1):
         self.keep = int(keep)
-        self._seen: dict[tuple[object, int, int], int] = {}  # (author, t, phase) -> header seq
+        self._seen: dict[tuple[object, int, int], tuple[int, int]] = {}  # (author, t, phase) -> (header seq, copies)
         self._newest = -1
 
     def admit(self, who, t: int, phase: int, seq: int) -> bool:
-        """True: the first answer; False: a copy of it; ValueError: a second, different answer."""
+        """True: the first answer; False: a copy of it; ValueError: a second, different answer, or a copy too many."""
         key = (who, t, phase)
         held = self._seen.get(key)
         if held is not None:
-            if held == seq:
-                return False
-            raise ValueError(f"a second answer of {who} for tick {t} (phase {phase})")
-        self._seen[key] = seq
+            if held[0] != seq:
+                raise ValueError(f"a second answer of {who} for tick {t} (phase {phase})")
+            if held[1] >= MAX_COPIES:
+                raise ValueError(f"more than {MAX_COPIES} copies of {who}'s answer for tick {t} (phase {phase})")
+            self._seen[key] = (seq, held[1] + 1)
+            return False
+        self._seen[key] = (seq, 0)
         if t > self._newest:
             self._newest = t
             if len(self._seen) > 64 * self.keep:  # older ticks are refused by the tick window before they get here
