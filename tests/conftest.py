@@ -22,6 +22,7 @@ import tempfile
 from pathlib import Path
 
 import pytest
+from hypothesis import settings as hypothesis_settings
 
 from _procs import FEW_ROBOTS, OPERATOR_CLIENT, LiveRun, Observer, SharedRun
 
@@ -52,6 +53,13 @@ KINDS: dict[str, tuple[str, ...]] = {
         "test_live_streams", "test_long_run", "test_no_run", "test_operator_commands", "test_policy_packages", "test_outcome_streams", "test_realtime_fleet", "test_restore_lockstep", "test_start_lines", "test_up_exit",
     ),
 }
+# Hypothesis: a property test that does not fix its own number of examples takes the profile's. The default suite
+# draws few examples of each message (tests/test_schemas.py: every message kind has its own test, and a wire
+# contract's mistake shows in the first examples of its kind); HYPOTHESIS_PROFILE=thorough draws ten times as many.
+hypothesis_settings.register_profile("suite", max_examples=25)
+hypothesis_settings.register_profile("thorough", max_examples=250)
+hypothesis_settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "suite"))
+
 KIND_OF = {name: kind for kind, names in KINDS.items() for name in names}
 SLOW_TIMEOUT = 1800  # seconds: an experiment-scale test may take many minutes on 2 cores
 

@@ -112,9 +112,12 @@ def test_bad_configuration_names_the_field(tmp_path):
 
 
 def test_a_distributed_run_from_python_equals_its_in_process_twin(tmp_path):
-    """ms.up starts real processes (sim, 8 agents, monitor over Zenoh); a zero-fault run equals ms.run's."""
-    dist = ms.up(steps=25, seed=5, run_id="py-up", output_dir=tmp_path)
-    local = ms.run(steps=25, seed=5, run_id="py-run", output_dir=tmp_path)
+    """ms.up starts real processes (sim, an agent per robot, monitor over Zenoh); a zero-fault run equals ms.run's.
+    Three robots (tests/_procs.py FEW_ROBOTS): the API's path to the processes is the same for any fleet, and the
+    default fleet's distributed run is held to the lab in tests/test_equivalence.py."""
+    few = {"agvs": 2, "pickers": 1}
+    dist = ms.up(steps=25, seed=5, run_id="py-up", output_dir=tmp_path, **few)
+    local = ms.run(steps=25, seed=5, run_id="py-run", output_dir=tmp_path, **few)
     assert dist.manifest.run_config.seed == 5 and len(dist.metrics) == 25
     cols = ["t", "deliveries", "deliveries_total", "links", "lambda2"]
     assert dist.metrics[cols].equals(local.metrics[cols])

@@ -23,6 +23,8 @@ from services import envconfig
 from services.runconfig import RunConfig, config_from_args
 from services.supervisor.graph import process_graph
 
+from _procs import FEW_ROBOTS
+
 ROOT = Path(__file__).resolve().parent.parent
 COMPOSE = load(ROOT / "docker-compose.yml")
 THIRD_PARTY = {"prometheus", "grafana"}  # the "monitoring" profile's images, checked in tests/test_monitoring.py
@@ -477,15 +479,19 @@ def test_the_deploy_guide_lists_every_variable_and_sample():
 
 
 def test_a_compose_shaped_run_completes_secured_by_its_credentials(tmp_path):
-    """Live, on 127.0.0.1: the compose commands (sim listening, monitor, the 8 robots' services), each process with
+    """Live, on 127.0.0.1: the compose commands (sim listening, monitor, the robots' services), each process with
     only its own credentials file as its container would have it, run a short lock-step run to the end; a process
-    without credentials cannot join it."""
+    without credentials cannot join it. The fleet is three robots, set with compose's own MORPH_AGVS/MORPH_PICKERS
+    (tests/_procs.py FEW_ROBOTS): what is checked is each service's credentials, the same for every robot, and every
+    agent process costs its start (the graph of all 8 is compared with the supervisor's above)."""
     from services.bus.zenoh_bus import free_port
 
     port = free_port()
     where = f"tcp/127.0.0.1:{port}"
+    agvs, pickers = FEW_ROBOTS[FEW_ROBOTS.index("--agvs") + 1], FEW_ROBOTS[FEW_ROBOTS.index("--pickers") + 1]
+    fleet = AGENTS[:int(agvs) + int(pickers)]
     env = {**os.environ, **interpolate(COMPOSE["x-morph-env"], {}), "MORPH_OUTPUT_DIR": str(tmp_path),
-           "MORPH_STEPS": "10", "MORPH_READY_TIMEOUT": "60"}
+           "MORPH_STEPS": "10", "MORPH_READY_TIMEOUT": "60", "MORPH_AGVS": agvs, "MORPH_PICKERS": pickers}
     credentials, _ = _credentials(tmp_path, here=True)
     cli = [sys.executable, "-m", "morph_sim.cli"]
     procs: list[subprocess.Popen] = []
@@ -504,7 +510,7 @@ def test_a_compose_shaped_run_completes_secured_by_its_credentials(tmp_path):
         procs.append(subprocess.Popen(cli + monitor_argv, env=_service_env("monitor", env, credentials),
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         agents = []
-        for name in AGENTS:
+        for name in fleet:
             agent_argv = [c.replace("tcp/sim:7447", where) for c in _argv(name)[1:]]
             agents.append(subprocess.Popen(cli + agent_argv, env=_service_env(name, env, credentials),
                                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
@@ -517,7 +523,7 @@ def test_a_compose_shaped_run_completes_secured_by_its_credentials(tmp_path):
             text, _ = proc.communicate(timeout=30)
             assert proc.returncode == 0, text[-2000:]
             ids.append(json.loads(text.strip().splitlines()[-1])["agent"])
-        assert sorted(ids) == list(range(len(AGENTS)))
+        assert sorted(ids) == list(range(len(fleet)))
         _, refused = stranger.communicate(timeout=60)
         assert stranger.returncode != 0, "an agent without credentials joined the run"
         assert f"cannot reach the Zenoh endpoint {where}" in refused, refused[-2000:]

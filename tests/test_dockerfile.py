@@ -1,5 +1,6 @@
-"""The Dockerfile without a Docker engine: its instructions are checked, and (slow) its steps are replayed —
-the build context it would see, the wheel it builds, a fresh venv that installs that wheel, `morph-sim up` from it.
+"""The Dockerfile without a Docker engine: its instructions are checked, and its steps are replayed — the build
+context it would see, the wheel it builds (its contents, console script and requirements read off it), and (slow) a
+fresh venv that installs that wheel and `morph-sim up` from it.
 """
 
 from __future__ import annotations
@@ -14,9 +15,10 @@ import sysconfig
 import zipfile
 from pathlib import Path
 
+import pytest
 from _compose import interpolate, load
 
-from morph_sim.cli import build_parser
+from morph_sim.cli import build_parser, main
 
 ROOT = Path(__file__).resolve().parent.parent
 BASE_IMAGE = "python:3.11-slim"
@@ -222,12 +224,9 @@ def tree_packages() -> set[str]:
     return found
 
 
-def test_the_wheel_installs_into_a_fresh_venv_and_runs_up(tmp_path):
-    """Build stage: the context and `pip wheel` as in the Dockerfile. Runtime stage: a fresh venv installs that wheel
-    (and nothing of the source tree); its dependencies come from the project's venv on a path appended after the
-    venv's own site-packages (this machine cannot download eclipse-zenoh), so `import morph_sim` can only find the
-    wheel's copy. Then `morph-sim up --scale tiny` runs a real distributed run from the installed console script.
-    """
+def build_the_wheel(tmp_path: Path) -> Path:
+    """Build stage: the context and `pip wheel` as in the Dockerfile (an isolated build, as in the image); the wheel
+    holds every package of the tree and the data files the services read."""
     missing = [p for p in ("pyproject.toml", "README.md") if not (ROOT / p).exists()]
     assert not missing, f"the Dockerfile copies {missing}, which do not exist (pyproject's readme needs README.md)"
     context = tmp_path / "context"
@@ -246,6 +245,59 @@ def test_the_wheel_installs_into_a_fresh_venv_and_runs_up(tmp_path):
     assert tree_packages() - in_wheel == set(), f"packages missing from the wheel: {tree_packages() - in_wheel}"
     for data in ("schemas/json/tick.json", "services/world/layouts.toml", "services/policies/presets/morph_paper.toml"):
         assert data in names, f"{data} is missing from the wheel"
+    return wheel
+
+
+# The default suite's twin of the slow test below: the same build, and what the installed wheel would need to run
+# `morph-sim up` read off the wheel itself (the installer and the run add ~8 CPU-s and are replayed with -m slow).
+def test_the_wheel_holds_the_tree_its_console_script_and_requirements_this_environment_meets(tmp_path):
+    """The wheel the build stage builds holds the tree's code byte for byte (every module, the data files), declares
+    the ``morph-sim`` console script the image's CMD runs, and requires only what is installed here at versions that
+    satisfy it (what `pip check` checks in the slow test, e.g. the eclipse-zenoh pin)."""
+    from email.parser import Parser
+    from importlib.metadata import PackageNotFoundError, version
+
+    from packaging.requirements import Requirement
+
+    wheel = build_the_wheel(tmp_path)
+    with zipfile.ZipFile(wheel) as archive:
+        names = set(archive.namelist())
+        (info,) = {n.split("/", 1)[0] for n in names if n.split("/", 1)[0].endswith(".dist-info")}
+        modules = {n: archive.read(n) for n in names if n.endswith(".py")}
+        entry_points = archive.read(f"{info}/entry_points.txt").decode()
+        metadata = Parser().parsestr(archive.read(f"{info}/METADATA").decode())
+    for name, code in modules.items():
+        assert code == (ROOT / name).read_bytes(), f"{name} in the wheel differs from the tree"
+    tree_modules = {str(p.relative_to(ROOT)) for pkg in tree_packages() for p in (ROOT / pkg.replace(".", "/")).glob("*.py")}
+    assert tree_modules - set(modules) == set(), f"modules missing from the wheel: {tree_modules - set(modules)}"
+
+    assert "[console_scripts]" in entry_points and "morph-sim = morph_sim.cli:main" in entry_points.splitlines()
+    cmd = json.loads(next(rest for word, rest in DOCKERFILE if word == "CMD"))
+    assert cmd[0] == "morph-sim"  # the image runs the script the wheel installs
+    assert callable(main)  # the script's target, in the tree's morph_sim/cli.py that the wheel holds unchanged
+
+    unmet = []
+    for line in metadata.get_all("Requires-Dist"):
+        req = Requirement(line)
+        if req.marker is not None and not req.marker.evaluate({"extra": ""}):
+            continue  # an extra's requirement: the image installs none
+        try:
+            have = version(req.name)
+        except PackageNotFoundError:
+            have = None
+        if have is None or not req.specifier.contains(have, prereleases=True):
+            unmet.append(f"{req} (installed: {have})")
+    assert metadata.get_all("Requires-Dist") and not unmet, f"the wheel's requirements are not met: {unmet}"
+
+
+@pytest.mark.slow
+def test_the_wheel_installs_into_a_fresh_venv_and_runs_up(tmp_path):
+    """Build stage: the context and `pip wheel` as in the Dockerfile. Runtime stage: a fresh venv installs that wheel
+    (and nothing of the source tree); its dependencies come from the project's venv on a path appended after the
+    venv's own site-packages (this machine cannot download eclipse-zenoh), so `import morph_sim` can only find the
+    wheel's copy. Then `morph-sim up --scale tiny` runs a real distributed run from the installed console script.
+    """
+    wheel = build_the_wheel(tmp_path)
 
     # The venv has no pip of its own (seeding one costs seconds of CPU; the image uninstalls its pip anyway): this
     # process's pip installs into it and checks it (pip --python).

@@ -182,7 +182,7 @@ def test_every_message_has_a_strategy_and_a_kind() -> None:
 
 
 @pytest.mark.parametrize("cls", MESSAGE_TYPES, ids=lambda c: c.KIND)
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(deadline=None, suppress_health_check=[HealthCheck.too_slow])  # examples: the profile's (tests/conftest.py)
 @given(data=st.data())
 def test_codec_round_trip(cls: type, data: st.DataObject) -> None:
     msg = data.draw(MESSAGE_STRATEGIES[cls])
@@ -194,7 +194,7 @@ def test_codec_round_trip(cls: type, data: st.DataObject) -> None:
     assert encode(back) == wire  # canonical: re-encoding gives the same bytes
 
 
-@settings(max_examples=400, deadline=None)
+@settings(max_examples=16 * settings.default.max_examples, deadline=None)  # cheap examples: 400 by default
 @given(st.binary(max_size=200))
 def test_garbage_bytes_raise_decode_error_only(data: bytes) -> None:
     try:
@@ -213,7 +213,7 @@ _any_value = st.recursive(
 
 
 @pytest.mark.parametrize("cls", MESSAGE_TYPES, ids=lambda c: c.KIND)
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(deadline=None, suppress_health_check=[HealthCheck.too_slow])  # examples: the profile's (tests/conftest.py)
 @given(data=st.data())
 def test_one_corrupted_field_is_named(cls: type, data: st.DataObject) -> None:
     msg = data.draw(MESSAGE_STRATEGIES[cls])

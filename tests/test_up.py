@@ -17,9 +17,10 @@ import pytest
 from services.monitor.recorder import read_metrics
 from services.runconfig import RunConfig
 
-from _procs import agent_pids, alive, descendants, kill_all
+from _procs import FEW_ROBOTS, agent_pids, alive, descendants, kill_all
 
 UP_TIMEOUT = 120
+FEW = {"agvs": 2, "pickers": 1}  # FEW_ROBOTS, for a RunConfig
 
 
 def test_up_runs_to_completion_and_leaves_no_process(shared_default_up):
@@ -107,15 +108,16 @@ def test_up_fails_clearly_when_nothing_listens_on_the_endpoint(live_run):
 
 
 async def test_supervisor_reports_a_process_that_cannot_start(tmp_path):
-    """A child that exits before the run starts makes the supervisor fail with its name and log; nothing is left."""
+    """A child that exits before the run starts makes the supervisor fail with its name and log; nothing is left.
+    (Three robots, as FEW_ROBOTS: one broken agent among any number of them.)"""
     from services.supervisor.launcher import StartError, Supervisor
 
-    config = RunConfig(run_id="broken", scale="tiny", steps=5, output_dir=tmp_path, ready_timeout=60)
+    config = RunConfig(run_id="broken", scale="tiny", steps=5, output_dir=tmp_path, ready_timeout=60, **FEW)
     sup = Supervisor(config)
-    child = sup.children["agent-3"]
+    child = sup.children["agent-2"]
     child.spec = dataclasses.replace(child.spec, argv=(*child.spec.argv, "--no-such-flag"))
     try:
-        with pytest.raises(StartError, match="agent-3 exited with status 2") as info:
+        with pytest.raises(StartError, match="agent-2 exited with status 2") as info:
             await asyncio.wait_for(sup.run(), UP_TIMEOUT)
         assert "--no-such-flag" in str(info.value)  # the log tail shows argparse's complaint
     finally:
@@ -131,7 +133,7 @@ def test_up_joins_an_existing_router_with_endpoint(live_run, tmp_path):
     ep = endpoint(free_port())
     router = zenoh.open(zenoh_config(listen=ep, mode="router"))
     try:
-        up = live_run("ext", "--policy", "tsg", "--steps", "30", "--endpoint", ep, listen=False)
+        up = live_run("ext", "--policy", "tsg", "--steps", "30", "--endpoint", ep, *FEW_ROBOTS, listen=False)
         assert up.wait(UP_TIMEOUT) == 0, up.stderr()
         sim_log = (tmp_path / "ext" / "logs" / "sim.log").read_text()
         assert f"--endpoint {ep}" in sim_log and "--listen" not in sim_log
@@ -146,13 +148,13 @@ def test_up_joins_an_existing_router_with_endpoint(live_run, tmp_path):
 async def test_a_stalled_run_fails_clearly_instead_of_hanging(tmp_path):
     """If ticks stop inside Zenoh (seen once: the sim's router blocked on a full socket, where no phase deadline can
     fire), the supervisor fails after its stall timeout with the tick it stalled at, and nothing is left. Here the
-    sim is frozen with SIGSTOP."""
+    sim is frozen with SIGSTOP (in a fleet of three robots, as FEW_ROBOTS: a stall is the sim's, whatever the fleet)."""
     import os
     import signal
 
     from services.supervisor.launcher import RunStalled, Supervisor
 
-    config = RunConfig(run_id="stall", scale="tiny", steps=100000, output_dir=tmp_path, ready_timeout=60)
+    config = RunConfig(run_id="stall", scale="tiny", steps=100000, output_dir=tmp_path, ready_timeout=60, **FEW)
     sup = Supervisor(config, stall_timeout=3.0)
 
     async def freeze_the_sim() -> None:
