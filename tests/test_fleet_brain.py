@@ -151,4 +151,9 @@ def test_bench_brains_refuses_bad_seeds_in_one_line(capsys):
 
     assert main(["bench", "brains", "--seeds", "1,x"]) == 2
     assert capsys.readouterr().err.strip() == (
-        "morph-sim bench brains: error: seeds: '1,x' is not a comma-separated list of integers")
+        "morph-sim bench brains: error: seeds: 'x' is not a seed or a range like 1-20")
+    assert main(["bench", "brains", "--seeds", "1-100000000"]) == 2  # refused before the range is spelled out
+    assert "seeds" in capsys.readouterr().err
+    assert main(["bench", "brains", "--steps", "0"]) == 2
+    assert capsys.readouterr().err.strip() == (
+        "morph-sim bench brains: error: policies, profiles, seeds: at least one each, and steps >= 1")

@@ -28,7 +28,7 @@ RADIUS = 4  # Proximity's link radius (RunConfig's default)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scale", default="large", help="warehouse size (default large)")
     parser.add_argument("--steps", type=int, default=400, help="episode length (default 400)")
-    parser.add_argument("--seeds", default="1,2,3", help="comma-separated seeds (default 1,2,3)")
+    parser.add_argument("--seeds", default="1,2,3", help="seeds: 1,2,5 or a range 1-3 (default 1,2,3)")
     parser.add_argument("--profiles", default=",".join(DEFAULT_PROFILES),
                         help=f"comma-separated network profiles (default {','.join(DEFAULT_PROFILES)})")
     parser.add_argument("--policies", default=",".join(DEFAULT_POLICIES),
@@ -93,18 +93,13 @@ def run(args: argparse.Namespace) -> int:
 
     policies = [p for p in args.policies.split(",") if p]
     profiles = [p for p in args.profiles.split(",") if p]
+    from morph_sim.lab.sweep import parse_seeds
+
     try:
-        seeds = [int(s) for s in args.seeds.split(",") if s]
-    except ValueError:
-        print(f"morph-sim bench brains: error: seeds: {args.seeds!r} is not a comma-separated list of integers",
-              file=sys.stderr)
-        return 2
-    if not (policies and profiles and seeds) or args.steps < 1:
-        print("morph-sim bench brains: error: policies, profiles, seeds: at least one each, and steps >= 1",
-              file=sys.stderr)
-        return 2
-    at_most(len(policies) * len(profiles) * len(seeds), 1000, "cells", "policy × profile × seed cells")
-    try:
+        seeds = list(parse_seeds(args.seeds))  # ranges too ("1-5"), bounded before they are spelled out
+        if not (policies and profiles and seeds) or args.steps < 1:
+            raise ValueError("policies, profiles, seeds: at least one each, and steps >= 1")
+        at_most(len(policies) * len(profiles) * len(seeds), 1000, "cells", "policy × profile × seed cells")
         rows = measure(policies, profiles, seeds, args.scale, args.steps)
     except ValueError as exc:
         print(f"morph-sim bench brains: error: {one_line(exc)}", file=sys.stderr)
