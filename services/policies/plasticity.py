@@ -373,14 +373,11 @@ def entropy_columns(labels: np.ndarray) -> np.ndarray:
 def coassignment_rate(history: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """(len(rows), n): share of agent i's busy ticks in the window on which agent j held the same task.
 
-    The plug-in estimate of P(T_j = T_i | T_i ≠ ∅) over the history; 0 for an agent idle all window.
+    The plug-in estimate of P(T_j = T_i | T_i ≠ ∅) over the history; 0 for an agent idle all window. (Every row
+    reads the one history: :func:`coassignment_rates` with that history as each row's own.)
     """
-    own = history[:, rows]
-    same = (own[:, :, None] == history[:, None, :]) & (own[:, :, None] > 0)
-    busy = (own > 0).sum(axis=0)
-    rate = same.sum(axis=0) / np.maximum(busy, 1)[:, None]
-    rate[np.arange(len(rows)), rows] = 0.0
-    return rate
+    rows = np.asarray(rows)
+    return coassignment_rates(np.broadcast_to(history, (len(rows), *history.shape)), rows)
 
 
 def history_nmi(history: np.ndarray, rows: np.ndarray) -> np.ndarray:
