@@ -84,7 +84,9 @@ def _cli(argv, capsys):
 def test_cli_honours_scales_seeds_steps_targets_and_levels(tmp_path, capsys) -> None:
     """Every flag reaches the grid: the record holds exactly the episodes asked for, at the scale and length asked
     for; the table, the figure and the last line say what ran."""
-    res = _cli(["--scales", "small", "--seeds", "3,4", "--steps", "40", "--jobs", "2", "--conditions", "tsg,morph",
+    # --jobs 1: sixteen 40-tick episodes cost less than starting worker processes for them (the study's grid runs
+    # on the sweep's worker pool, tested in tests/test_sweep.py)
+    res = _cli(["--scales", "small", "--seeds", "3,4", "--steps", "40", "--jobs", "1", "--conditions", "tsg,morph",
                 "--targets", "fleet", "--loss-levels", "0,20", "--latency-levels", "2", "--out", str(tmp_path),
                 "--run-id", "f"], capsys)
     assert res.returncode == 0, res.stderr
@@ -109,7 +111,7 @@ def test_a_policy_from_outside_enters_the_fault_study_by_the_name_policy_takes(t
     outside = "services.policies.coordinators:ConstantPolicy"
     res = _cli(["--scales", "tiny", "--seeds", "1", "--steps", "40", "--conditions", f"morph,{outside}",
                 "--targets", "dispatch", "--loss-levels", "0,20", "--latency-levels", "1", "--out", str(tmp_path),
-                "--run-id", "o"], capsys)
+                "--run-id", "o", "--jobs", "1"], capsys)  # 8 short episodes: no pool
     assert res.returncode == 0, res.stderr
     eps = json.loads((tmp_path / "o" / "faults.json").read_text())["episodes"]
     assert {e["condition"] for e in eps} == {"MORPH (reference)", outside}
@@ -132,7 +134,8 @@ def test_cli_progress_and_resume_after_interrupt_give_the_same_tables(tmp_path, 
 
     from _procs import kill_tree, terminal_signals
 
-    argv = ["--quick", "--seeds", "1,2", "--steps", "60", "--jobs", "1", "--out", str(tmp_path)]
+    # 30 ticks an episode: the resume needs a grid of episodes to cut (16 of them), not long ones
+    argv = ["--quick", "--seeds", "1,2", "--steps", "30", "--jobs", "1", "--out", str(tmp_path)]
     straight = _cli([*argv, "--run-id", "a"], capsys)
     assert straight.returncode == 0 and "faults" in straight.stderr and "16/16" in straight.stderr  # progress
     proc = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "experiment", "faults", *argv, "--run-id", "b"],

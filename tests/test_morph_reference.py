@@ -38,8 +38,31 @@ def _ref(scale, condition, seed, steps=800, **kw):
                        radius=RADII[scale] if condition == "proximity" else None, **kw)
 
 
+#: episodes already run in this module, by spec: several tests read the same reference episode (seed 42 of MORPH at
+#: Tiny and Medium, TSG at Tiny), and an episode is deterministic per spec, so each runs once. (spec -> the result
+#: of run_episode, and of :func:`_trace` where a test traced it: its hook only reads the team.)
+_RESULTS: dict[str, object] = {}
+_TRACES: dict[str, tuple] = {}
+
+
+def _run(spec):
+    key = spec.model_dump_json()
+    if key in _TRACES:
+        return _TRACES[key][0]
+    if key not in _RESULTS:
+        _RESULTS[key] = run_episode(spec)
+    return _RESULTS[key]
+
+
 def _trace(spec):
     """Run with a hook recording, per update, the links formed and h."""
+    key = spec.model_dump_json()
+    if key not in _TRACES:
+        _TRACES[key] = _trace_once(spec)
+    return _TRACES[key]
+
+
+def _trace_once(spec):
     formed, h = [], []
 
     def hook(obs, team):
@@ -82,7 +105,7 @@ def test_tiny_seed42_mechanics():
                                          pytest.param("medium", 40.0, marks=pytest.mark.slow),
                                          pytest.param("large", 56.5, marks=pytest.mark.slow)])
 def test_morph_link_counts_and_deliveries_over_the_reference_seeds(scale, links):
-    got = [run_episode(_ref(scale, "morph", seed)).summary for seed in REFERENCE_SEEDS]
+    got = [_run(_ref(scale, "morph", seed)).summary for seed in REFERENCE_SEEDS]
     assert np.mean([g["mean_links"] for g in got]) == pytest.approx(links, abs=0.5)  # ≈ 27 / 38-39 / 40 / 56
     assert [g["deliveries"] for g in got] == REFERENCE_82[(scale, "morph")][0]
 
@@ -92,7 +115,7 @@ def test_tsg_equals_constant_quarter_gate(scale):
     for seed in (42, 7):
         for shared, dispatch in ((True, "sequential"), (False, "concurrent")):
             kw = dict(scale=scale, seed=seed, steps=800, dispatch=dispatch, shared_stream=shared)
-            tsg = run_episode(EpisodeSpec(condition="tsg", **kw))
+            tsg = _run(EpisodeSpec(condition="tsg", **kw))
             const = run_episode(EpisodeSpec(condition="constant", **kw))
             np.testing.assert_array_equal(tsg.ticks["deliveries_total"], const.ticks["deliveries_total"])
             assert tsg.summary["dispatch_decisions"] == const.summary["dispatch_decisions"]
@@ -129,7 +152,7 @@ def test_per_step_traces_equal_the_reference_code():
     assert len(data["episodes"]) == 4
     for key, trace in data["episodes"].items():
         scale, cond = key.split("_", 1)
-        res = run_episode(_ref(scale, {"morph_v2": "morph", "tsg": "tsg"}[cond], 42))
+        res = _run(_ref(scale, {"morph_v2": "morph", "tsg": "tsg"}[cond], 42))
         np.testing.assert_array_equal(res.ticks["deliveries_total"], trace["deliveries"])
         np.testing.assert_array_equal(res.ticks["links"], trace["links"])
         if cond == "morph_v2":

@@ -48,17 +48,46 @@ def recorded_handovers(cfg: RunConfig) -> list[tuple[int, int, int, int, float]]
     return out
 
 
+STREAMED = ("net/handovers", "net/in_outage", "net/outage_seconds")
+
+
 @pytest.fixture(scope="module")
 def legacy(tmp_path_factory):
-    """One recorded tiny run under legacy roaming (Full-Graph, 120 steps), shared by the tests that read it."""
+    """One recorded tiny run under legacy roaming (Full-Graph, 120 steps), shared by the tests that read it, with a
+    probe on the bus that kept the last value of each of the monitor's :data:`STREAMED` metrics: (config, the sim's
+    fault runtime, the run, {metric: last value})."""
+    from schemas import MetricSample, RunKeys
+
     cfg = config(tmp_path_factory.mktemp("legacy"), "wifi-legacy-roaming")
     rt = FaultRuntime.for_service(cfg, "sim")
-    run = asyncio.run(run_local(cfg, faults=rt))
-    return cfg, rt, run
+    seen: dict[str, float] = {}
+
+    def on_metric(sample):
+        msg = sample.decode(MetricSample)
+        seen[msg.name] = msg.value
+
+    async def main():
+        net = LocalNetwork()
+        probe = net.session("probe")
+        for name in STREAMED:
+            await probe.subscribe(RunKeys(cfg.run_id).metric(name), on_metric)
+        run = await run_local(cfg, faults=rt, network=net)
+        await asyncio.sleep(0.1)
+        await probe.close()
+        return run
+
+    return cfg, rt, asyncio.run(main()), seen
 
 
-async def test_legacy_roaming_costs_messages_reports_handovers_and_is_reproducible(tmp_path, legacy):
-    cfg, rt, first = legacy
+@pytest.fixture(scope="module")
+def ideal(tmp_path_factory):
+    """The same run without a network profile (the ideal network), shared by the tests that compare with it."""
+    cfg = config(tmp_path_factory.mktemp("ideal"), None, run_id="ideal")
+    return cfg, asyncio.run(run_local(cfg))
+
+
+async def test_legacy_roaming_costs_messages_reports_handovers_and_is_reproducible(tmp_path, legacy, ideal):
+    cfg, rt, first, _ = legacy
     assert first.sim.steps == 120 and first.sim.absences == 0  # an outage is not an absence: the run goes on
     lost = rt.network.stats.lost
     # the sim's uplinks: commitments only (acks are synchronisation and never faulted, docs/decisions.md)
@@ -82,37 +111,20 @@ async def test_legacy_roaming_costs_messages_reports_handovers_and_is_reproducib
     await run_local(again)
     assert (again.record_dir / "metrics.csv").read_bytes() == (cfg.record_dir / "metrics.csv").read_bytes()
 
-    ideal = config(tmp_path, None, run_id="ideal")
-    clean = await run_local(ideal)
+    clean = ideal[1]
     assert clean.sim.commits_applied > first.sim.commits_applied  # the Wi-Fi costs dispatches
 
 
-async def test_lan_profile_is_the_ideal_network(tmp_path):
-    lan, none = config(tmp_path, "lan", run_id="lan"), config(tmp_path, None, run_id="none")
+async def test_lan_profile_is_the_ideal_network(tmp_path, ideal):
+    lan, none = config(tmp_path, "lan", run_id="lan"), ideal[0]
     await run_local(lan)
-    await run_local(none)
     assert (lan.record_dir / "metrics.csv").read_bytes() == (none.record_dir / "metrics.csv").read_bytes()
     assert recorded_handovers(lan) == []  # lan: no roaming events (the default placement still has 4 APs ...)
 
 
-async def test_monitor_streams_handovers(tmp_path):
-    cfg = config(tmp_path, "wifi-legacy-roaming", run_id="streams")
-    net = LocalNetwork()
-    probe = net.session("probe")
-    seen: dict[str, float] = {}
-    from schemas import MetricSample, RunKeys
-
-    keys = RunKeys(cfg.run_id)
-
-    def on_metric(sample):
-        msg = sample.decode(MetricSample)
-        seen[msg.name] = msg.value
-
-    for name in ("net/handovers", "net/in_outage", "net/outage_seconds"):
-        await probe.subscribe(keys.metric(name), on_metric)
-    await run_local(cfg, record=True, network=net)
-    await asyncio.sleep(0.1)
-    await probe.close()
+def test_monitor_streams_handovers(legacy):
+    """The shared run's probe (see ``legacy``) saw the monitor stream the hand-overs it recorded."""
+    cfg, _, _, seen = legacy
     events = recorded_handovers(cfg)
     assert seen["net/handovers"] == pytest.approx(len([e for e in events if e[0] <= cfg.steps]), abs=3)
     assert seen["net/outage_seconds"] > 0
@@ -129,18 +141,20 @@ def test_cli_rejects_bad_network_values_with_one_line(capsys):
 
 
 def check_up_equals_run(tmp_path, scale: str, steps: int, profile: str = "wifi-legacy-roaming",
-                        policy: str = "morph") -> None:
+                        policy: str = "morph"):
+    """``up`` and ``run`` of one configuration write the same record; returns the in-process run's (config, LocalRun)."""
     run_up_args = dict(scale=scale, policy=policy, preset="reference", steps=steps, seed=42)
     argv_extra = ["--network", profile]
     _run_up(tmp_path / "up", "eq", argv_extra, **run_up_args)
     cfg = RunConfig(run_id="eq", scale=scale, policy=policy, preset="reference", steps=steps, seed=42,
                     state_every=10, snapshot_every=50, output_dir=tmp_path / "local", network=profile)
-    asyncio.run(run_local(cfg))
+    run = asyncio.run(run_local(cfg))
     up, local = tmp_path / "up" / "eq", tmp_path / "local" / "eq"
     assert (up / "metrics.csv").read_bytes() == (local / "metrics.csv").read_bytes()
     assert recorded_handovers(cfg) == recorded_handovers(cfg.model_copy(update={"output_dir": tmp_path / "up"}))
     # runs long enough to compare something: robots delivered and handed over
     assert json.loads((local / "summary.json").read_text())["deliveries_total"] > 0 and recorded_handovers(cfg)
+    return cfg, run
 
 
 def _run_up(out, run_id, extra, *, scale, policy, preset, steps, seed, timeout=600):
@@ -159,15 +173,25 @@ def _run_up(out, run_id, extra, *, scale, policy, preset, steps, seed, timeout=6
     assert proc.returncode == 0, err
 
 
-@pytest.mark.parametrize("steps", [120, pytest.param(200, marks=pytest.mark.slow)])  # 200: -m slow
+# MORPH's up == run under the profile with -m slow: its twin by default is the broadcast Full-Graph's below (the same
+# check_up_equals_run at Tiny, 120 steps), whose several requests per AGV a tick over Zenoh only it shows; MORPH's
+# fleet broadcast under faults over up is tests/test_equivalence.py's lab == run == up.
+@pytest.mark.slow
+@pytest.mark.parametrize("steps", [120, 200])
 def test_up_equals_run_under_legacy_roaming_tiny(tmp_path, steps):
     check_up_equals_run(tmp_path, "tiny", steps)
 
 
 def test_up_equals_run_for_full_broadcast_under_legacy_roaming_tiny(tmp_path):
     """The broadcast Full-Graph over Zenoh (one process per robot, several requests per AGV a tick) writes the
-    record the in-process run writes."""
-    check_up_equals_run(tmp_path, "tiny", 120, policy="full-broadcast")
+    record the in-process run writes: the run under the Wi-Fi profile is reproducible. And it resolves its
+    conflicts: every request to every free picker is a real, faultable message; the sim applies one commitment per
+    AGV and refuses the others."""
+    cfg, run = check_up_equals_run(tmp_path, "tiny", 120, policy="full-broadcast")
+    assert run.sim.protocol["refused_stale"] > 0 and run.sim.commits_applied > 0
+    summary = json.loads((cfg.record_dir / "summary.json").read_text())
+    # more requests than AGV decisions that asked: each asked several pickers at once
+    assert summary["messages"]["request"] > summary["messages"]["commit"]
 
 
 @pytest.mark.slow
@@ -201,7 +225,7 @@ def test_report_draws_access_points_and_dead_zones(tmp_path, legacy):
 def test_communication_cost_is_counted_in_messages_and_bytes(legacy):
     """Every protocol message is real: the run record counts what the dispatch protocol sent, per kind, in messages
     and payload bytes, and per delivery and per agent per tick."""
-    cfg, _, run = legacy
+    cfg, _, run, _ = legacy
     summary = json.loads((cfg.record_dir / "summary.json").read_text())
     comm = summary["communication"]
     kinds = comm["kinds"]
@@ -218,7 +242,7 @@ def test_a_robot_silent_past_silence_stop_stays_where_it_is(legacy):
     """AGV software stops a robot after silence_stop (0.1 s) of silence: under legacy roaming (outages 1.2–4.7 s) a
     robot stands still in every step that starts inside [outage start + 0.1 s, outage end) (fast roaming's outages
     never stop one: tests/test_network_model.py)."""
-    cfg, rt, run = legacy
+    cfg, rt, run, _ = legacy
     assert run.sim.network_stops > 0
     n = cfg.n_agents
     pos = {}
@@ -317,19 +341,3 @@ def test_lab_equals_run_under_legacy_roaming_tiny(tmp_path):
 @pytest.mark.slow
 def test_lab_equals_run_under_legacy_roaming_medium(tmp_path):
     check_lab_equals_run(tmp_path, "medium", 400)
-
-
-async def test_full_broadcast_under_legacy_roaming_is_reproducible_and_resolves_its_conflicts(tmp_path):
-    """The broadcast Full-Graph in the services under the Wi-Fi profile: every request to every free picker is a
-    real, faultable message; the sim applies one commitment per AGV and refuses the others; same record twice."""
-    runs = []
-    for run_id in ("fb1", "fb2"):
-        cfg = config(tmp_path / run_id, "wifi-legacy-roaming", run_id="fb", policy="full-broadcast", steps=150)
-        runs.append((cfg, await run_local(cfg)))
-    (a, first), (b, _) = runs
-    assert (a.record_dir / "metrics.csv").read_bytes() == (b.record_dir / "metrics.csv").read_bytes()
-    protocol = first.sim.protocol
-    assert protocol["refused_stale"] > 0 and first.sim.commits_applied > 0
-    summary = json.loads((a.record_dir / "summary.json").read_text())
-    # more requests than AGV decisions that asked: each asked several pickers at once
-    assert summary["messages"]["request"] > summary["messages"]["commit"]

@@ -219,10 +219,13 @@ def test_a_dask_sweep_interrupted_resumes_locally_to_the_same_table(tmp_path):
 
 def test_services_engine_episodes_equal_morph_sim_run(tmp_path):
     """The services engine runs the real services over the in-process bus: each episode has a run record, and the
-    zero-fault episode equals `morph-sim run` with the same config; loss is applied from tick 0 by a schedule."""
-    res = _cli("--engine", "services", "--grid", "policy=morph,tsg", "--grid", "faults.loss=0,30", "--seeds", "3",
-               "--set", "steps=40", "--set", "mode=lockstep", "--out", str(tmp_path), "--run-id", "svc",
-               "--no-progress")
+    zero-fault episode equals `morph-sim run` with the same config; loss is applied from tick 0 by a schedule. (Both
+    commands in this process, the sweep's four episodes too, --jobs 1: where an episode runs does not change its
+    record, and worker processes would cost more than these short episodes; the lab engine's sweeps above run on
+    the pool.)"""
+    res = _in_process("--engine", "services", "--grid", "policy=morph,tsg", "--grid", "faults.loss=0,30", "--seeds", "3",
+                      "--set", "steps=40", "--set", "mode=lockstep", "--out", str(tmp_path), "--run-id", "svc",
+                      "--no-progress", "--jobs", "1")
     assert res.returncode == 0, res.stderr
     rows = list(csv.DictReader(open(tmp_path / "svc" / "results.csv")))
     assert len(rows) == 4
@@ -325,18 +328,18 @@ def test_an_unreachable_scheduler_is_one_error_line(tmp_path):
 
 def test_the_scale_study_on_dask_equals_it_on_local_processes(tmp_path, capsys):
     """The existing studies take the same executor: the scale study (with the Proximity calibration that gates some
-    episodes) from the CLI in its own process, on a LocalCluster, gives the same episodes as on local processes (the
-    CLI in this process: its pool's processes are the local ones)."""
+    episodes) on a LocalCluster gives the same episodes as run locally. Both from the CLI in this process (a CLI
+    process of its own sending work to the cluster is the sweep's test above), the local study with --jobs 1: that
+    a study's local worker processes give the episodes run in this process is tests/test_lab.py's
+    test_the_suite_gives_the_same_episodes_in_worker_processes_and_in_this_process."""
     from morph_sim.cli import main
 
     study = ["experiment", "scale", "--scales", "tiny", "--seeds", "1,2", "--steps", "25", "--conditions",
              "morph,proximity", "--out", str(tmp_path), "--no-progress"]
-    cli = [sys.executable, "-m", "morph_sim.cli"]
-    assert main([*study, "--run-id", "local"]) == 0, capsys.readouterr().err
+    assert main([*study, "--run-id", "local", "--jobs", "1"]) == 0, capsys.readouterr().err
     with _local_cluster() as cluster:
-        dask = subprocess.run([*cli, *study, "--run-id", "dask", "--executor", "dask", "--scheduler",
-                               cluster.scheduler_address], capture_output=True, text=True, timeout=300)
-    assert dask.returncode == 0, dask.stderr
+        code = main([*study, "--run-id", "dask", "--executor", "dask", "--scheduler", cluster.scheduler_address])
+    assert code == 0, capsys.readouterr().err
 
     def episodes(run: str) -> dict:
         out = {}
