@@ -93,6 +93,10 @@ def episode_pool(jobs: int) -> Iterator[PoolExecutor]:
     if jobs == 1:
         yield _InProcess()
         return
+    # What every episode imports on its first summary (the link-distance correlation's scipy.stats, about half a
+    # CPU-second): imported here once, the forked workers have it instead of each importing it again.
+    import scipy.stats  # noqa: F401
+
     pool = ProcessPoolExecutor(jobs, mp_context=mp.get_context("fork" if sys.platform != "win32" else "spawn"),
                                initializer=_worker_start, initargs=(os.getpid(),))
     try:
