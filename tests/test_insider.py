@@ -21,8 +21,8 @@ from schemas.keys import RunKeys
 from services.bus.base import Sample
 from services.bus.local import LocalNetwork
 from services.monitor.recorder import read_metrics
+from services.protocol import claims
 from services.protocol.claims import (
-    CUT_OFF_REFUSALS,
     FLOOD_REFUSALS,
     ROBOT_EVENTS_PER_TICK,
     SEQ_WINDOW,
@@ -175,11 +175,13 @@ async def test_insider_events_fill_neither_the_record_nor_memory(tmp_path, basel
     assert [(e["source"], e["details"]["k"]) for e in notes] == [(3, k) for k in range(ROBOT_EVENTS_PER_TICK)]
 
 
-async def test_insider_a_robot_that_floods_past_the_cut_off_is_held_and_the_run_goes_on(tmp_path, baseline):
+async def test_insider_a_robot_that_floods_past_the_cut_off_is_held_and_the_run_goes_on(tmp_path, baseline,
+                                                                                         monkeypatch):
     """5,000 commitments of tick 10**9 on a picker's own key in one tick: reported at FLOOD_REFUSALS refusals, cut
-    off at CUT_OFF_REFUSALS — from then on its messages are refused unread and its robot is held, as a crashed
-    robot's — and the run completes. What the cut-off changes is the liar's own part: its acks, and the deliveries
-    that needed it."""
+    off at the cut-off (lowered here to 4,096, so the run need not take 65,536) — from then on its messages are
+    refused unread and its robot is held, as a crashed robot's — and the run completes. What the cut-off changes is
+    the liar's own part: its acks, and the deliveries that needed it."""
+    monkeypatch.setattr(claims, "CUT_OFF_REFUSALS", 4096)
     p = _config(tmp_path, "insider").n_agvs
 
     def attack(put, keys, config, t):
@@ -197,7 +199,7 @@ async def test_insider_a_robot_that_floods_past_the_cut_off_is_held_and_the_run_
     assert run.sim.flooding == [p] and run.sim.cut_off == [p] and base_run.sim.cut_off == []
     cut = [e for e in _events(tmp_path) if e["kind"] in ("agent.flooding", "agent.cut_off")]
     assert [(e["kind"], e["source"], e["details"]["agent"], e["details"]["refused"]) for e in cut] == [
-        ("agent.flooding", "sim", p, FLOOD_REFUSALS), ("agent.cut_off", "sim", p, CUT_OFF_REFUSALS)]
+        ("agent.flooding", "sim", p, FLOOD_REFUSALS), ("agent.cut_off", "sim", p, 4096)]
     at = cut[1]["t"]
     assert AT < at <= AT + 2  # reported at the start of the tick after the flood
     assert rows[:AT] == base_rows[:AT]  # before the attack: the same run

@@ -178,9 +178,11 @@ class SeqWindow:
 #: follows the protocol has none (late and duplicate copies are ignored, not refused), so this many is no accident
 FLOOD_REFUSALS = 256
 #: refusals after which the sim cuts the robot off for the rest of the run: its messages are refused unread and its
-#: robot is held, as a crashed robot's; the run goes on without it. Far above what a robot's faulty moment produces,
-#: so that only a flood that would cost the run its pace or its memory ends there.
-CUT_OFF_REFUSALS = 16 * FLOOD_REFUSALS
+#: robot is held, as a crashed robot's; the run goes on without it. A refusal is cheap (the bounds above, the inbox's
+#: share per robot), so a burst of tens of thousands costs the run little pace and no memory, and cutting the robot
+#: off would cost it that robot's work: this is for a flood that goes on (a 20-s flood at a tiny run's sim was
+#: about 10,000 refusals, the rest dropped by the transport).
+CUT_OFF_REFUSALS = 256 * FLOOD_REFUSALS
 
 
 class FloodWatch:
@@ -188,8 +190,9 @@ class FloodWatch:
     (reported) and :data:`CUT_OFF_REFUSALS` (cut off), once each. Robots only (ints below ``n_agents``): the table is
     bounded by the fleet."""
 
-    def __init__(self, n_agents: int, threshold: int = FLOOD_REFUSALS, cut_off: int = CUT_OFF_REFUSALS):
-        self.n_agents, self.threshold, self.cut_off = int(n_agents), int(threshold), int(cut_off)
+    def __init__(self, n_agents: int, threshold: int = FLOOD_REFUSALS, cut_off: int | None = None):
+        self.n_agents, self.threshold = int(n_agents), int(threshold)
+        self.cut_off = int(CUT_OFF_REFUSALS if cut_off is None else cut_off)
         self.refused: dict[int, int] = {}
 
     def note(self, author: object) -> int | None:
