@@ -518,3 +518,21 @@ def test_a_picker_takes_one_request_of_an_agv_a_tick_its_copies_a_few_times_and_
     ep.receive(Request(3, 5, (1, 2), 11.0, 7), 11.0, out)  # number 7 again a tick later: a request, not a copy
     assert [(r.agv, r.sent_at) for _, r in ep.inbox] == [(3, 10.0), (4, 10.0), (3, 11.0)]
     assert len(ep.copies) == MAX_REQUEST_COPIES - 1
+
+
+def test_a_mailbox_takes_at_most_a_ticks_worth_of_policy_messages_from_one_sender():
+    from schemas import PolicyMessage
+    from schemas.fields import MAX_POLICY_MESSAGES
+    from services.policies.interface import pack_mail
+    from services.protocol.dispatch import Mailbox
+
+    box = Mailbox()
+    data = pack_mail({"bid": 1.0})
+    for k in range(MAX_POLICY_MESSAGES):
+        assert box.receive(PolicyMessage(t=5, sender=3, to=4, pseq=k + 1, data=data), 5.0)
+    assert not box.receive(PolicyMessage(t=5, sender=3, to=4, pseq=1, data=data), 5.0)  # a copy: dropped quietly
+    with pytest.raises(ValueError, match=f"robot 3 sent more than {MAX_POLICY_MESSAGES} of tick 5"):
+        box.receive(PolicyMessage(t=5, sender=3, to=4, pseq=MAX_POLICY_MESSAGES + 1, data=data), 5.0)
+    assert box.receive(PolicyMessage(t=5, sender=2, to=4, pseq=1, data=data), 5.0)  # another sender's are its own
+    assert box.receive(PolicyMessage(t=6, sender=3, to=4, pseq=MAX_POLICY_MESSAGES + 2, data=data), 6.0)  # next tick
+    assert len(box.items) == MAX_POLICY_MESSAGES + 2

@@ -461,7 +461,8 @@ class Mailbox:
     A message sent at tick ``t`` is taken at the robot's first decision point of a later tick by which it was
     delivered (its due time), so what a policy hears does not depend on when, within a tick, a message physically
     arrived; messages taken together come in (due, sender, the sender's order). A copy of one already held is
-    dropped."""
+    dropped; more than a policy may send in one tick (``schemas.fields.MAX_POLICY_MESSAGES``) from one sender for
+    one tick are refused, so a robot cannot fill another's mailbox."""
 
     #: ticks a message's identity is remembered after it was taken (a late duplicate beyond it would be taken again;
     #: no network here delays a copy that long)
@@ -470,6 +471,7 @@ class Mailbox:
     def __init__(self) -> None:
         self.items: list[tuple[float, int, int, int, dict]] = []  # (due, sender, pseq, t sent, content)
         self._seen: dict[tuple[int, int], int] = {}  # (sender, pseq) -> tick sent
+        self._sent: dict[tuple[int, int], int] = {}  # (sender, tick sent) -> its messages held or taken
         self._pseq = 0
 
     def next_pseq(self) -> int:
@@ -482,10 +484,16 @@ class Mailbox:
         ValueError when its content is not a packed mapping."""
         from services.policies.interface import unpack_mail
 
+        from schemas.fields import MAX_POLICY_MESSAGES
+
         key = (msg.sender, msg.pseq)
         if key in self._seen:
             return False
+        per_tick = (msg.sender, msg.t)
+        if self._sent.get(per_tick, 0) >= MAX_POLICY_MESSAGES:
+            raise ValueError(f"policy message: robot {msg.sender} sent more than {MAX_POLICY_MESSAGES} of tick {msg.t}")
         content = unpack_mail(msg.data)
+        self._sent[per_tick] = self._sent.get(per_tick, 0) + 1
         self._seen[key] = msg.t
         self.items.append((due, msg.sender, msg.pseq, msg.t, content))
         return True
@@ -503,6 +511,7 @@ class Mailbox:
         ready.sort(key=lambda m: (m[0], m[1], m[2]))
         if len(self._seen) > 4096:
             self._seen = {k: sent for k, sent in self._seen.items() if sent >= t - self.REMEMBER}
+            self._sent = {k: n for k, n in self._sent.items() if k[1] >= t - self.REMEMBER}
         return [Mail(sender, sent, content) for _, sender, _, sent, content in ready]
 
 
