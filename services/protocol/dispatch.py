@@ -482,9 +482,8 @@ class Mailbox:
     def receive(self, msg, due: float) -> bool:
         """Hold policy message ``msg`` (a schemas PolicyMessage) delivered at ``due``; False for a copy of one held.
         ValueError when its content is not a packed mapping."""
-        from services.policies.interface import unpack_mail
-
         from schemas.fields import MAX_POLICY_MESSAGES
+        from services.policies.interface import unpack_mail
 
         key = (msg.sender, msg.pseq)
         if key in self._seen:
