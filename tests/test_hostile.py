@@ -239,3 +239,107 @@ def test_a_hostile_client_changes_nothing_in_a_secure_run(tmp_path):
 @pytest.mark.slow  # the default suite floods an --insecure run in tests/test_fuzz_services.py
 def test_a_hostile_client_changes_nothing_the_services_can_check_in_an_insecure_run(tmp_path):
     _hostile_run(tmp_path, secure=False)
+
+
+# -- an insider's floods against a live run (slow: 20 s of flood each; tests/test_insider.py has each attack alone
+# in one process, in the default suite) -------------------------------------------------------------------------------
+FLOOD_STEPS, FLOOD_SECONDS = 2000, 20.0
+
+
+def _flood_states(s3, s5, keys, now, until):
+    row = [0.5] * 8
+    n = 0
+    while time.monotonic() < until:  # states of ticks after the run
+        s3.put(keys.agent_state(3), encode(AgentState(
+            t=FLOOD_STEPS + 1 + n % 1000, agent=3, role="agv", w_row=row, a_row=[False] * 8, theta_row=row,
+            age_row=[0] * 8, h=0.0, eta=0.1)), attachment=pack_header("agent-3", 10 + n, time.time()))
+        n += 1
+
+
+def _flood_names_keys_events(s3, s5, keys, now, until):
+    event = encode(Event(kind="agent.note", source=3, details={"junk": "x" * 4000}))
+    ack = encode(Ack(t=now(), agent=3))
+    n = 0
+    while time.monotonic() < until:  # acks under new sender names, new sub-keys, 4 KB events
+        s3.put(keys.ack(3), ack, attachment=pack_header(f"m{n}", 1, time.time()))
+        s3.put(f"{keys.agent_prefix(3)[:-3]}/k{n}", ack, attachment=pack_header("agent-3", 100 + n, time.time()))
+        s3.put(keys.event(3), event, attachment=pack_header("agent-3", 100 + n, time.time()))
+        n += 1
+
+
+def _flood_commits(s3, s5, keys, now, until):
+    n = 0
+    while time.monotonic() < until:  # a picker's commitments of a far tick
+        s5.put(keys.commit(5), encode(Commit(t=10**9, picker=5, agv=0, seq=n + 1)),
+               attachment=pack_header("agent-5", 100 + n, time.time()))
+        n += 1
+
+
+def _run_up(out: Path, run_id: str, flood=None) -> dict:
+    """``up --scale tiny --seed 42`` (secure), flooded by ``flood`` with robot 3's and picker 5's own credentials once
+    40 rows are recorded; the peak memory of its sim and monitor, its wall time, exit status and record."""
+    import psutil
+
+    ep = endpoint(free_port())
+    proc = subprocess.Popen([sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", "tiny", "--seed", "42",
+                             "--steps", str(FLOOD_STEPS), "--run-id", run_id, "--output-dir", str(out), "--listen", ep],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    peak = {"sim": 0, "monitor": 0}
+    done = threading.Event()
+
+    def watch_memory() -> None:
+        while not done.is_set():
+            try:
+                for child in psutil.Process(proc.pid).children(recursive=True):
+                    cmd = child.cmdline()
+                    for role in peak:
+                        if f"services.{role}" in cmd:
+                            peak[role] = max(peak[role], child.memory_info().rss)
+            except psutil.Error:
+                pass
+            time.sleep(0.1)
+
+    threading.Thread(target=watch_memory, daemon=True).start()
+    started = time.monotonic()
+    record = out / run_id
+    try:
+        if flood is not None:
+            deadline = time.monotonic() + 60
+            while len(read_metrics(record)) < 40 if (record / "metrics.csv").exists() else True:
+                assert proc.poll() is None and time.monotonic() < deadline, "the run did not get under way"
+                time.sleep(0.05)
+            s3 = _client(ep, record / "credentials" / "agent-3.json5")
+            s5 = _client(ep, record / "credentials" / "agent-5.json5")
+            try:
+                flood(s3, s5, RunKeys(run_id), lambda: len(read_metrics(record)), time.monotonic() + FLOOD_SECONDS)
+            finally:
+                s3.close()
+                s5.close()
+        out_text, err = proc.communicate(timeout=300)
+    finally:
+        done.set()
+        kill_tree(proc)
+    return {"code": proc.returncode, "last": out_text.strip().splitlines()[-1], "err": err[-2000:],
+            "seconds": time.monotonic() - started, "rows": read_metrics(record),
+            "sim_mb": peak["sim"] / 2**20, "monitor_mb": peak["monitor"] / 2**20}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("flood", [_flood_states, _flood_names_keys_events, _flood_commits],
+                         ids=["states", "names-keys-events", "commits"])
+def test_an_insiders_flood_leaves_a_live_run_its_deliveries_its_memory_and_its_pace(tmp_path, flood):
+    """20 s of flood with one robot's own credentials against a secure run: it completes with exit 0 and the
+    unattacked run's deliveries, every row equal except the flooding robot's own part (its acks, W rows and
+    commitments as the monitor recorded them, which its flood may crowd out), sim and monitor under 300 MB, and at
+    least half the unattacked run's tick rate."""
+    base = _run_up(tmp_path, "base")
+    attacked = _run_up(tmp_path, "flooded", flood)
+    assert base["code"] == attacked["code"] == 0, attacked["err"]
+    assert "completed" in attacked["last"] and base["last"].split(";")[1] == attacked["last"].split(";")[1]
+    own = {"acks", "w_agv_agv", "w_agv_picker", "w_picker_picker", "commits"}  # the flooding robot's part
+    assert len(attacked["rows"]) == len(base["rows"]) == FLOOD_STEPS
+    for got, want in zip(attacked["rows"], base["rows"]):
+        assert {k: v for k, v in got.items() if k not in own} == {k: v for k, v in want.items() if k not in own}
+        assert int(want["acks"]) - 1 <= int(got["acks"]) <= int(want["acks"])  # at most its own ack is missing
+    assert attacked["sim_mb"] < 300 and attacked["monitor_mb"] < 300, attacked
+    assert attacked["seconds"] < 2 * base["seconds"], (attacked["seconds"], base["seconds"])
