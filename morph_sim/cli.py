@@ -4,11 +4,17 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
 import sys
 from collections.abc import Sequence
 
-from morph_sim import __version__, commands
+# One BLAS thread per process, set before anything imports numpy: the tool runs many small processes side by side
+# (a run's services, a study's workers, operator commands), its matrices are small, and starting OpenBLAS's own
+# threads costs each process a tenth of a CPU-second (a run's services get the same from their supervisor).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+from morph_sim import __version__, commands  # noqa: E402
 
 
 def _command_names() -> list[str]:

@@ -18,6 +18,10 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
+
+# as morph_sim/cli.py does for the tool's processes, for the Python processes the tests start themselves (a user's
+# client, a CLI run with `python -m`) and these workers: one BLAS thread, not a tenth of a CPU-second of start-up each
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import tempfile
 from pathlib import Path
 
