@@ -42,7 +42,7 @@ class Ingest:
     ``counts`` the messages and ``sizes`` the payload bytes per kind."""
 
     def __init__(self, config: RunConfig, keys: RunKeys, rows: RowReducer, stats: MessageStats,
-                 link_meter: LinkMeter, counts: dict[str, int], sizes: dict[str, int]):
+                 link_meter: LinkMeter, counts: dict[str, int], sizes: dict[str, int], cut_off: set[int]):
         self.config = config
         self.keys = keys
         self.n = config.n_agents
@@ -58,8 +58,9 @@ class Ingest:
         self._once = OncePerTick()
         self._outcomes = OutcomeBound(outcome_step_bound(self.n))  # before the row reducer takes a robot's counts
         self._events = EventBudget(self.n)  # what a robot may put into events.jsonl
-        #: robots the sim cut off for flooding (its agent.cut_off event): the record takes nothing more of theirs
-        self.cut_off: set[int] = set()
+        #: robots the sim cut off for flooding (the monitor's intake's set, filled from the sim's agent.cut_off
+        #: events): the record takes nothing more of theirs
+        self.cut_off = cut_off
 
     def take(self, sample: Sample) -> Checked | None:
         """The message ``sample`` carries, checked; None for one the monitor does not act on."""

@@ -127,7 +127,7 @@ class MonitorService:
             self.network = NetworkModel(load_profile(config.network), layout_for(LayoutConfig.named(config.scale)),
                                         seed=config.seed)
         self.ingest = Ingest(config, self.keys, self.rows, self.stats, self.link_meter, self.result.messages,
-                             self.result.bytes)
+                             self.result.bytes, self.intake.cut_off)
         self.streams = StreamPublisher(bus, self.keys, self.stats, self.link_meter, self.network, dt=config.dt,
                                        state_every=config.state_every, max_rate=max_rate)
         self.latest = LatestState(config, self.keys, self.streams.latest_metric)
@@ -288,7 +288,7 @@ class MonitorService:
                     kind="ready.ack", source="monitor", details={"round": event.details.get("round", 0)}))
             return
         if event.kind == "agent.cut_off" and event.source == "sim" and isinstance(event.details.get("agent"), int):
-            self.ingest.cut_off.add(event.details["agent"])  # (events of "sim" come on the sim's key alone)
+            self.intake.cut_off.add(event.details["agent"])  # (events of "sim" come on the sim's key alone)
         self.fault_windows.add({"kind": event.kind, "t": event.t, "details": event.details})
         if event.kind == "run.finished":
             self.result.finished = {**(self.result.finished or {}), **event.details}
