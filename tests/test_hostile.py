@@ -305,7 +305,7 @@ def _run_up(out: Path, run_id: str, flood=None) -> dict:
     try:
         if flood is not None:
             deadline = time.monotonic() + 60
-            while len(read_metrics(record)) < 40 if (record / "metrics.csv").exists() else True:
+            while not (record / "metrics.csv").exists() or len(read_metrics(record)) < 40:
                 assert proc.poll() is None and time.monotonic() < deadline, "the run did not get under way"
                 time.sleep(0.05)
             s3 = _client(ep, record / "credentials" / "agent-3.json5")
