@@ -184,13 +184,29 @@ def pytest_collection_modifyitems(config, items):
     if unknown:
         raise pytest.UsageError(f"tests/conftest.py: give these test files a kind in KINDS: {sorted(unknown)}")
     # Workers take groups in this order: the runs that have the machine alone first (every worker starts on one, so
-    # they follow each other instead of waiting for a long test another worker is in the middle of), the long live
-    # groups next, and the many short pure tests last, where they fill in while the other workers end their last
-    # long group.
-    def order(item) -> int:
+    # they follow each other instead of waiting for a long test another worker is in the middle of); then the live
+    # groups, which spend much of their time waiting on wall-clock (paced runs, a process starting, a timeout they
+    # provoke), spread among the lab's CPU-bound fidelity groups, so that while one worker waits the others compute;
+    # and the many short pure tests last, where they fill in while the other workers end their last long group.
+    def kind(item) -> str:
+        return KIND_OF[Path(str(item.fspath)).stem]
+
+    def group(item) -> str:
+        return next((f for f in SHARED_RUNS if f in item.fixturenames), Path(str(item.fspath)).stem)
+
+    spread: dict[str, list[str]] = {"e2e": [], "fidelity": []}
+    for item in items:
+        groups = spread.get(kind(item))
+        if groups is not None and group(item) not in groups:
+            groups.append(group(item))
+    place = {g: (i + 0.5 * (k == "fidelity")) / len(gs) for k, gs in spread.items() for i, g in enumerate(gs)}
+
+    def order(item) -> tuple[int, float]:
         if item.get_closest_marker("alone") or any(f in item.fixturenames for f in ALONE_RUNS):
-            return 0
-        return 1 + ("e2e", "services", "fidelity", "unit").index(KIND_OF[Path(str(item.fspath)).stem])
+            return (0, 0.0)
+        if kind(item) in spread:
+            return (1, place[group(item)])
+        return (2 + ("services", "unit").index(kind(item)), 0.0)
 
     items.sort(key=order)
 

@@ -146,6 +146,9 @@ def zenoh_config(*, listen: str | Iterable[str] | None = None, connect: str | It
     cfg.insert_json5("mode", json.dumps(mode))
     cfg.insert_json5("scouting/multicast/enabled", "false")
     cfg.insert_json5("scouting/gossip/enabled", "false")
+    # With scouting off there is nobody to wait for; Zenoh's default (500 ms) held every router's open that long,
+    # and the sim's endpoint is one: every run started half a second later.
+    cfg.insert_json5("scouting/delay", "0")
     cfg.insert_json5("listen/endpoints", json.dumps(listen_l))
     if connect_l:
         cfg.insert_json5("connect/endpoints", json.dumps(connect_l))

@@ -18,6 +18,9 @@ from services.bus.base import LivelinessEvent, Sample
 log = logging.getLogger("morph_sim.sim")
 
 PROBE_INTERVAL = 0.25  # seconds between readiness probes
+# A participant that appears is probed at once, after this many seconds in which others may appear too (a run's
+# start brings every process within a few milliseconds: one probe for all of them, not one each).
+NEWCOMER_GRACE = 0.02
 MONITOR = "monitor"
 # Lockstep: the sim runs at most this many ticks ahead of the rows the monitor has written (it reports them every
 # PROGRESS_EVERY rows). The monitor takes in every message of the run and is not part of the tick's barrier; without
@@ -44,6 +47,7 @@ class Presence:
             return
         if event.alive:
             self.alive.add(who)
+            self._newcomer.set()
             if who == MONITOR:
                 self._monitor_gone_at = None
                 self._monitor_progress.set()
@@ -94,7 +98,12 @@ class Presence:
                 self._probe_round += 1
                 await self.bus.publish(self.keys.event("sim"), Event(
                     kind="ready.probe", source="sim", details={"round": self._probe_round}))
-            await asyncio.sleep(PROBE_INTERVAL)
+            self._newcomer.clear()
+            try:
+                await asyncio.wait_for(self._newcomer.wait(), PROBE_INTERVAL)
+                await asyncio.sleep(NEWCOMER_GRACE)
+            except asyncio.TimeoutError:
+                pass
 
     def _everyone_ready(self) -> bool:
         need_monitor = self.wait_for_monitor and MONITOR not in self.ready

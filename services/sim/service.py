@@ -90,6 +90,7 @@ class SimService(Presence, PhaseCollection):
         self.alive: set[int | str] = set()  # liveliness tokens visible
         self.ready: set[int | str] = set()  # answered a probe since their token appeared
         self._ready_changed = asyncio.Event()
+        self._newcomer = asyncio.Event()  # a participant's liveliness token appeared: probe it now
         self._stop: str | None = None
         self._stop_event = asyncio.Event()
         self._phase: PhaseBarrier | None = None
