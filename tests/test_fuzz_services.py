@@ -110,7 +110,7 @@ def test_fuzzed_distributed_run_equals_the_clean_run(tmp_path):
     sim, the monitor, AGVs and a picker, every request and reply key between them)."""
     from services.bus.zenoh_bus import ZenohBus, endpoint, free_port
 
-    steps = 150
+    steps = 250
     ep = endpoint(free_port())
     argv = [sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", "tiny", "--policy", "morph",
             "--steps", str(steps), "--seed", "3", "--run-id", "fz", "--output-dir", str(tmp_path / "up"),
@@ -120,15 +120,20 @@ def test_fuzzed_distributed_run_equals_the_clean_run(tmp_path):
     config = RunConfig(run_id="fz", scale="tiny", agvs=2, pickers=1, policy="morph", steps=steps, seed=3)
 
     async def flood() -> int:
+        # The intruder connects as soon as the sim's endpoint is open, before the run's processes are ready: a
+        # Zenoh connect to an endpoint not yet open retries only a second later, by which time a run this short can
+        # be over.
         deadline = asyncio.get_running_loop().time() + 60
-        while True:  # wait for the sim's endpoint
+        while True:
             try:
-                bus = await ZenohBus.open("intruder", connect=ep, mode="client", connect_timeout=2)
+                _, writer = await asyncio.open_connection("127.0.0.1", int(ep.rsplit(":", 1)[1]))
+                writer.close()
                 break
-            except ConnectionError:
+            except OSError:
                 if asyncio.get_running_loop().time() > deadline or proc.poll() is not None:
                     raise
-                await asyncio.sleep(0.2)
+                await asyncio.sleep(0.02)
+        bus = await ZenohBus.open("intruder", connect=ep, mode="client", connect_timeout=5)
         stop = asyncio.Event()
         # ~2000 bad messages a second: every key is hit many times per run without starving the 2 cores
         task = asyncio.create_task(fuzzer(bus, fuzz_keys(keys, config.n_agvs, config.n_agents), 5, stop, 0.01))
