@@ -20,6 +20,9 @@ INF = float("inf")
 # Paths are tuples of shared cell tuples (about 8 bytes per cell); the cache is emptied when it reaches this size.
 MAX_CACHED_PLANS = 200_000
 _STATIC_PLANS: dict[object, dict[tuple[int, int, bool], tuple[tuple[int, int], ...]]] = {}
+# The read-only tables of a layout (neighbours, highway, the pickers' base weights, flat index -> cell), shared by
+# its planners: a warehouse per episode would otherwise rebuild them every episode.
+_LAYOUT_TABLES: dict[object, tuple] = {}
 # Direction codes of the fork's 8-neighbour table that a 4-connected search uses.
 _UP, _LEFT, _RIGHT, _DOWN = 1, 3, 4, 6
 
@@ -135,22 +138,22 @@ class Planner:
     AGVs plan on an all-free grid; pickers only on highways outside the goal row, plus their target rack cell, and
     a picker on a rack cell whose target is the other half of the same 2-wide rack must leave through the highway.
     Plans that ignore other agents depend only on (start, goal, agent kind), so they are cached; plans around
-    other agents always run the exact search.
+    other agents always run the exact search. ``cells`` maps a flat index to its cell (x, y) (shared, read-only).
     """
 
     def __init__(self, layout: Layout):
         self.layout = layout
         H, W = layout.H, layout.W
         self.H, self.W = H, W
-        self._nbrs = neighbour_table(H, W)
-        self._agv_base = [1.0] * (H * W)
-        highway = layout.highway.reshape(-1).tolist()
-        self._highway = highway
-        picker = [1.0 if hw else INF for hw in highway]
-        for x in range(W):
-            picker[(H - 1) * W + x] = INF
-        self._picker_base = picker
-        self._cells = [(c % W, c // W) for c in range(H * W)]
+        tables = _LAYOUT_TABLES.get(layout.config)
+        if tables is None:
+            highway = layout.highway.reshape(-1).tolist()
+            picker = [1.0 if hw else INF for hw in highway]
+            for x in range(W):
+                picker[(H - 1) * W + x] = INF
+            cells = [(c % W, c // W) for c in range(H * W)]
+            tables = _LAYOUT_TABLES[layout.config] = (neighbour_table(H, W), highway, [1.0] * (H * W), picker, cells)
+        self._nbrs, self._highway, self._agv_base, self._picker_base, self.cells = tables
         self._cache = _STATIC_PLANS.setdefault(layout.config, {})
         self.searches = 0  # exact searches run (cache misses included)
 
@@ -201,5 +204,5 @@ class Planner:
             return []
         if not keep_first:
             raw = raw[1:]
-        cells = self._cells
+        cells = self.cells
         return [cells[c] for c in raw]

@@ -24,9 +24,9 @@ Cell = tuple[int, int]
 class MoveGraph:
     """The DiGraph's insertion-ordered adjacency, as networkx stores it (dicts keep insertion order)."""
 
-    __slots__ = ("succ", "pred")
+    __slots__ = ("succ", "pred", "size")
 
-    def __init__(self, starts: list[Cell], targets: list[Cell]):
+    def __init__(self, starts: list[Cell], targets: list[Cell], size: int | None = None):
         succ: dict[Cell, dict[Cell, None]] = {}
         pred: dict[Cell, dict[Cell, None]] = {}
         for u, v in zip(starts, targets):
@@ -40,6 +40,8 @@ class MoveGraph:
             pred[v][u] = None
         self.succ = succ
         self.pred = pred
+        #: node count of the whole graph, of which these moves may be some whole components
+        self.size = len(succ) if size is None else size
 
     def components(self, skip: set[Cell] | frozenset = frozenset()):
         """Weakly connected components as BFS-ordered lists (networkx's ``_plain_bfs``: successors, then
@@ -76,10 +78,11 @@ class MoveGraph:
         networkx builds ``c = set(bfs)``, then the view's filter set ``set(iter(c))``, and iterates that filter set
         when it is less than half the graph, else the graph's insertion order. Both sets are built exactly the way
         the library builds them (element by element from an iterator), so CPython lays them out identically.
+        The graph's insertion order restricted to one component does not depend on the other components.
         """
         c = set(iter(bfs_order))
         nodes = set(iter(list(c)))
-        if 2 * len(nodes) < len(self.succ):
+        if 2 * len(nodes) < self.size:
             return list(nodes)
         return [v for v in self.succ if v in nodes]
 
@@ -217,8 +220,12 @@ def networkx_commit_cells(starts: list[Cell], targets: list[Cell]) -> list[Cell]
     return out
 
 
-def commit_cells(starts: list[Cell], targets: list[Cell]) -> list[Cell]:
-    """Same result as :func:`networkx_commit_cells`, computing order-free cases directly."""
+def commit_cells(starts: list[Cell], targets: list[Cell], nodes: int | None = None) -> list[Cell]:
+    """Same result as :func:`networkx_commit_cells`, computing order-free cases directly.
+
+    ``nodes``: when ``starts``/``targets`` are only the moves of some whole components of a larger move graph (the
+    others settled by the caller), that graph's number of distinct cells, on which networkx's node order depends.
+    """
     # An agent whose cell and requested cell touch no other move is a component on its own: a self-loop (1-cycle)
     # or one edge into a free cell (longest path = that edge). Either way it is committed; no order is involved.
     touch: dict[Cell, int] = {}
@@ -238,7 +245,7 @@ def commit_cells(starts: list[Cell], targets: list[Cell]) -> list[Cell]:
             isolated.add(v)
     if len(isolated) == len(touch):
         return out
-    graph = MoveGraph(starts, targets)
+    graph = MoveGraph(starts, targets, nodes)
     succ, pred = graph.succ, graph.pred
     for comp in graph.components(isolated):
         if len(comp) == 1:  # a lone self-loop (waiting or turning agent): a 1-cycle commits it
