@@ -132,6 +132,92 @@ def astar(weights: list[float], H: int, W: int, start: int, goal: int,
     return path
 
 
+# The largest H + W on which :func:`astar_unit` equals :func:`astar` (see there); larger grids use astar().
+UNIT_SEARCH_MAX_H_PLUS_W = 101
+
+
+def astar_unit(weights: list[float], H: int, W: int, start: int, goal: int,
+               nbr_table: list[tuple[tuple[int, int, int, int], ...]]) -> list[int] | None:
+    """:func:`astar`'s answer for weights that are all 1 or ``inf`` (the planner's), on grids with H + W <= 101.
+
+    There a cell is pushed once. A second push of cell n from an expanded cell x needs cost(x) + w(n) < cost(n)
+    with w(n) >= 101 after the first push. n was pushed from a cell p expanded before x, so cost(n) <= cost(p) + 2;
+    priorities leave the heap in non-decreasing order (the Manhattan heuristic drops by at most the step cost), so
+    cost(p) + h(p) <= cost(x) + h(x), and cost(n) <= cost(x) + h(x) + 2 <= cost(x) + H + W <= cost(x) + 101. With
+    one push per cell a cell's cost is the one its heap entry carries and its parent the cell that pushed it, so
+    this search keeps no cost array, skips obstacles and reached cells in one comparison and follows the parent
+    chain for the path; the heap, its ties and so the answer are astar()'s. ``weights`` is modified (pass a copy).
+    """
+    weights[start] = 101.0  # reached
+    parents = [-1] * (H * W)
+    g_row, g_col = divmod(goal, W)
+    # Heap entries: (priority, cell, direction entered from, cost). Only priority is ever compared.
+    heap: list[tuple[float, int, int, float]] = [(0.0, start, -1, 0.0)]
+    while heap:
+        top = heap[0]
+        cur = top[1]
+        if cur == goal:  # the fork tests the top before popping
+            break
+        # --- pop: libstdc++ pop_heap, as in astar() ---
+        last = heap.pop()
+        size = len(heap)
+        if size:
+            hole = 0
+            child = 0
+            half = (size - 1) // 2
+            while child < half:
+                child = 2 * (child + 1)
+                if heap[child][0] > heap[child - 1][0]:
+                    child -= 1
+                heap[hole] = heap[child]
+                hole = child
+            if (size & 1) == 0 and child == (size - 2) // 2:
+                child = 2 * (child + 1)
+                heap[hole] = heap[child - 1]
+                hole = child - 1
+            vf = last[0]
+            while hole > 0:
+                parent = (hole - 1) // 2
+                if heap[parent][0] > vf:
+                    heap[hole] = heap[parent]
+                    hole = parent
+                else:
+                    break
+            heap[hole] = last
+        # --- expand: cells not reached yet, at cost + 1, + 1 more on a change of direction ---
+        prev_dir = top[2]
+        base = top[3]
+        for nbr in nbr_table[cur]:
+            nb = nbr[1]
+            if weights[nb] >= 100.0:  # an obstacle or a reached cell
+                continue
+            code = nbr[0]
+            new_cost = base + 2.0 if (prev_dir > 0 and prev_dir != code) else base + 1.0
+            ef = new_cost + (abs(nbr[2] - g_row) + abs(nbr[3] - g_col))
+            entry = (ef, nb, code, new_cost)
+            # --- push: libstdc++ push_heap, as in astar() ---
+            hole = len(heap)
+            heap.append(entry)
+            while hole > 0:
+                parent = (hole - 1) // 2
+                if heap[parent][0] > ef:
+                    heap[hole] = heap[parent]
+                    hole = parent
+                else:
+                    break
+            heap[hole] = entry
+            parents[nb] = cur
+            weights[nb] = 101.0
+    else:
+        return None
+    path = [goal]
+    while goal != start:
+        goal = parents[goal]
+        path.append(goal)
+    path.reverse()
+    return path
+
+
 class Planner:
     """TA-RWARE's ``find_path`` cost-grid rules on top of :func:`astar` (the original's ``find_path``).
 
@@ -155,6 +241,8 @@ class Planner:
             tables = _LAYOUT_TABLES[layout.config] = (neighbour_table(H, W), highway, [1.0] * (H * W), picker, cells)
         self._nbrs, self._highway, self._agv_base, self._picker_base, self.cells = tables
         self._cache = _STATIC_PLANS.setdefault(layout.config, {})
+        # the planner's weights are all 1 or inf: the unit search gives astar()'s answers where it is exact
+        self._search = astar_unit if H + W <= UNIT_SEARCH_MAX_H_PLUS_W else astar
         self.searches = 0  # exact searches run (cache misses included)
 
     def find_path(self, start: tuple[int, int], goal: tuple[int, int], picker: bool,
@@ -199,7 +287,7 @@ class Planner:
         weights[s_eff] = 1.0
         keep_first = weights[s] == INF  # the original keeps the shifted start as the first path cell
         self.searches += 1
-        raw = astar(weights, self.H, W, s_eff, g, self._nbrs)
+        raw = self._search(weights, self.H, W, s_eff, g, self._nbrs)
         if raw is None:
             return []
         if not keep_first:

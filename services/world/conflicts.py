@@ -246,58 +246,93 @@ def commit_cells(starts: list[Cell], targets: list[Cell], nodes: int | None = No
     if len(isolated) == len(touch):
         return out
     graph = MoveGraph(starts, targets, nodes)
-    succ, pred = graph.succ, graph.pred
     for comp in graph.components(isolated):
-        if len(comp) == 1:  # a lone self-loop (waiting or turning agent): a 1-cycle commits it
-            out.append(comp[0])
-            continue
-        functional = True
-        sink = None
-        for u in comp:
-            k = len(succ[u])
-            if k > 1:
-                functional = False
-                break
-            if k == 0:
-                sink = u
-        if not functional:
-            out.extend(_emulate_component(graph, comp))
-            continue
-        if sink is None:
-            # every node has one successor: exactly one cycle, found whatever the start
-            u = comp[0]
-            visited: dict[Cell, int] = {}
-            walk: list[Cell] = []
-            while u not in visited:
-                visited[u] = len(walk)
-                walk.append(u)
-                u = next(iter(succ[u]))
-            cycle = walk[visited[u]:]
-            if len(cycle) != 2:
-                out.extend(cycle)
-            continue
-        # an in-tree towards the unique sink: longest path = deepest leaf chain; ties need networkx's order
-        depth: dict[Cell, int] = {}
-        stack = [sink]
-        post: list[Cell] = []
-        while stack:
-            v = stack.pop()
-            post.append(v)
-            stack.extend(pred[v])
-        for v in reversed(post):
-            ps = pred[v]
-            depth[v] = 1 + max(depth[p] for p in ps) if ps else 0
-        path = [sink]
-        v = sink
-        rank = None
-        while pred[v]:
-            best = depth[v] - 1
-            cands = [p for p in pred[v] if depth[p] == best]
-            if len(cands) > 1:
-                if rank is None:
-                    rank = {n: i for i, n in enumerate(graph.subgraph_order(comp))}
-                cands.sort(key=rank.__getitem__)
-            v = cands[0]
-            path.append(v)
-        out.extend(path)
+        out.extend(_commit_component(graph, comp, None))
     return out
+
+
+def commit_flat(starts: list[int], targets: list[int], nodes: int, cell_of: list[Cell]) -> list[int]:
+    """:func:`commit_cells` on flat cell indices (``cell_of[i]`` is index i's (x, y)): the same cells, as indices.
+
+    The caller passes only moves that touch another move's cell (no component of a single agent on its own) and
+    ``nodes``, the whole move graph's number of distinct cells. Integer cells are cheaper to hash and compare; a
+    component whose answer depends on networkx's node order is rebuilt on (x, y) cells, as the library sees them.
+    """
+    graph = MoveGraph(starts, targets, nodes)
+    out: list[int] = []
+
+    def on_cells(comp: list[int]):
+        members = set(comp)
+        moves = [(cell_of[u], cell_of[v]) for u, v in zip(starts, targets) if u in members]
+        # the component's moves in their order give its nodes and adjacency in the whole graph's order
+        sub = MoveGraph([m[0] for m in moves], [m[1] for m in moves], nodes)
+        return sub, [cell_of[c] for c in comp], {cell_of[c]: c for c in comp}
+
+    for comp in graph.components():
+        out.extend(_commit_component(graph, comp, on_cells))
+    return out
+
+
+def _commit_component(graph: MoveGraph, comp: list, on_cells) -> list:
+    """The committed cells of one component (BFS order ``comp``), computing order-free cases directly.
+
+    ``on_cells``: None when the graph's nodes are (x, y) cells; else a function giving, for a component of another
+    kind of node, the component as a graph on (x, y) cells, its BFS order there and the map back to its nodes.
+    """
+    if len(comp) == 1:  # a lone self-loop (waiting or turning agent): a 1-cycle commits it
+        return comp
+    succ, pred = graph.succ, graph.pred
+    functional = True
+    sink = None
+    for u in comp:
+        k = len(succ[u])
+        if k > 1:
+            functional = False
+            break
+        if k == 0:
+            sink = u
+    if not functional:
+        if on_cells is None:
+            return _emulate_component(graph, comp)
+        sub, cells, back = on_cells(comp)
+        return [back[c] for c in _emulate_component(sub, cells)]
+    if sink is None:
+        # every node has one successor: exactly one cycle, found whatever the start
+        u = comp[0]
+        visited: dict = {}
+        walk: list = []
+        while u not in visited:
+            visited[u] = len(walk)
+            walk.append(u)
+            u = next(iter(succ[u]))
+        cycle = walk[visited[u]:]
+        return cycle if len(cycle) != 2 else []
+    # an in-tree towards the unique sink: longest path = deepest leaf chain; ties need networkx's order
+    depth: dict = {}
+    stack = [sink]
+    post: list = []
+    while stack:
+        v = stack.pop()
+        post.append(v)
+        stack.extend(pred[v])
+    for v in reversed(post):
+        ps = pred[v]
+        depth[v] = 1 + max(depth[p] for p in ps) if ps else 0
+    path = [sink]
+    v = sink
+    rank = None
+    while pred[v]:
+        best = depth[v] - 1
+        cands = [p for p in pred[v] if depth[p] == best]
+        if len(cands) > 1:
+            if rank is None:
+                if on_cells is None:
+                    order = graph.subgraph_order(comp)
+                else:
+                    sub, cells, back = on_cells(comp)
+                    order = [back[c] for c in sub.subgraph_order(cells)]
+                rank = {n: i for i, n in enumerate(order)}
+            cands.sort(key=rank.__getitem__)
+        v = cands[0]
+        path.append(v)
+    return path

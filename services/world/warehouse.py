@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from schemas.fields import Heading as Direction  # TA-RWARE's name for a robot's heading, one enum on the wire and here
 from services.world.astar import Planner
-from services.world.conflicts import commit_cells
+from services.world.conflicts import commit_flat
 from services.world.layout import Layout, LayoutConfig, layout_for
 
 
@@ -387,9 +387,8 @@ class Warehouse:
         return agv_dist, picker_dist
 
     def _resolve_conflicts(self) -> int:
-        """Phase 2: move graph (Stage A), then the pairwise clash loop (Stage B), then the final veto.
-
-        Cells are flat indices here; the move graph gets them as (x, y), on which networkx's order depends."""
+        """Phase 2: move graph (Stage A), then the pairwise clash loop (Stage B), then the final veto, on flat cell
+        indices."""
         N, W = self.num_agents, self.W
         req, dirs = self.req, self.dir
         # the agents' cells at the start of the step, where the layers were last written (phase 5 moves them)
@@ -426,10 +425,8 @@ class Warehouse:
                 rest.append(i)
         if not rest:
             return 0
-        xy = self._cell_xy
         agv_layer, picker_layer = self.agv_layer, self.picker_layer
-        for cx, cy in commit_cells([xy[starts[i]] for i in rest], [xy[targets[i]] for i in rest], len(uses)):
-            c = cy * W + cx
+        for c in commit_flat([starts[i] for i in rest], [targets[i] for i in rest], len(uses), self._cell_xy):
             aid = agv_layer[c]
             if aid:
                 committed.add(aid)
