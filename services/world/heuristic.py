@@ -185,16 +185,26 @@ def run_episode(config: WarehouseConfig, seed: int | None, *, digests: bool = Fa
     rows: list[str] = []
     clashes = stucks = 0
     ret = 0.0
-    # most steps pay every agent the step penalty only: that row's sum is computed once
+    # Most steps pay every agent the step penalty only, and the other reward rows repeat too: each distinct row
+    # is summed once (np.add.reduce is what np.sum computes for a list, without its Python wrapper). No reward is
+    # ever zero, so equal rows hold bit-equal floats and have bit-equal sums.
     penalty_row = [0.0 - STEP_PENALTY] * env.num_agents
     penalty_sum = float(np.sum(penalty_row))
+    row_sums: dict[tuple[float, ...], float] = {}
     done = False
     while not done:
         res = env.step(ctrl.actions())
         per_step.append(res.deliveries)
         clashes += res.clashes
         stucks += res.stucks
-        ret += penalty_sum if res.rewards == penalty_row else float(np.sum(res.rewards))
+        if res.rewards == penalty_row:
+            ret += penalty_sum
+        else:
+            row = tuple(res.rewards)
+            row_sum = row_sums.get(row)
+            if row_sum is None:
+                row_sum = row_sums[row] = float(np.add.reduce(res.rewards, axis=None))
+            ret += row_sum
         if digests:
             rows.append(env.digest_row())
         if on_step is not None:

@@ -98,7 +98,7 @@ class WarehouseConfig(BaseModel):
                    pickers=d_pickers if pickers is None else pickers, **kw)
 
 
-@dataclass
+@dataclass(slots=True)
 class StepResult:
     """What one step produced (the original's ``info`` plus rewards and termination)."""
 
@@ -300,7 +300,7 @@ class Warehouse:
         and keep their path and mission for the next step (a robot stopped from outside, e.g. a safety stop)."""
         if self._rng is None:
             raise RuntimeError("step() before reset()")
-        actions = [int(a) for a in actions]
+        actions = list(map(int, actions))
         if len(actions) != self.num_agents:
             raise ValueError(f"actions: expected {self.num_agents} macro actions, got {len(actions)}")
         agv_dist, picker_dist = self._attribute(actions)
@@ -365,7 +365,11 @@ class Warehouse:
                 else:
                     req[i] = TOGGLE
                 continue
-            req[i] = micro_action_towards(xs[i], ys[i], dirs[i], p[0])
+            nxt = p[0]
+            try:  # micro_action_towards(), inlined
+                req[i] = _MICRO_TOWARDS[(nxt[0] - xs[i], nxt[1] - ys[i])][dirs[i]]
+            except KeyError:
+                raise RuntimeError(f"path cell {nxt} is not adjacent to ({xs[i]}, {ys[i]})") from None
             if t == AGV:
                 agv_dist += 1
             elif t == PICKER:
@@ -411,8 +415,7 @@ class Warehouse:
                 elif c % W != W - 1:
                     targets[i] = c + 1
         # how many starts and requests name each cell (each key is a node of the move graph)
-        uses = Counter(starts)
-        uses.update(targets)
+        uses = Counter(starts + targets)
         # An agent whose cell and requested cell nobody else stands on or asks for is a component of the move
         # graph on its own, always committed; only the others go through the move graph.
         committed: set[int] = set()
@@ -425,15 +428,40 @@ class Warehouse:
                 rest.append(i)
         if not rest:
             return 0
+        # Two more kinds of component make most of the others and need no graph either: an AGV and a picker that
+        # both stay on a cell nobody else names (a 1-cycle: the cell is committed, which commits its AGV), and two
+        # agents asking for each other's cells, which nobody else names (a head-on 2-cycle: nobody is committed).
         agv_layer, picker_layer = self.agv_layer, self.picker_layer
-        for c in commit_flat([starts[i] for i in rest], [targets[i] for i in rest], len(uses), self._cell_xy):
-            aid = agv_layer[c]
-            if aid:
-                committed.add(aid)
+        moves = []  # the agents whose components go through the move graph
+        paired: set[int] = set()
+        for i in rest:
+            if i in paired:
                 continue
-            pid = picker_layer[c]
-            if pid:
-                committed.add(pid)
+            u, v = starts[i], targets[i]
+            if u == v:
+                if uses[u] == 4:
+                    a, p = agv_layer[u] - 1, picker_layer[u] - 1
+                    if a >= 0 and p >= 0 and targets[a] == u and targets[p] == u:
+                        committed.add(a + 1)
+                        paired.add(a)
+                        paired.add(p)
+                        continue
+            elif uses[u] == 2 and uses[v] == 2:
+                j = (agv_layer[v] or picker_layer[v]) - 1
+                if j >= 0 and targets[j] == u:
+                    paired.add(j)
+                    continue
+            moves.append(i)
+        if moves:
+            for c in commit_flat([starts[i] for i in moves], [targets[i] for i in moves], len(uses),
+                                 self._cell_xy):
+                aid = agv_layer[c]
+                if aid:
+                    committed.add(aid)
+                    continue
+                pid = picker_layer[c]
+                if pid:
+                    committed.add(pid)
         clashes = self._clash_loop(starts, targets, uses, committed)
         for i in rest:
             if i + 1 not in committed:
