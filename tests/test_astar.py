@@ -72,6 +72,31 @@ def test_unit_search_equals_the_fork_search():
             assert astar_unit(list(w), H, W, s, g, nbrs) == astar(list(w), H, W, s, g, nbrs), (H, W, s, g)
 
 
+@pytest.mark.parametrize("size", ["tiny", "large"])
+def test_shifted_agv_plans_equal_searches(size):
+    """AGV static plans reused from a plan with the same start-goal offset equal the search's own answer, near the
+    borders too (short offsets from every kind of cell)."""
+    lay = layout_for(LayoutConfig.named(size))
+    H, W = lay.H, lay.W
+    p = Planner(lay)
+    p._cache.clear()
+    p._shifted.clear()
+    rng = random.Random(21)
+    reused = 0
+    for _ in range(3000):
+        sx, sy = rng.randrange(W), rng.randrange(H)
+        if rng.random() < 0.5:
+            gx, gy = rng.randrange(W), rng.randrange(H)
+        else:
+            gx, gy = min(max(sx + rng.randint(-3, 3), 0), W - 1), min(max(sy + rng.randint(-3, 3), 0), H - 1)
+        cached = (sy * W + sx, gy * W + gx, False) in p._cache
+        n = p.searches
+        got = p.find_path((sx, sy), (gx, gy), picker=False)
+        reused += p.searches == n and not cached
+        assert got == p._plan(sy * W + sx, gy * W + gx, False, None), ((sx, sy), (gx, gy))
+    assert reused > 300
+
+
 def test_heap_ties_follow_libstdcxx_not_heapq():
     """On an open grid many entries share a priority; the turn pattern of the answer depends on which tied entry
     the heap surfaces first. These free-grid answers come from the compiled fork."""
