@@ -58,6 +58,9 @@ def _turn_or_move(heading: int, needed: int) -> int:
     return TURN_LEFT if d == 1 else TURN_RIGHT
 
 
+# the heading after a turn: _TURNED[micro action][heading] for TURN_LEFT and TURN_RIGHT
+_TURNED = {turn: tuple(int(_CLOCKWISE[(_CW_INDEX[h] + (1 if turn == TURN_RIGHT else -1)) % 4]) for h in range(4))
+           for turn in (TURN_LEFT, TURN_RIGHT)}
 # (dx, dy) to the next path cell -> the micro action for each current heading (index = heading value)
 _MICRO_TOWARDS = {delta: tuple(_turn_or_move(h, needed) for h in range(4)) for delta, needed in _HEADING_OF_DELTA.items()}
 
@@ -593,8 +596,7 @@ class Warehouse:
                 if sid:
                     self.shelf_x[sid - 1], self.shelf_y[sid - 1] = x, y
             elif r == TURN_LEFT or r == TURN_RIGHT:
-                k = _CW_INDEX[dirs[i]] + (1 if r == TURN_RIGHT else -1)
-                dirs[i] = int(_CLOCKWISE[k % 4])
+                dirs[i] = _TURNED[r][dirs[i]]
             elif r == TOGGLE:
                 c = ys[i] * W + xs[i]
                 t = self.types[i]
