@@ -183,3 +183,41 @@ def test_flat_cells_equal_emulation():
                 targets.append((min(max(x + dx, 0), W - 1), min(max(y + dy, 0), H - 1)))
         expected = sorted(set(networkx_commit_cells(starts, targets)))
         assert _commit_as_the_warehouse_does(starts, targets, W, H) == expected, (starts, targets)
+
+
+def test_warehouse_stage_a_equals_emulation():
+    """The warehouse's Stage A (lone agents and the small components it recognises from cell counts and layers,
+    the rest through commit_flat) commits the agents the emulated networkx graph commits: crowded random states,
+    AGVs and pickers sharing cells, agents staying, swapping and queueing."""
+    rng = random.Random(13)
+    env = Warehouse(WarehouseConfig.named("tiny", 6, 4, max_steps=10))
+    env.reset(0)
+    W, H = env.W, env.H
+    for _ in range(3000):
+        x0, y0 = rng.randrange(W - 3), rng.randrange(H - 3)
+        area = [(x, y) for x in range(x0, x0 + 4) for y in range(y0, y0 + 4)]
+        agv_cells = rng.sample(area, env.num_agvs)
+        for i, (x, y) in enumerate(agv_cells):
+            env.place_agent(i + 1, x, y, rng.randrange(4))
+        free = [c for c in area if c not in agv_cells]
+        picker_cells = rng.sample(free, env.num_pickers)
+        for k in range(env.num_pickers):
+            x, y = agv_cells[k] if rng.random() < 0.4 else picker_cells[k]
+            env.place_agent(env.num_agvs + k + 1, x, y, rng.randrange(4))
+        starts = list(env._layer_cells)
+        targets = []
+        for c in starts:
+            x, y = c % W, c // W
+            if rng.random() < 0.35:
+                targets.append(c)
+            else:
+                dx, dy = rng.choice([(0, 1), (0, -1), (1, 0), (-1, 0)])
+                targets.append(min(max(y + dy, 0), H - 1) * W + min(max(x + dx, 0), W - 1))
+        committed, rest = env._stage_a(starts, targets, Counter(starts + targets))
+        expected = set()
+        for cx, cy in networkx_commit_cells([(c % W, c // W) for c in starts], [(c % W, c // W) for c in targets]):
+            aid = env.agv_layer[cy * W + cx] or env.picker_layer[cy * W + cx]
+            if aid:
+                expected.add(aid)
+        assert committed == expected, (starts, targets)
+

@@ -419,8 +419,37 @@ class Warehouse:
                     targets[i] = c + 1
         # how many starts and requests name each cell (each key is a node of the move graph)
         uses = Counter(starts + targets)
-        # An agent whose cell and requested cell nobody else stands on or asks for is a component of the move
-        # graph on its own, always committed; only the others go through the move graph.
+        committed, rest = self._stage_a(starts, targets, uses)
+        if not rest:
+            return 0
+        clashes = self._clash_loop(starts, targets, uses, committed)
+        for i in rest:
+            if i + 1 not in committed:
+                req[i] = NOOP
+        return clashes
+
+    def _stage_a(self, starts: list[int], targets: list[int], uses: Counter) -> tuple[set[int], list[int]]:
+        """Stage A on flat cells: the ids of the agents the move graph commits, and the indices of the agents that
+        are not alone in their component (the only ones Stage B and the veto can concern).
+
+        ``uses`` counts the starts and requests naming each cell. An agent whose cell and requested cell nobody else
+        names is a component on its own, always committed. A few small components make most of the others, and
+        the counts and the layers identify them whole; their answers need no graph (the graph commits cells, and a
+        committed cell commits its AGV, else its picker):
+
+        * an AGV and a picker both staying on a cell nobody else names: a 1-cycle, the AGV is committed;
+        * an AGV and a picker on a cell nobody else names, one staying, the other asking for a cell nobody else
+          names: the staying one's 1-cycle is the component's only cycle, so the cell is committed: its AGV;
+        * two agents asking for each other's cells, which nobody else names: a head-on 2-cycle, nobody;
+        * an agent asking for the cell of one that stays, both cells named by nobody else: the 1-cycle, the one
+          that stays;
+        * an agent asking for the cell of one that asks for a cell nobody names, all three cells named by nobody
+          else: a chain into a free cell, the longest path, both.
+
+        Every other component goes through :func:`commit_flat`.
+        """
+        N = self.num_agents
+        agv_layer, picker_layer = self.agv_layer, self.picker_layer
         committed: set[int] = set()
         rest = []
         for i in range(N):
@@ -429,35 +458,52 @@ class Warehouse:
                 committed.add(i + 1)
             else:
                 rest.append(i)
-        if not rest:
-            return 0
-        # Two more kinds of component make most of the others and need no graph either: an AGV and a picker that
-        # both stay on a cell nobody else names (a 1-cycle: the cell is committed, which commits its AGV), and two
-        # agents asking for each other's cells, which nobody else names (a head-on 2-cycle: nobody is committed).
-        agv_layer, picker_layer = self.agv_layer, self.picker_layer
-        moves = []  # the agents whose components go through the move graph
-        paired: set[int] = set()
+        settled: set[int] = set()  # agents of rest whose component was identified whole
         for i in rest:
-            if i in paired:
+            if i in settled:
                 continue
             u, v = starts[i], targets[i]
-            if u == v:
-                if uses[u] == 4:
-                    a, p = agv_layer[u] - 1, picker_layer[u] - 1
-                    if a >= 0 and p >= 0 and targets[a] == u and targets[p] == u:
-                        committed.add(a + 1)
-                        paired.add(a)
-                        paired.add(p)
-                        continue
-            elif uses[u] == 2 and uses[v] == 2:
-                j = (agv_layer[v] or picker_layer[v]) - 1
-                if j >= 0 and targets[j] == u:
-                    paired.add(j)
+            n_u = uses[u]
+            if n_u == 4 or n_u == 3:  # maybe an AGV and a picker sharing the cell
+                a, p = agv_layer[u] - 1, picker_layer[u] - 1
+                if a < 0 or p < 0 or (i != a and i != p):
                     continue
-            moves.append(i)
+                k = p if i == a else a  # the other one
+                w = targets[k]
+                if n_u == 4:
+                    found = u == v and w == u
+                elif u == v:
+                    found = w != u and uses[w] == 1
+                else:
+                    found = w == u and uses[v] == 1
+                if found:
+                    committed.add(a + 1)
+                    settled.add(a)
+                    settled.add(p)
+            elif u != v:
+                n_v = uses[v]
+                j = (agv_layer[v] or picker_layer[v]) - 1
+                if j < 0:
+                    continue
+                w = targets[j]
+                if n_u == 2 and n_v == 2:
+                    if w == u:  # head-on
+                        settled.add(i)
+                        settled.add(j)
+                elif n_u == 1 and n_v == 3:
+                    if w == v:  # behind one that stays
+                        committed.add(j + 1)
+                        settled.add(i)
+                        settled.add(j)
+                elif n_u == 1 and n_v == 2:
+                    if w != v and uses[w] == 1:  # a chain into a free cell
+                        committed.add(i + 1)
+                        committed.add(j + 1)
+                        settled.add(i)
+                        settled.add(j)
+        moves = [i for i in rest if i not in settled] if settled else rest
         if moves:
-            for c in commit_flat([starts[i] for i in moves], [targets[i] for i in moves], len(uses),
-                                 self._cell_xy):
+            for c in commit_flat([starts[i] for i in moves], [targets[i] for i in moves], len(uses), self._cell_xy):
                 aid = agv_layer[c]
                 if aid:
                     committed.add(aid)
@@ -465,11 +511,7 @@ class Warehouse:
                 pid = picker_layer[c]
                 if pid:
                     committed.add(pid)
-        clashes = self._clash_loop(starts, targets, uses, committed)
-        for i in rest:
-            if i + 1 not in committed:
-                req[i] = NOOP
-        return clashes
+        return committed, rest
 
     def _clash_loop(self, starts: list[int], targets: list[int], uses: Counter, committed: set[int]) -> int:
         """Stage B, literally in id order, on flat cells. Requests change inside the loop, so requested cells are
