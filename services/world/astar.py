@@ -24,8 +24,8 @@ _STATIC_PLANS: dict[object, dict[tuple[int, int, bool], tuple[tuple[int, int], .
 _SHIFTED_PLANS: dict[object, dict[tuple[int, int], list[tuple[int, int, tuple[int, int, int, int],
                                                               tuple[tuple[int, int], ...]]]]] = {}
 SHIFTED_PLANS_PER_OFFSET = 4
-# The read-only tables of a layout (neighbours, highway, the pickers' base weights, flat index -> cell), shared by
-# its planners: a warehouse per episode would otherwise rebuild them every episode.
+# The read-only tables of a layout (neighbours, highway, the AGVs' and the pickers' base weights, flat index -> cell),
+# shared by its planners: a warehouse per episode would otherwise rebuild them every episode.
 _LAYOUT_TABLES: dict[object, tuple] = {}
 # Direction codes of the fork's 8-neighbour table that a 4-connected search uses.
 _UP, _LEFT, _RIGHT, _DOWN = 1, 3, 4, 6

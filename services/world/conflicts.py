@@ -9,11 +9,14 @@ the order networkx iterates the component's nodes, which for small components is
 * :func:`networkx_commit_cells` emulates the library calls literally (component BFS, subgraph node order, copy,
   ``find_cycle``, ``topological_generations``, ``dag_longest_path``) on plain dicts, building the same two small
   Python sets the library builds so their iteration order is the library's.
-* :func:`commit_cells` is the fast path used by the simulator: most components are a single agent or a chain, where
-  the answer does not depend on any order. It only falls back to the order-exact emulation where a tie or a cell
-  with two outgoing moves (an AGV and a picker sharing a rack cell) makes order matter.
+* :func:`commit_cells` is the fast path: most components are a single agent or a chain, where the answer does not
+  depend on any order. It only falls back to the order-exact emulation where a tie or a cell with two outgoing moves
+  (an AGV and a picker sharing a rack cell) makes order matter.
+* :func:`commit_flat` is the same on flat cell indices for the simulator, which settles the lone agents itself and
+  passes the other moves with the whole graph's node count.
 
-Both return the cells whose occupant is committed; the caller looks up the AGV on the cell first, then the picker.
+All three return the cells whose occupant is committed; the caller looks up the AGV on the cell first, then the
+picker.
 """
 
 from __future__ import annotations
@@ -220,12 +223,8 @@ def networkx_commit_cells(starts: list[Cell], targets: list[Cell]) -> list[Cell]
     return out
 
 
-def commit_cells(starts: list[Cell], targets: list[Cell], nodes: int | None = None) -> list[Cell]:
-    """Same result as :func:`networkx_commit_cells`, computing order-free cases directly.
-
-    ``nodes``: when ``starts``/``targets`` are only the moves of some whole components of a larger move graph (the
-    others settled by the caller), that graph's number of distinct cells, on which networkx's node order depends.
-    """
+def commit_cells(starts: list[Cell], targets: list[Cell]) -> list[Cell]:
+    """Same result as :func:`networkx_commit_cells`, computing order-free cases directly."""
     # An agent whose cell and requested cell touch no other move is a component on its own: a self-loop (1-cycle)
     # or one edge into a free cell (longest path = that edge). Either way it is committed; no order is involved.
     touch: dict[Cell, int] = {}
@@ -245,7 +244,7 @@ def commit_cells(starts: list[Cell], targets: list[Cell], nodes: int | None = No
             isolated.add(v)
     if len(isolated) == len(touch):
         return out
-    graph = MoveGraph(starts, targets, nodes)
+    graph = MoveGraph(starts, targets)
     for comp in graph.components(isolated):
         out.extend(_commit_component(graph, comp, None))
     return out
