@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from services.world.astar import INF, Planner, astar, neighbour_table
+from services.world.astar import INF, UNIT_SEARCH_MAX_H_PLUS_W, Planner, astar, astar_unit, neighbour_table
 from services.world.layout import LayoutConfig, layout_for
 
 DATA = json.loads((Path(__file__).parent / "data" / "astar_cases_sample.json").read_text())
@@ -49,6 +49,52 @@ def test_find_path_matches_original(kind):
         occ = [r * p.W + c for r, c in q["occupied"]] if q["care_for_agents"] else None
         got = p.find_path((q["start"][1], q["start"][0]), (q["goal"][1], q["goal"][0]), q["agent_type"] == "PICKER", occ)
         assert [list(c) for c in got] == case["find_path_result"], q
+
+
+def test_unit_search_equals_the_fork_search():
+    """The planner's search for 1/inf weights gives astar()'s answer: on the sample's grids, on random obstacle
+    grids (crowded ones force detours) and on the widest grid it is used for."""
+    grids = []
+    for case in CASES:
+        grid = case["grid"]
+        H, W = len(grid), len(grid[0])
+        grids.append((H, W, [INF if ch == "1" else 1.0 for row in grid for ch in row]))
+    rng = random.Random(11)
+    for H, W in [(7, 9), (19, 14), (35, 22), (45, 30), (61, UNIT_SEARCH_MAX_H_PLUS_W - 61)]:
+        for density in (0.0, 0.1, 0.3, 0.45):
+            grids.append((H, W, [INF if rng.random() < density else 1.0 for _ in range(H * W)]))
+    for H, W, weights in grids:
+        nbrs = neighbour_table(H, W)
+        for _ in range(40):
+            s, g = rng.randrange(H * W), rng.randrange(H * W)
+            w = list(weights)
+            w[s] = w[g] = 1.0
+            assert astar_unit(list(w), H, W, s, g, nbrs) == astar(list(w), H, W, s, g, nbrs), (H, W, s, g)
+
+
+@pytest.mark.parametrize("size", ["tiny", "large"])
+def test_shifted_agv_plans_equal_searches(size):
+    """AGV static plans reused from a plan with the same start-goal offset equal the search's own answer, near the
+    borders too (short offsets from every kind of cell)."""
+    lay = layout_for(LayoutConfig.named(size))
+    H, W = lay.H, lay.W
+    p = Planner(lay)
+    p._cache.clear()
+    p._shifted.clear()
+    rng = random.Random(21)
+    reused = 0
+    for _ in range(3000):
+        sx, sy = rng.randrange(W), rng.randrange(H)
+        if rng.random() < 0.5:
+            gx, gy = rng.randrange(W), rng.randrange(H)
+        else:
+            gx, gy = min(max(sx + rng.randint(-3, 3), 0), W - 1), min(max(sy + rng.randint(-3, 3), 0), H - 1)
+        cached = (sy * W + sx, gy * W + gx, False) in p._cache
+        n = p.searches
+        got = p.find_path((sx, sy), (gx, gy), picker=False)
+        reused += p.searches == n and not cached
+        assert got == p._plan(sy * W + sx, gy * W + gx, False, None), ((sx, sy), (gx, gy))
+    assert reused > 300
 
 
 def test_heap_ties_follow_libstdcxx_not_heapq():

@@ -4,11 +4,12 @@ tie order against networkx 3.2.1 answers (tests/data/move_graph_cases.json)."""
 
 import json
 import random
+from collections import Counter
 from pathlib import Path
 
 import pytest
 
-from services.world.conflicts import commit_cells, networkx_commit_cells
+from services.world.conflicts import commit_cells, commit_flat, networkx_commit_cells
 from services.world.warehouse import FORWARD, NOOP, TOGGLE, Warehouse, WarehouseConfig
 
 DATA = Path(__file__).parent / "data"
@@ -139,3 +140,84 @@ def test_fast_path_equals_emulation_on_random_graphs():
                 dx, dy = rng.choice([(0, 1), (0, -1), (1, 0), (-1, 0)])
                 targets.append((min(max(x + dx, 0), W - 1), min(max(y + dy, 0), H - 1)))
         assert sorted(set(commit_cells(starts, targets))) == sorted(set(networkx_commit_cells(starts, targets)))
+
+
+def _commit_as_the_warehouse_does(starts, targets, W, H):
+    """The warehouse's Stage A: lone moves (cell and request nobody else names) directly, the rest by commit_flat
+    on flat cells with the whole graph's node count; the committed cells as (x, y)."""
+    flat_s = [y * W + x for x, y in starts]
+    flat_t = [y * W + x for x, y in targets]
+    uses = Counter(flat_s)
+    uses.update(flat_t)
+    out, rest = set(), []
+    for k, (u, v) in enumerate(zip(flat_s, flat_t)):
+        if (uses[u] == 2) if u == v else (uses[u] == 1 and uses[v] == 1):
+            out.update((u, v))
+        else:
+            rest.append(k)
+    cell_of = [(c % W, c // W) for c in range(W * H)]
+    if rest:
+        out.update(commit_flat([flat_s[k] for k in rest], [flat_t[k] for k in rest], len(uses), cell_of))
+    return sorted(cell_of[c] for c in out)
+
+
+def test_flat_cells_equal_emulation():
+    for case in GRAPHS:
+        starts, targets = _cells(case["starts"]), _cells(case["targets"])
+        W = 1 + max(x for x, _ in starts + targets)
+        H = 1 + max(y for _, y in starts + targets)
+        assert _commit_as_the_warehouse_does(starts, targets, W, H) == _cells(case["commit"])
+    rng = random.Random(12)
+    for _ in range(3000):
+        W, H = rng.choice([(14, 15), (6, 5), (22, 35), (3, 3)])
+        starts = rng.sample([(x, y) for x in range(W) for y in range(H)], rng.randint(1, min(24, W * H)))
+        for i in range(1, len(starts)):
+            if rng.random() < 0.1:
+                starts.append(starts[rng.randrange(i)])
+        targets = []
+        for x, y in starts:
+            if rng.random() < 0.3:
+                targets.append((x, y))
+            else:
+                dx, dy = rng.choice([(0, 1), (0, -1), (1, 0), (-1, 0)])
+                targets.append((min(max(x + dx, 0), W - 1), min(max(y + dy, 0), H - 1)))
+        expected = sorted(set(networkx_commit_cells(starts, targets)))
+        assert _commit_as_the_warehouse_does(starts, targets, W, H) == expected, (starts, targets)
+
+
+def test_warehouse_stage_a_equals_emulation():
+    """The warehouse's Stage A (lone agents and the small components it recognises from cell counts and layers,
+    the rest through commit_flat) commits the agents the emulated networkx graph commits: crowded random states,
+    AGVs and pickers sharing cells, agents staying, swapping and queueing."""
+    rng = random.Random(13)
+    env = Warehouse(WarehouseConfig.named("tiny", 6, 4, max_steps=10))
+    env.reset(0)
+    W, H = env.W, env.H
+    for _ in range(3000):
+        x0, y0 = rng.randrange(W - 3), rng.randrange(H - 3)
+        area = [(x, y) for x in range(x0, x0 + 4) for y in range(y0, y0 + 4)]
+        agv_cells = rng.sample(area, env.num_agvs)
+        for i, (x, y) in enumerate(agv_cells):
+            env.place_agent(i + 1, x, y, rng.randrange(4))
+        free = [c for c in area if c not in agv_cells]
+        picker_cells = rng.sample(free, env.num_pickers)
+        for k in range(env.num_pickers):
+            x, y = agv_cells[k] if rng.random() < 0.4 else picker_cells[k]
+            env.place_agent(env.num_agvs + k + 1, x, y, rng.randrange(4))
+        starts = list(env._layer_cells)
+        targets = []
+        for c in starts:
+            x, y = c % W, c // W
+            if rng.random() < 0.35:
+                targets.append(c)
+            else:
+                dx, dy = rng.choice([(0, 1), (0, -1), (1, 0), (-1, 0)])
+                targets.append(min(max(y + dy, 0), H - 1) * W + min(max(x + dx, 0), W - 1))
+        committed, rest = env._stage_a(starts, targets, Counter(starts + targets))
+        expected = set()
+        for cx, cy in networkx_commit_cells([(c % W, c // W) for c in starts], [(c % W, c // W) for c in targets]):
+            aid = env.agv_layer[cy * W + cx] or env.picker_layer[cy * W + cx]
+            if aid:
+                expected.add(aid)
+        assert committed == expected, (starts, targets)
+

@@ -20,6 +20,13 @@ INF = float("inf")
 # Paths are tuples of shared cell tuples (about 8 bytes per cell); the cache is emptied when it reaches this size.
 MAX_CACHED_PLANS = 200_000
 _STATIC_PLANS: dict[object, dict[tuple[int, int, bool], tuple[tuple[int, int], ...]]] = {}
+# An AGV's static plan on the all-free grid, by the goal's offset from the start (see Planner._shifted_plan).
+_SHIFTED_PLANS: dict[object, dict[tuple[int, int], list[tuple[int, int, tuple[int, int, int, int],
+                                                              tuple[tuple[int, int], ...]]]]] = {}
+SHIFTED_PLANS_PER_OFFSET = 4
+# The read-only tables of a layout (neighbours, highway, the AGVs' and the pickers' base weights, flat index -> cell),
+# shared by its planners: a warehouse per episode would otherwise rebuild them every episode.
+_LAYOUT_TABLES: dict[object, tuple] = {}
 # Direction codes of the fork's 8-neighbour table that a 4-connected search uses.
 _UP, _LEFT, _RIGHT, _DOWN = 1, 3, 4, 6
 
@@ -129,29 +136,122 @@ def astar(weights: list[float], H: int, W: int, start: int, goal: int,
     return path
 
 
+# The largest H + W on which :func:`astar_unit` equals :func:`astar` (see there); larger grids use astar().
+UNIT_SEARCH_MAX_H_PLUS_W = 101
+
+
+def astar_unit(weights: list[float], H: int, W: int, start: int, goal: int,
+               nbr_table: list[tuple[tuple[int, int, int, int], ...]],
+               expanded: list[int] | None = None) -> list[int] | None:
+    """:func:`astar`'s answer for weights that are all 1 or ``inf`` (the planner's), on grids with H + W <= 101.
+
+    There a cell is pushed once. A second push of cell n from an expanded cell x needs cost(x) + w(n) < cost(n)
+    with w(n) >= 101 after the first push. n was pushed from a cell p expanded before x, so cost(n) <= cost(p) + 2;
+    priorities leave the heap in non-decreasing order (the Manhattan heuristic drops by at most the step cost), so
+    cost(p) + h(p) <= cost(x) + h(x), and cost(n) <= cost(x) + h(x) + 2 <= cost(x) + H + W <= cost(x) + 101. With
+    one push per cell a cell's cost is the one its heap entry carries and its parent the cell that pushed it, so
+    this search keeps no cost array, skips obstacles and reached cells in one comparison and follows the parent
+    chain for the path; the heap, its ties and so the answer are astar()'s. ``weights`` is modified (pass a copy).
+    ``expanded``: if given, the cells taken off the heap are appended to it, in order.
+    """
+    weights[start] = 101.0  # reached
+    parents = [-1] * (H * W)
+    g_row, g_col = divmod(goal, W)
+    # Heap entries: (priority, cell, direction entered from, cost). Only priority is ever compared.
+    heap: list[tuple[float, int, int, float]] = [(0.0, start, -1, 0.0)]
+    while heap:
+        top = heap[0]
+        cur = top[1]
+        if cur == goal:  # the fork tests the top before popping
+            break
+        if expanded is not None:
+            expanded.append(cur)
+        # --- pop: libstdc++ pop_heap, as in astar() ---
+        last = heap.pop()
+        size = len(heap)
+        if size:
+            hole = 0
+            child = 0
+            half = (size - 1) // 2
+            while child < half:
+                child = 2 * (child + 1)
+                if heap[child][0] > heap[child - 1][0]:
+                    child -= 1
+                heap[hole] = heap[child]
+                hole = child
+            if (size & 1) == 0 and child == (size - 2) // 2:
+                child = 2 * (child + 1)
+                heap[hole] = heap[child - 1]
+                hole = child - 1
+            vf = last[0]
+            while hole > 0:
+                parent = (hole - 1) // 2
+                if heap[parent][0] > vf:
+                    heap[hole] = heap[parent]
+                    hole = parent
+                else:
+                    break
+            heap[hole] = last
+        # --- expand: cells not reached yet, at cost + 1, + 1 more on a change of direction ---
+        prev_dir = top[2]
+        base = top[3]
+        for nbr in nbr_table[cur]:
+            nb = nbr[1]
+            if weights[nb] >= 100.0:  # an obstacle or a reached cell
+                continue
+            code = nbr[0]
+            new_cost = base + 2.0 if (prev_dir > 0 and prev_dir != code) else base + 1.0
+            ef = new_cost + (abs(nbr[2] - g_row) + abs(nbr[3] - g_col))
+            entry = (ef, nb, code, new_cost)
+            # --- push: libstdc++ push_heap, as in astar() ---
+            hole = len(heap)
+            heap.append(entry)
+            while hole > 0:
+                parent = (hole - 1) // 2
+                if heap[parent][0] > ef:
+                    heap[hole] = heap[parent]
+                    hole = parent
+                else:
+                    break
+            heap[hole] = entry
+            parents[nb] = cur
+            weights[nb] = 101.0
+    else:
+        return None
+    path = [goal]
+    while goal != start:
+        goal = parents[goal]
+        path.append(goal)
+    path.reverse()
+    return path
+
+
 class Planner:
     """TA-RWARE's ``find_path`` cost-grid rules on top of :func:`astar` (the original's ``find_path``).
 
     AGVs plan on an all-free grid; pickers only on highways outside the goal row, plus their target rack cell, and
     a picker on a rack cell whose target is the other half of the same 2-wide rack must leave through the highway.
     Plans that ignore other agents depend only on (start, goal, agent kind), so they are cached; plans around
-    other agents always run the exact search.
+    other agents always run the exact search. ``cells`` maps a flat index to its cell (x, y) (shared, read-only).
     """
 
     def __init__(self, layout: Layout):
         self.layout = layout
         H, W = layout.H, layout.W
         self.H, self.W = H, W
-        self._nbrs = neighbour_table(H, W)
-        self._agv_base = [1.0] * (H * W)
-        highway = layout.highway.reshape(-1).tolist()
-        self._highway = highway
-        picker = [1.0 if hw else INF for hw in highway]
-        for x in range(W):
-            picker[(H - 1) * W + x] = INF
-        self._picker_base = picker
-        self._cells = [(c % W, c // W) for c in range(H * W)]
+        tables = _LAYOUT_TABLES.get(layout.config)
+        if tables is None:
+            highway = layout.highway.reshape(-1).tolist()
+            picker = [1.0 if hw else INF for hw in highway]
+            for x in range(W):
+                picker[(H - 1) * W + x] = INF
+            cells = [(c % W, c // W) for c in range(H * W)]
+            tables = _LAYOUT_TABLES[layout.config] = (neighbour_table(H, W), highway, [1.0] * (H * W), picker, cells)
+        self._nbrs, self._highway, self._agv_base, self._picker_base, self.cells = tables
         self._cache = _STATIC_PLANS.setdefault(layout.config, {})
+        self._shifted = _SHIFTED_PLANS.setdefault(layout.config, {})
+        # the planner's weights are all 1 or inf: the unit search gives astar()'s answers where it is exact
+        self._search = astar_unit if H + W <= UNIT_SEARCH_MAX_H_PLUS_W else astar
         self.searches = 0  # exact searches run (cache misses included)
 
     def find_path(self, start: tuple[int, int], goal: tuple[int, int], picker: bool,
@@ -167,14 +267,44 @@ class Planner:
             key = (s, g, picker)
             hit = self._cache.get(key)
             if hit is None:
-                hit = tuple(self._plan(s, g, picker, None))
+                hit = self._shifted_plan(s, g) if not picker and self._search is astar_unit else None
+                if hit is None:
+                    hit = tuple(self._plan(s, g, picker, None))
                 if len(self._cache) >= MAX_CACHED_PLANS:
                     self._cache.clear()
+                    self._shifted.clear()
                 self._cache[key] = hit
             return list(hit)
         return self._plan(s, g, picker, occupied)
 
-    def _plan(self, s: int, g: int, picker: bool, occupied: Iterable[int] | None) -> list[tuple[int, int]]:
+    def _shifted_plan(self, s: int, g: int) -> tuple[tuple[int, int], ...]:
+        """An AGV's static plan from flat cell ``s`` to ``g``, reused from a plan with the same offset where exact.
+
+        On the all-free grid every weight is 1, so the search depends on the cells only through which neighbours
+        its expanded cells have: shifted by (dx, dy), a search expands the shifted cells, in the same order, as long
+        as every expanded cell keeps the same neighbours, and answers the shifted path. That holds when on each
+        side of the grid the expanded cells either stay off the border in both places or do not move across it
+        (dx = 0 for the left and right borders, dy = 0 for the top and bottom ones); their bounding box tells.
+        """
+        W, H = self.W, self.H
+        sy, sx = divmod(s, W)
+        gy, gx = divmod(g, W)
+        plans = self._shifted.setdefault((gx - sx, gy - sy), [])
+        for x0, y0, (left, right, top, bottom), path in plans:
+            dx, dy = sx - x0, sy - y0
+            if ((dx == 0 or (left > 0 and left + dx > 0 and right < W - 1 and right + dx < W - 1))
+                    and (dy == 0 or (top > 0 and top + dy > 0 and bottom < H - 1 and bottom + dy < H - 1))):
+                return tuple([(x + dx, y + dy) for x, y in path])
+        expanded: list[int] = []
+        path = tuple(self._plan(s, g, False, None, expanded))
+        if expanded and len(plans) < SHIFTED_PLANS_PER_OFFSET:
+            cols = [c % W for c in expanded]
+            rows = [c // W for c in expanded]
+            plans.append((sx, sy, (min(cols), max(cols), min(rows), max(rows)), path))
+        return path
+
+    def _plan(self, s: int, g: int, picker: bool, occupied: Iterable[int] | None,
+              expanded: list[int] | None = None) -> list[tuple[int, int]]:
         W = self.W
         weights = list(self._picker_base if picker else self._agv_base)
         if occupied is not None:
@@ -196,10 +326,13 @@ class Planner:
         weights[s_eff] = 1.0
         keep_first = weights[s] == INF  # the original keeps the shifted start as the first path cell
         self.searches += 1
-        raw = astar(weights, self.H, W, s_eff, g, self._nbrs)
+        if expanded is None:
+            raw = self._search(weights, self.H, W, s_eff, g, self._nbrs)
+        else:
+            raw = astar_unit(weights, self.H, W, s_eff, g, self._nbrs, expanded)
         if raw is None:
             return []
         if not keep_first:
             raw = raw[1:]
-        cells = self._cells
+        cells = self.cells
         return [cells[c] for c in raw]

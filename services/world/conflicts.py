@@ -9,11 +9,14 @@ the order networkx iterates the component's nodes, which for small components is
 * :func:`networkx_commit_cells` emulates the library calls literally (component BFS, subgraph node order, copy,
   ``find_cycle``, ``topological_generations``, ``dag_longest_path``) on plain dicts, building the same two small
   Python sets the library builds so their iteration order is the library's.
-* :func:`commit_cells` is the fast path used by the simulator: most components are a single agent or a chain, where
-  the answer does not depend on any order. It only falls back to the order-exact emulation where a tie or a cell
-  with two outgoing moves (an AGV and a picker sharing a rack cell) makes order matter.
+* :func:`commit_cells` is the fast path: most components are a single agent or a chain, where the answer does not
+  depend on any order. It only falls back to the order-exact emulation where a tie or a cell with two outgoing moves
+  (an AGV and a picker sharing a rack cell) makes order matter.
+* :func:`commit_flat` is the same on flat cell indices for the simulator, which settles the lone agents itself and
+  passes the other moves with the whole graph's node count.
 
-Both return the cells whose occupant is committed; the caller looks up the AGV on the cell first, then the picker.
+All three return the cells whose occupant is committed; the caller looks up the AGV on the cell first, then the
+picker.
 """
 
 from __future__ import annotations
@@ -24,9 +27,9 @@ Cell = tuple[int, int]
 class MoveGraph:
     """The DiGraph's insertion-ordered adjacency, as networkx stores it (dicts keep insertion order)."""
 
-    __slots__ = ("succ", "pred")
+    __slots__ = ("succ", "pred", "size")
 
-    def __init__(self, starts: list[Cell], targets: list[Cell]):
+    def __init__(self, starts: list[Cell], targets: list[Cell], size: int | None = None):
         succ: dict[Cell, dict[Cell, None]] = {}
         pred: dict[Cell, dict[Cell, None]] = {}
         for u, v in zip(starts, targets):
@@ -40,6 +43,8 @@ class MoveGraph:
             pred[v][u] = None
         self.succ = succ
         self.pred = pred
+        #: node count of the whole graph, of which these moves may be some whole components
+        self.size = len(succ) if size is None else size
 
     def components(self, skip: set[Cell] | frozenset = frozenset()):
         """Weakly connected components as BFS-ordered lists (networkx's ``_plain_bfs``: successors, then
@@ -76,10 +81,11 @@ class MoveGraph:
         networkx builds ``c = set(bfs)``, then the view's filter set ``set(iter(c))``, and iterates that filter set
         when it is less than half the graph, else the graph's insertion order. Both sets are built exactly the way
         the library builds them (element by element from an iterator), so CPython lays them out identically.
+        The graph's insertion order restricted to one component does not depend on the other components.
         """
         c = set(iter(bfs_order))
         nodes = set(iter(list(c)))
-        if 2 * len(nodes) < len(self.succ):
+        if 2 * len(nodes) < self.size:
             return list(nodes)
         return [v for v in self.succ if v in nodes]
 
@@ -239,58 +245,93 @@ def commit_cells(starts: list[Cell], targets: list[Cell]) -> list[Cell]:
     if len(isolated) == len(touch):
         return out
     graph = MoveGraph(starts, targets)
-    succ, pred = graph.succ, graph.pred
     for comp in graph.components(isolated):
-        if len(comp) == 1:  # a lone self-loop (waiting or turning agent): a 1-cycle commits it
-            out.append(comp[0])
-            continue
-        functional = True
-        sink = None
-        for u in comp:
-            k = len(succ[u])
-            if k > 1:
-                functional = False
-                break
-            if k == 0:
-                sink = u
-        if not functional:
-            out.extend(_emulate_component(graph, comp))
-            continue
-        if sink is None:
-            # every node has one successor: exactly one cycle, found whatever the start
-            u = comp[0]
-            visited: dict[Cell, int] = {}
-            walk: list[Cell] = []
-            while u not in visited:
-                visited[u] = len(walk)
-                walk.append(u)
-                u = next(iter(succ[u]))
-            cycle = walk[visited[u]:]
-            if len(cycle) != 2:
-                out.extend(cycle)
-            continue
-        # an in-tree towards the unique sink: longest path = deepest leaf chain; ties need networkx's order
-        depth: dict[Cell, int] = {}
-        stack = [sink]
-        post: list[Cell] = []
-        while stack:
-            v = stack.pop()
-            post.append(v)
-            stack.extend(pred[v])
-        for v in reversed(post):
-            ps = pred[v]
-            depth[v] = 1 + max(depth[p] for p in ps) if ps else 0
-        path = [sink]
-        v = sink
-        rank = None
-        while pred[v]:
-            best = depth[v] - 1
-            cands = [p for p in pred[v] if depth[p] == best]
-            if len(cands) > 1:
-                if rank is None:
-                    rank = {n: i for i, n in enumerate(graph.subgraph_order(comp))}
-                cands.sort(key=rank.__getitem__)
-            v = cands[0]
-            path.append(v)
-        out.extend(path)
+        out.extend(_commit_component(graph, comp, None))
     return out
+
+
+def commit_flat(starts: list[int], targets: list[int], nodes: int, cell_of: list[Cell]) -> list[int]:
+    """:func:`commit_cells` on flat cell indices (``cell_of[i]`` is index i's (x, y)): the same cells, as indices.
+
+    The caller passes only moves that touch another move's cell (no component of a single agent on its own) and
+    ``nodes``, the whole move graph's number of distinct cells. Integer cells are cheaper to hash and compare; a
+    component whose answer depends on networkx's node order is rebuilt on (x, y) cells, as the library sees them.
+    """
+    graph = MoveGraph(starts, targets, nodes)
+    out: list[int] = []
+
+    def on_cells(comp: list[int]):
+        members = set(comp)
+        moves = [(cell_of[u], cell_of[v]) for u, v in zip(starts, targets) if u in members]
+        # the component's moves in their order give its nodes and adjacency in the whole graph's order
+        sub = MoveGraph([m[0] for m in moves], [m[1] for m in moves], nodes)
+        return sub, [cell_of[c] for c in comp], {cell_of[c]: c for c in comp}
+
+    for comp in graph.components():
+        out.extend(_commit_component(graph, comp, on_cells))
+    return out
+
+
+def _commit_component(graph: MoveGraph, comp: list, on_cells) -> list:
+    """The committed cells of one component (BFS order ``comp``), computing order-free cases directly.
+
+    ``on_cells``: None when the graph's nodes are (x, y) cells; else a function giving, for a component of another
+    kind of node, the component as a graph on (x, y) cells, its BFS order there and the map back to its nodes.
+    """
+    if len(comp) == 1:  # a lone self-loop (waiting or turning agent): a 1-cycle commits it
+        return comp
+    succ, pred = graph.succ, graph.pred
+    functional = True
+    sink = None
+    for u in comp:
+        k = len(succ[u])
+        if k > 1:
+            functional = False
+            break
+        if k == 0:
+            sink = u
+    if not functional:
+        if on_cells is None:
+            return _emulate_component(graph, comp)
+        sub, cells, back = on_cells(comp)
+        return [back[c] for c in _emulate_component(sub, cells)]
+    if sink is None:
+        # every node has one successor: exactly one cycle, found whatever the start
+        u = comp[0]
+        visited: dict = {}
+        walk: list = []
+        while u not in visited:
+            visited[u] = len(walk)
+            walk.append(u)
+            u = next(iter(succ[u]))
+        cycle = walk[visited[u]:]
+        return cycle if len(cycle) != 2 else []
+    # an in-tree towards the unique sink: longest path = deepest leaf chain; ties need networkx's order
+    depth: dict = {}
+    stack = [sink]
+    post: list = []
+    while stack:
+        v = stack.pop()
+        post.append(v)
+        stack.extend(pred[v])
+    for v in reversed(post):
+        ps = pred[v]
+        depth[v] = 1 + max(depth[p] for p in ps) if ps else 0
+    path = [sink]
+    v = sink
+    rank = None
+    while pred[v]:
+        best = depth[v] - 1
+        cands = [p for p in pred[v] if depth[p] == best]
+        if len(cands) > 1:
+            if rank is None:
+                if on_cells is None:
+                    order = graph.subgraph_order(comp)
+                else:
+                    sub, cells, back = on_cells(comp)
+                    order = [back[c] for c in sub.subgraph_order(cells)]
+                rank = {n: i for i, n in enumerate(order)}
+            cands.sort(key=rank.__getitem__)
+        v = cands[0]
+        path.append(v)
+    return path

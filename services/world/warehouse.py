@@ -13,16 +13,19 @@ positions from the start of the step.
 from __future__ import annotations
 
 import hashlib
+from collections import Counter
 from dataclasses import dataclass, field
 from enum import IntEnum
+from itertools import filterfalse
 from typing import Literal
 
 import numpy as np
+from numpy.random import RandomState  # numpy loads its random module lazily: load it with this module, not in reset
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from schemas.fields import Heading as Direction  # TA-RWARE's name for a robot's heading, one enum on the wire and here
 from services.world.astar import Planner
-from services.world.conflicts import commit_cells
+from services.world.conflicts import commit_flat
 from services.world.layout import Layout, LayoutConfig, layout_for
 
 
@@ -46,6 +49,20 @@ _CLOCKWISE = (Direction.UP, Direction.RIGHT, Direction.DOWN, Direction.LEFT)
 _CW_INDEX = (0, 2, 3, 1)  # indexed by Direction value
 _HEADING_OF_DELTA = {(0, -1): 0, (0, 1): 1, (-1, 0): 2, (1, 0): 3}
 _DELTA_OF_HEADING = ((0, -1), (0, 1), (-1, 0), (1, 0))
+
+
+def _turn_or_move(heading: int, needed: int) -> int:
+    d = (_CW_INDEX[heading] - _CW_INDEX[needed]) % 4
+    if d == 0:
+        return FORWARD
+    return TURN_LEFT if d == 1 else TURN_RIGHT
+
+
+# the heading after a turn: _TURNED[micro action][heading] for TURN_LEFT and TURN_RIGHT
+_TURNED = {turn: tuple(int(_CLOCKWISE[(_CW_INDEX[h] + (1 if turn == TURN_RIGHT else -1)) % 4]) for h in range(4))
+           for turn in (TURN_LEFT, TURN_RIGHT)}
+# (dx, dy) to the next path cell -> the micro action for each current heading (index = heading value)
+_MICRO_TOWARDS = {delta: tuple(_turn_or_move(h, needed) for h in range(4)) for delta, needed in _HEADING_OF_DELTA.items()}
 
 
 class WarehouseConfig(BaseModel):
@@ -84,7 +101,7 @@ class WarehouseConfig(BaseModel):
                    pickers=d_pickers if pickers is None else pickers, **kw)
 
 
-@dataclass
+@dataclass(slots=True)
 class StepResult:
     """What one step produced (the original's ``info`` plus rewards and termination)."""
 
@@ -105,13 +122,9 @@ class StepResult:
 def micro_action_towards(x: int, y: int, heading: int, nxt: tuple[int, int]) -> int:
     """Turn or move towards the adjacent cell ``nxt``: a 180° turn is two RIGHT turns."""
     try:
-        needed = _HEADING_OF_DELTA[(nxt[0] - x, nxt[1] - y)]
+        return _MICRO_TOWARDS[(nxt[0] - x, nxt[1] - y)][heading]
     except KeyError:
         raise RuntimeError(f"path cell {nxt} is not adjacent to ({x}, {y})") from None
-    d = (_CW_INDEX[heading] - _CW_INDEX[needed]) % 4
-    if d == 0:
-        return FORWARD
-    return TURN_LEFT if d == 1 else TURN_RIGHT
 
 
 class Warehouse:
@@ -133,6 +146,9 @@ class Warehouse:
         self._highway = lay.highway.reshape(-1).tolist()
         self._goal_set = set(lay.goals)
         self._goal_idx = [gy * self.W + gx for gx, gy in lay.goals]
+        self._cell_xy = self.planner.cells
+        self._rack_action_cells = [(a, lay.action_cells[a][1] * self.W + lay.action_cells[a][0])  # type: ignore[index]
+                                   for a in lay.rack_action_ids]
         self._unstick_limit = STUCK_THRESHOLD + config.layout.column_height + 2
         self._global_reward = config.reward_type == "global"
         self.steps = 0
@@ -149,7 +165,7 @@ class Warehouse:
         ``seed=None`` seeds from OS entropy, like the original; pass a seed for a reproducible episode.
         """
         lay, N, W = self.layout, self.num_agents, self.W
-        self._rng = rng = np.random.RandomState(seed)
+        self._rng = rng = RandomState(seed)
         self.steps = 0
         self.inactive_steps = 0
         spawn = rng.permutation(len(lay.highway_cells))[:N]
@@ -176,19 +192,24 @@ class Warehouse:
         for sid, (sx, sy) in enumerate(lay.shelf_cells, start=1):
             self.shelf_layer[sy * W + sx] = sid
         self._write_agent_layers()
-        self._layer_cells = self._occupied()
         self.queue: list[int] = [int(k) + 1 for k in rng.permutation(lay.num_shelves)[: lay.config.request_queue_size]]
 
     def _write_agent_layers(self) -> None:
+        """Write the agents and their carried shelves into the layers; the cells written are remembered, both to
+        clear them at the next step's end and as the agents' cells (the obstacles of re-plans) until then."""
         W = self.W
-        for i in range(self.num_agents):
-            c = self.y[i] * W + self.x[i]
-            if self.types[i] == PICKER:
-                self.picker_layer[c] = i + 1
+        agv_layer, picker_layer, carried_layer = self.agv_layer, self.picker_layer, self.carried_layer
+        types, carrying = self.types, self.carrying
+        cells = [y * W + x for x, y in zip(self.x, self.y)]
+        for i, c in enumerate(cells):
+            if types[i] == PICKER:
+                picker_layer[c] = i + 1
             else:
-                self.agv_layer[c] = i + 1
-            if self.carrying[i]:
-                self.carried_layer[c] = self.carrying[i]
+                agv_layer[c] = i + 1
+            sid = carrying[i]
+            if sid:
+                carried_layer[c] = sid
+        self._layer_cells = cells
 
     def set_demand_side(self, side: str | None) -> None:
         """Demand shift: draw replacement requests from one half of the shelves from now on (None: all).
@@ -255,7 +276,6 @@ class Warehouse:
             if k + 1 not in carried:
                 self.shelf_layer[self.shelf_y[k] * W + self.shelf_x[k]] = k + 1
         self._write_agent_layers()
-        self._layer_cells = self._occupied()
 
     # ------------------------------------------------------------------ helpers
     def req_location(self, i: int) -> tuple[int, int]:
@@ -272,10 +292,6 @@ class Warehouse:
             return max(0, x - 1), y
         return min(self.W - 1, x + 1), y
 
-    def _occupied(self) -> list[int]:
-        W = self.W
-        return [self.y[i] * W + self.x[i] for i in range(self.num_agents)]
-
     def _reset_stuck(self, i: int) -> None:
         self.stuck_count[i] = 0
         self.stuck_pos[i] = (self.x[i], self.y[i])
@@ -287,7 +303,7 @@ class Warehouse:
         and keep their path and mission for the next step (a robot stopped from outside, e.g. a safety stop)."""
         if self._rng is None:
             raise RuntimeError("step() before reset()")
-        actions = [int(a) for a in actions]
+        actions = list(map(int, actions))
         if len(actions) != self.num_agents:
             raise ValueError(f"actions: expected {self.num_agents} macro actions, got {len(actions)}")
         agv_dist, picker_dist = self._attribute(actions)
@@ -306,11 +322,12 @@ class Warehouse:
         limit = self.config.max_inactivity_steps
         done = self.steps >= self.config.max_steps or (limit is not None and self.inactive_steps >= limit)
         na = self.num_agvs
-        idle = [r in (NOOP, TOGGLE) for r in self.req]
+        agv_req, picker_req = self.req[:na], self.req[na:]
         return StepResult(
             deliveries=deliveries, clashes=clashes, stucks=stucks, rewards=rewards,
             agvs_distance=agv_dist, pickers_distance=picker_dist,
-            agvs_idle=sum(idle[:na]), pickers_idle=sum(idle[na:]), done=done,
+            agvs_idle=agv_req.count(NOOP) + agv_req.count(TOGGLE),
+            pickers_idle=picker_req.count(NOOP) + picker_req.count(TOGGLE), done=done,
             loads=loads, unloads=unloads, delivered_by=delivered_by,
         )
 
@@ -320,47 +337,55 @@ class Warehouse:
         cells = self.layout.action_cells
         n_actions = len(cells)
         agv_dist = picker_dist = 0
-        req, types, path = self.req, self.types, self.path
+        req, types, path, busy, fixing = self.req, self.types, self.path, self.busy, self.fixing
+        xs, ys, dirs, target = self.x, self.y, self.dir, self.target
+        find_path = self.planner.find_path
         for i in range(self.num_agents):
             req[i] = NOOP
-            if self.fixing[i] > 0:
-                self.fixing[i] -= 1
-            x, y = self.x[i], self.y[i]
-            if not self.busy[i]:
-                self.target[i] = 0
+            if fixing[i] > 0:
+                fixing[i] -= 1
+            if not busy[i]:
+                target[i] = 0
                 a = actions[i]
                 if a != 0:
                     if not 0 < a < n_actions:
                         raise ValueError(f"actions: agent {i + 1} asked for target {a}, valid are 0..{n_actions - 1}")
-                    p = self.planner.find_path((x, y), cells[a], types[i] == PICKER)  # type: ignore[arg-type]
+                    x, y = xs[i], ys[i]
+                    p = find_path((x, y), cells[a], types[i] == PICKER)  # type: ignore[arg-type]
                     path[i] = p
                     if p:
-                        self.busy[i] = True
-                        self.target[i] = a
-                        req[i] = micro_action_towards(x, y, self.dir[i], p[0])
-                        self._reset_stuck(i)
+                        busy[i] = True
+                        target[i] = a
+                        req[i] = micro_action_towards(x, y, dirs[i], p[0])
+                        self.stuck_count[i] = 0
+                        self.stuck_pos[i] = (x, y)
                 continue
             p = path[i]
+            t = types[i]
             if not p:
-                if types[i] == PICKER:
-                    self.busy[i] = False
+                if t == PICKER:
+                    busy[i] = False
                 else:
                     req[i] = TOGGLE
-            else:
-                req[i] = micro_action_towards(x, y, self.dir[i], p[0])
-                if types[i] == AGV:
-                    agv_dist += 1
-                elif types[i] == PICKER:
-                    picker_dist += 1
+                continue
+            nxt = p[0]
+            try:  # micro_action_towards(), inlined
+                req[i] = _MICRO_TOWARDS[(nxt[0] - xs[i], nxt[1] - ys[i])][dirs[i]]
+            except KeyError:
+                raise RuntimeError(f"path cell {nxt} is not adjacent to ({xs[i]}, {ys[i]})") from None
+            if t == AGV:
+                agv_dist += 1
+            elif t == PICKER:
+                picker_dist += 1
             if len(p) == 1:
-                fx, fy = p[-1]
+                fx, fy = p[0]
                 c = fy * W + fx
                 # a loaded agent whose return cell got a shelf meanwhile gives up
                 if self.carrying[i] and self.shelf_layer[c]:
                     req[i] = NOOP
-                    self.busy[i] = False
+                    busy[i] = False
                 # a picker steps onto its last cell only once the AGV there is toggling (set earlier this loop)
-                if types[i] == PICKER:
+                if t == PICKER:
                     aid = self.agv_layer[c]
                     if aid == 0 or req[aid - 1] != TOGGLE:
                         req[i] = NOOP
@@ -369,44 +394,136 @@ class Warehouse:
         return agv_dist, picker_dist
 
     def _resolve_conflicts(self) -> int:
-        """Phase 2: move graph (Stage A), then the pairwise clash loop (Stage B), then the final veto."""
+        """Phase 2: move graph (Stage A), then the pairwise clash loop (Stage B), then the final veto, on flat cell
+        indices."""
         N, W = self.num_agents, self.W
-        xs, ys, req = self.x, self.y, self.req
-        starts = list(zip(xs, ys))
-        targets = [self.req_location(i) for i in range(N)]
-        committed: set[int] = set()
-        agv_layer, picker_layer = self.agv_layer, self.picker_layer
-        for cx, cy in commit_cells(starts, targets):
-            c = cy * W + cx
-            aid = agv_layer[c]
-            if aid:
-                committed.add(aid)
-                continue
-            pid = picker_layer[c]
-            if pid:
-                committed.add(pid)
-        clashes = self._clash_loop(starts, targets, committed)
+        req, dirs = self.req, self.dir
+        # the agents' cells at the start of the step, where the layers were last written (phase 5 moves them)
+        starts = self._layer_cells
+        targets = starts[:]  # req_location() of every agent, on flat cells
+        last_row = len(self.agv_layer) - W
         for i in range(N):
+            if req[i] == FORWARD:
+                c = starts[i]
+                d = dirs[i]
+                if d == 0:
+                    if c >= W:
+                        targets[i] = c - W
+                elif d == 1:
+                    if c < last_row:
+                        targets[i] = c + W
+                elif d == 2:
+                    if c % W:
+                        targets[i] = c - 1
+                elif c % W != W - 1:
+                    targets[i] = c + 1
+        # how many starts and requests name each cell (each key is a node of the move graph)
+        uses = Counter(starts + targets)
+        committed, rest = self._stage_a(starts, targets, uses)
+        if not rest:
+            return 0
+        clashes = self._clash_loop(starts, targets, uses, committed)
+        for i in rest:
             if i + 1 not in committed:
                 req[i] = NOOP
         return clashes
 
-    def _clash_loop(self, starts, targets, committed: set[int]) -> int:
-        """Stage B, literally in id order. Requests change inside the loop, so requested cells are kept current
-        in ``targets``. A pair can only act when the agent's requested cell is another agent's cell or request, so
-        an agent whose requested cell nobody else stands on or asks for is skipped (a count of cells kept up to
-        date), and the others scan every other agent in id order exactly like the original's double loop."""
-        N, W = self.num_agents, self.W
+    def _stage_a(self, starts: list[int], targets: list[int], uses: Counter) -> tuple[set[int], list[int]]:
+        """Stage A on flat cells: the ids of the agents the move graph commits, and the indices of the agents that
+        are not alone in their component (the only ones Stage B and the veto can concern).
+
+        ``uses`` counts the starts and requests naming each cell. An agent whose cell and requested cell nobody else
+        names is a component on its own, always committed. A few small components make most of the others, and
+        the counts and the layers identify them whole; their answers need no graph (the graph commits cells, and a
+        committed cell commits its AGV, else its picker):
+
+        * an AGV and a picker both staying on a cell nobody else names: a 1-cycle, the AGV is committed;
+        * an AGV and a picker on a cell nobody else names, one staying, the other asking for a cell nobody else
+          names: the staying one's 1-cycle is the component's only cycle, so the cell is committed: its AGV;
+        * two agents asking for each other's cells, which nobody else names: a head-on 2-cycle, nobody;
+        * an agent asking for the cell of one that stays, both cells named by nobody else: the 1-cycle, the one
+          that stays;
+        * an agent asking for the cell of one that asks for a cell nobody names, all three cells named by nobody
+          else: a chain into a free cell, the longest path, both.
+
+        Every other component goes through :func:`commit_flat`.
+        """
+        N = self.num_agents
+        agv_layer, picker_layer = self.agv_layer, self.picker_layer
+        committed: set[int] = set()
+        rest = []
+        for i in range(N):
+            u, v = starts[i], targets[i]
+            if (uses[u] == 2) if u == v else (uses[u] == 1 and uses[v] == 1):
+                committed.add(i + 1)
+            else:
+                rest.append(i)
+        settled: set[int] = set()  # agents of rest whose component was identified whole
+        for i in rest:
+            if i in settled:
+                continue
+            u, v = starts[i], targets[i]
+            n_u = uses[u]
+            if n_u == 4 or n_u == 3:  # maybe an AGV and a picker sharing the cell
+                a, p = agv_layer[u] - 1, picker_layer[u] - 1
+                if a < 0 or p < 0 or (i != a and i != p):
+                    continue
+                k = p if i == a else a  # the other one
+                w = targets[k]
+                if n_u == 4:
+                    found = u == v and w == u
+                elif u == v:
+                    found = w != u and uses[w] == 1
+                else:
+                    found = w == u and uses[v] == 1
+                if found:
+                    committed.add(a + 1)
+                    settled.add(a)
+                    settled.add(p)
+            elif u != v:
+                n_v = uses[v]
+                j = (agv_layer[v] or picker_layer[v]) - 1
+                if j < 0:
+                    continue
+                w = targets[j]
+                if n_u == 2 and n_v == 2:
+                    if w == u:  # head-on
+                        settled.add(i)
+                        settled.add(j)
+                elif n_u == 1 and n_v == 3:
+                    if w == v:  # behind one that stays
+                        committed.add(j + 1)
+                        settled.add(i)
+                        settled.add(j)
+                elif n_u == 1 and n_v == 2:
+                    if w != v and uses[w] == 1:  # a chain into a free cell
+                        committed.add(i + 1)
+                        committed.add(j + 1)
+                        settled.add(i)
+                        settled.add(j)
+        moves = [i for i in rest if i not in settled] if settled else rest
+        if moves:
+            for c in commit_flat([starts[i] for i in moves], [targets[i] for i in moves], len(uses), self._cell_xy):
+                aid = agv_layer[c]
+                if aid:
+                    committed.add(aid)
+                    continue
+                pid = picker_layer[c]
+                if pid:
+                    committed.add(pid)
+        return committed, rest
+
+    def _clash_loop(self, starts: list[int], targets: list[int], uses: Counter, committed: set[int]) -> int:
+        """Stage B, literally in id order, on flat cells. Requests change inside the loop, so requested cells are
+        kept current in ``targets`` and their counts in ``uses``. A pair can only act when the agent's requested
+        cell is another agent's cell or request, so an agent whose requested cell nobody else stands on or asks for
+        is skipped, and the others scan every other agent in id order exactly like the original's double loop."""
+        N = self.num_agents
         req, types, path, fixing = self.req, self.types, self.path, self.fixing
         highway = self._highway
         agv_layer, picker_layer = self.agv_layer, self.picker_layer
+        xy = self._cell_xy
         clashes = 0
-        occupied = None
-        uses: dict[tuple[int, int], int] = {}
-        for c in starts:
-            uses[c] = uses.get(c, 0) + 1
-        for c in targets:
-            uses[c] = uses.get(c, 0) + 1
         for i in range(N):
             if not path[i]:
                 continue
@@ -422,11 +539,10 @@ class Warehouse:
                 o_pos = starts[j]
                 if a_loc != o_pos and a_loc != o_loc:
                     continue
-                a_c = a_loc[1] * W + a_loc[0]
                 tj = types[j]
-                if not highway[a_c] and (ti == PICKER or tj == PICKER) and ti != tj:
-                    if (ti == PICKER and picker_layer[a_c] in (0, i + 1)) or (
-                        ti == AGV and agv_layer[a_c] in (0, i + 1)
+                if not highway[a_loc] and (ti == PICKER or tj == PICKER) and ti != tj:
+                    if (ti == PICKER and picker_layer[a_loc] in (0, i + 1)) or (
+                        ti == AGV and agv_layer[a_loc] in (0, i + 1)
                     ):
                         committed.add(i + 1)
                         continue
@@ -436,9 +552,7 @@ class Warehouse:
                         if fixing[j] == 0:
                             clashes += 1
                             fixing[i] = FIXING_CLASH_TIME
-                            if occupied is None:
-                                occupied = self._occupied()
-                            new_path = self.planner.find_path(me, path[i][-1], ti == PICKER, occupied)
+                            new_path = self.planner.find_path(xy[me], path[i][-1], ti == PICKER, starts)
                             if new_path:
                                 path[i] = new_path
                             else:
@@ -449,36 +563,38 @@ class Warehouse:
                         fixing[i] = FIXING_CLASH_TIME
                 if req[i] == NOOP and a_loc != me:  # the agent now asks for its own cell
                     uses[a_loc] -= 1
-                    uses[me] = uses.get(me, 0) + 1
+                    uses[me] += 1
                     targets[i] = a_loc = me
         return clashes
 
     def _resolve_stuck(self) -> int:
         """Phase 3: re-plan or release agents that have not left their cell for too long."""
         goals = self._goal_set
-        req, busy, path = self.req, self.busy, self.path
-        moving = [
-            i for i in range(self.num_agents)
-            if busy[i] and req[i] not in (TURN_LEFT, TURN_RIGHT)
-            and (req[i] != TOGGLE or (self.x[i], self.y[i]) in goals)
-        ]
+        req, busy, path, xs, ys = self.req, self.busy, self.path, self.x, self.y
+        stuck_pos, stuck_count = self.stuck_pos, self.stuck_count
         stucks = 0
         limit = self._unstick_limit
-        occupied = None
-        for i in moving:
-            pos = (self.x[i], self.y[i])
-            if pos == self.stuck_pos[i]:
-                self.stuck_count[i] += 1
+        # each agent's turn reads and writes only its own state, so the filter of moving agents is applied in turn
+        for i in range(self.num_agents):
+            if not busy[i]:
+                continue
+            r = req[i]
+            if r == TURN_LEFT or r == TURN_RIGHT:
+                continue
+            pos = (xs[i], ys[i])
+            if r == TOGGLE and pos not in goals:
+                continue
+            if pos == stuck_pos[i]:
+                stuck_count[i] += 1
             else:
-                self.stuck_count[i] = 0
-                self.stuck_pos[i] = pos
-            count = self.stuck_count[i]
+                stuck_count[i] = 0
+                stuck_pos[i] = pos
+            count = stuck_count[i]
             if STUCK_THRESHOLD < count < limit:
                 req[i] = NOOP
                 if path[i]:
-                    if occupied is None:
-                        occupied = self._occupied()
-                    new_path = self.planner.find_path(pos, path[i][-1], self.types[i] == PICKER, occupied)
+                    # agents stand where the layers were last written until phase 5 moves them
+                    new_path = self.planner.find_path(pos, path[i][-1], self.types[i] == PICKER, self._layer_cells)
                     if new_path:
                         path[i] = new_path
                         if len(new_path) == 1:  # keeps counting: a picker waiting next to its AGV
@@ -488,8 +604,8 @@ class Warehouse:
                 else:
                     stucks += 1
                     busy[i] = False
-                    self.stuck_count[i] = 0
-            if self.stuck_count[i] > limit:  # count == limit does nothing: the original's gap
+                    stuck_count[i] = 0
+            if stuck_count[i] > limit:  # count == limit does nothing: the original's gap
                 stucks += 1
                 self._reset_stuck(i)
                 req[i] = NOOP
@@ -498,29 +614,40 @@ class Warehouse:
 
     def _execute(self, rewards: list[float]) -> tuple[int, int]:
         """Phase 5: moves, turns, loads and unloads in id order, on start-of-step agent layers."""
-        W = self.W
+        W, H = self.W, self.H
         loads = unloads = 0
+        req, xs, ys, dirs, path, carrying = self.req, self.x, self.y, self.dir, self.path, self.carrying
         for i in range(self.num_agents):
-            r = self.req[i]
+            r = req[i]
+            if r == NOOP:
+                continue
             if r == FORWARD:
-                nx_, ny_ = self.req_location(i)
-                self.x[i], self.y[i] = nx_, ny_
-                self.path[i] = self.path[i][1:]
-                sid = self.carrying[i]
+                x, y = xs[i], ys[i]
+                d = dirs[i]
+                if d == 0:
+                    y = y - 1 if y > 0 else 0
+                elif d == 1:
+                    y = y + 1 if y < H - 1 else H - 1
+                elif d == 2:
+                    x = x - 1 if x > 0 else 0
+                else:
+                    x = x + 1 if x < W - 1 else W - 1
+                xs[i], ys[i] = x, y
+                del path[i][0]
+                sid = carrying[i]
                 if sid:
-                    self.shelf_x[sid - 1], self.shelf_y[sid - 1] = nx_, ny_
+                    self.shelf_x[sid - 1], self.shelf_y[sid - 1] = x, y
             elif r == TURN_LEFT or r == TURN_RIGHT:
-                k = _CW_INDEX[self.dir[i]] + (1 if r == TURN_RIGHT else -1)
-                self.dir[i] = int(_CLOCKWISE[k % 4])
+                dirs[i] = _TURNED[r][dirs[i]]
             elif r == TOGGLE:
-                c = self.y[i] * W + self.x[i]
+                c = ys[i] * W + xs[i]
                 t = self.types[i]
-                if not self.carrying[i]:
+                if not carrying[i]:
                     sid = self.shelf_layer[c]
                     pid = self.picker_layer[c]
                     if sid:
                         if (t == AGV and pid) or t == AGENT:
-                            self.carrying[i] = sid
+                            carrying[i] = sid
                             self.shelf_layer[c] = 0
                             self.carried_layer[c] = sid
                             self.busy[i] = False
@@ -529,14 +656,14 @@ class Warehouse:
                     else:
                         self.busy[i] = False
                 else:
-                    if (self.x[i], self.y[i]) in self._goal_set or self.shelf_layer[c] != 0:
+                    if (xs[i], ys[i]) in self._goal_set or self.shelf_layer[c] != 0:
                         self.busy[i] = False
                         continue
                     pid = self.picker_layer[c]
                     if not self._highway[c] and ((t == AGV and pid) or t == AGENT):
-                        self.shelf_layer[c] = self.carrying[i]
+                        self.shelf_layer[c] = carrying[i]
                         self.carried_layer[c] = 0
-                        self.carrying[i] = 0
+                        carrying[i] = 0
                         self.busy[i] = False
                         self.has_delivered[i] = False
                         unloads += 1
@@ -557,13 +684,14 @@ class Warehouse:
         deliveries = 0
         delivered_by: list[int] = []
         queue = self.queue
+        carried_layer = self.carried_layer
         for c in self._goal_idx:
-            sid = self.carried_layer[c]
+            sid = carried_layer[c]
             if not sid or sid not in queue:
                 continue
             excluded = set(queue)
             excluded.update(s for s in self.carrying if s)
-            candidates = [s for s in range(1, self.layout.num_shelves + 1) if s not in excluded]
+            candidates = list(filterfalse(excluded.__contains__, range(1, self.layout.num_shelves + 1)))
             if self.demand_side is not None:
                 # Same single draw per counted delivery, over the active half only; if that half has no free
                 # shelf left (never at the named sizes) the draw falls back to every free shelf.
@@ -591,11 +719,10 @@ class Warehouse:
     def _recalc_layers(self) -> None:
         """Phase 7: move the agent and carried-shelf layers to the new positions (floor shelves were updated
         in place by loads and unloads, exactly as the original's full rebuild would leave them)."""
-        for layer in (self.agv_layer, self.picker_layer, self.carried_layer):
-            for c in self._layer_cells:
-                layer[c] = 0
+        agv_layer, picker_layer, carried_layer = self.agv_layer, self.picker_layer, self.carried_layer
+        for c in self._layer_cells:
+            agv_layer[c] = picker_layer[c] = carried_layer[c] = 0
         self._write_agent_layers()
-        self._layer_cells = self._occupied()
 
     # ------------------------------------------------------------------ read access
     @property
@@ -647,16 +774,9 @@ class Warehouse:
     def empty_rack_actions(self) -> list[int]:
         """Rack action ids whose cell counts as empty: no floor shelf, and no carried shelf unless its AGV is
         moving or turning (the original's ``get_empty_shelf_information``), in action id order."""
-        W, lay = self.W, self.layout
-        out = []
-        for a in lay.rack_action_ids:
-            x, y = lay.action_cells[a]  # type: ignore[misc]
-            c = y * W + x
-            if self.shelf_layer[c]:
-                continue
-            if self.carried_layer[c] == 0 or self.req[self.agv_layer[c] - 1] not in (NOOP, TOGGLE):
-                out.append(a)
-        return out
+        shelf_layer, carried_layer, agv_layer, req = self.shelf_layer, self.carried_layer, self.agv_layer, self.req
+        return [a for a, c in self._rack_action_cells
+                if not shelf_layer[c] and (carried_layer[c] == 0 or req[agv_layer[c] - 1] not in (NOOP, TOGGLE))]
 
     def action_to_cell(self, action: int) -> tuple[int, int]:
         return self.layout.action_to_cell(action)
