@@ -13,7 +13,7 @@ from services.monitor.recorder import read_metrics
 from services.monitor.service import ROW_GRACE_TICKS
 
 PERIOD = 0.05
-STEPS = 100
+STEPS = 80  # after the pause (ticks 25-55) the fleet has 25 ticks to answer again and deliver
 # four robots, two of each role, so that another picker goes on serving the AGVs while one is stopped: the period is
 # the sim's, whatever the fleet
 FLEET = ("--agvs", "2", "--pickers", "2")
