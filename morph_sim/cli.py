@@ -55,8 +55,52 @@ def _chosen(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argpar
         parser = subs[0].choices[getattr(args, subs[0].dest)]
 
 
+# Set while `morph-sim up` starts again with room for its children's command lines (see _make_room_for_command_lines).
+_ROOM = "MORPH_SIM_UP_ROOM"
+
+
+def _make_room_for_command_lines(argv: list[str]) -> list[str]:
+    """``up`` forks its run's processes from a copy of itself, and each shows its own command line (``ps``,
+    ``/proc/<pid>/cmdline``) by writing it into the argument space it inherits, which is as large as the command
+    line this process was started with: ``morph-sim up`` alone leaves no room for ``… -m services.agent --id 3 …``.
+    So a process started with less starts once more, before it imports anything heavy, with an argument of padding;
+    it then shows its own command line without it. The argv to parse."""
+    started_as = os.environ.pop(_ROOM, None)
+    if started_as is not None:
+        if argv and not argv[-1].strip():
+            argv = argv[:-1]
+        import json
+
+        from services.supervisor.forkserver import set_command_line
+
+        set_command_line(json.loads(started_as))  # as it was first started (`morph-sim up …`)
+        return argv
+    if not argv or argv[0] != "up" or {"-h", "--help"} & set(argv):
+        return argv
+    from services.supervisor.forkserver import TITLE_SPACE, argument_space
+
+    if argument_space() >= TITLE_SPACE or not sys.executable:
+        return argv
+    import json
+
+    try:
+        with open("/proc/self/cmdline", "rb") as f:
+            started_as = f.read().rstrip(b"\0").decode(errors="replace").split("\0")
+    except OSError:
+        started_as = [sys.executable, *sys.argv]
+    os.environ[_ROOM] = json.dumps(started_as)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    try:
+        os.execv(sys.executable, [sys.executable, "-m", "morph_sim.cli", *argv, " " * TITLE_SPACE])
+    except OSError:  # the interpreter cannot be started again here: the run's processes then come from a fresh one
+        os.environ.pop(_ROOM, None)
+    return argv
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
+    # only as the process's own command line: a test (or any caller) running main() in its process keeps it
+    argv = _make_room_for_command_lines(sys.argv[1:]) if argv is None else list(argv)
     # the full parser when no subcommand comes first (--help, --version, a typo: argparse lists every choice)
     only = argv[0] if argv and argv[0] in _command_names() else None
     parser = build_parser(only)

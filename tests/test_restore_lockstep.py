@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import sys
 
 import psutil
 import pytest
@@ -61,6 +62,15 @@ def test_sigkilled_agent_restores_its_state_in_a_lockstep_run_and_a_cold_one_say
     up.wait_for_rows(KILL_AFTER_ROWS, timeout=120)
     pid = _agent_pid(up.pid, VICTIM)
     assert pid is not None
+    # the run's processes come from a fork server forked from `up` itself (after it made room for their command
+    # lines, which does not show in its own)
+    supervisor = psutil.Process(up.pid).cmdline()
+    assert supervisor[: len(up.argv)] == up.argv and not any(supervisor[len(up.argv):]), supervisor
+    server = psutil.Process(pid).parent()
+    # (an exec'd server's command line ends with its own padding)
+    assert server.cmdline()[:3] == [sys.executable, "-m", "services.supervisor.forkserver"], server.cmdline()
+    assert not any(server.cmdline()[3:]), server.cmdline()
+    assert server.ppid() == up.pid
     killed_at_row = up.rows()
     os.kill(pid, signal.SIGKILL)  # at full speed, mid-run
 

@@ -49,9 +49,6 @@ def run(args: argparse.Namespace) -> int:
         Console = None
     console = Console(stderr=True) if Console is not None else None
     status = None
-    if not args.quiet and console is not None:
-        status = console.status("starting …")
-        status.start()
 
     def show(progress, line: str) -> None:
         if status is not None:
@@ -66,8 +63,6 @@ def run(args: argparse.Namespace) -> int:
         supervisor = Supervisor(config, on_progress=show, insecure=args.insecure, monitor_args=monitor_args,
                                 end_grace=grace)
     except (StartError, ValueError) as exc:
-        if status is not None:
-            status.stop()
         # refused before any process started: the directory this call created goes, so the run id stays free for
         # the corrected command
         shutil.rmtree(config.record_dir, ignore_errors=True)
@@ -75,6 +70,14 @@ def run(args: argparse.Namespace) -> int:
             raise  # bad configuration: one line, exit 2
         print(f"morph-sim up: error: {exc}", file=sys.stderr)
         return 1
+    try:
+        supervisor.prestart()  # while this process is one thread: before the live line's
+    except StartError as exc:
+        print(f"morph-sim up: error: {exc}", file=sys.stderr)
+        return 1
+    if not args.quiet and console is not None:
+        status = console.status("starting …")
+        status.start()
     if supervisor.credentials is not None:
         # the operator commands read the endpoint and the credentials from the record, which they look for under
         # their own --output-dir (default runs)

@@ -147,18 +147,30 @@ def exit_verdict(role: str, restart: str, code: int, *, running: bool, planned: 
     return Exit.DONE
 
 
-def start_fork_server(record_dir: Path, ready_timeout: float, on_exit: Callable[[], None]) -> ForkServer:
+def start_fork_server(record_dir: Path, ready_timeout: float, on_exit: Callable[[], None], *,
+                      fork: bool = False, wait: bool = True) -> ForkServer:
     """The run's processes start by fork from one interpreter that imported them once (fresh interpreters spend
     ~0.5 CPU-s each on imports). Its environment holds BLAS to one thread, as every child's does, so it stays
-    single-threaded and safe to fork."""
+    single-threaded and safe to fork. ``fork``/``wait``: see :class:`ForkServer` (then :func:`fork_server_ready`)."""
     log = record_dir / "logs" / "fork-server.log"
     log.parent.mkdir(parents=True, exist_ok=True)
     try:
         return ForkServer(child_environment(CHILD_ENV), log, ready_timeout=ready_timeout, preexec_fn=die_with_parent,
-                          on_exit=on_exit)
+                          on_exit=on_exit, fork=fork, wait=wait)
     except RuntimeError as exc:
-        tail = "\n".join(log.read_text(errors="replace").splitlines()[-15:]) if log.exists() else ""
-        raise StartError(f"{exc}:\n{tail}") from None
+        raise StartError(f"{exc}:\n{_log_tail(log)}") from None
+
+
+def fork_server_ready(server: ForkServer, ready_timeout: float) -> None:
+    """Wait for a server started with ``wait=False``; StartError with its log's end if it cannot start."""
+    try:
+        server.wait_ready(ready_timeout)
+    except RuntimeError as exc:
+        raise StartError(f"{exc}:\n{_log_tail(Path(server.log_path))}") from None
+
+
+def _log_tail(log: Path) -> str:
+    return "\n".join(log.read_text(errors="replace").splitlines()[-15:]) if log.exists() else ""
 
 
 async def end_children(children: list[Child], nap: Callable[[float], Awaitable[None]],

@@ -13,6 +13,13 @@ server does, so nothing outlives the supervisor. Fork is safe only while this pr
 session is ever opened here, and BLAS is held to one thread by the environment the supervisor gives the server); it
 refuses a request otherwise.
 
+Where it can, ``up`` forks the server itself from its own interpreter, which has imported most of what the run's
+processes need already (the wire models, numpy, pydantic, the supervisor's half of the services): the server then
+imports the rest, a fifth of it, alongside the supervisor's own start instead of after it (``ForkServer(...,
+fork=True)``). That needs a supervisor with one thread and an argument space as large as the exec'd server's, for
+the command lines its children write there; ``morph-sim up`` makes room for them when it starts
+(:func:`argument_space`).
+
 The server speaks JSON lines: on stdin ``{"id": n, "argv": [python, "-m", "services.<sim|agent|monitor>", ...],
 "env": {...},
 "log": path}``; on stdout
@@ -56,6 +63,22 @@ def _threads() -> int:
     return len(os.listdir("/proc/self/task"))
 
 
+def _argument_range() -> tuple[int, int]:
+    """(start, end) addresses of this process's argument space (``arg_start``/``arg_end`` of ``/proc/self/stat``)."""
+    with open("/proc/self/stat", "rb") as f:
+        fields = f.read().rsplit(b")", 1)[1].split()
+    return int(fields[45]), int(fields[46])  # fields 48 and 49 of proc(5); fields[0] is field 3
+
+
+def argument_space() -> int:
+    """Bytes of command line this process can show (0 where ``/proc`` does not tell)."""
+    try:
+        start, end = _argument_range()
+    except (OSError, IndexError, ValueError):
+        return 0
+    return end - start
+
+
 def set_command_line(argv: list[str]) -> None:
     """Write ``argv`` into this process's argument space, which ``/proc/<pid>/cmdline`` (``ps``, psutil) reads.
 
@@ -64,9 +87,7 @@ def set_command_line(argv: list[str]) -> None:
     A longer command line is cut to the space."""
     import ctypes
 
-    with open("/proc/self/stat", "rb") as f:
-        fields = f.read().rsplit(b")", 1)[1].split()
-    start, end = int(fields[45]), int(fields[46])  # fields 48 and 49 of proc(5); fields[0] is field 3
+    start, end = _argument_range()
     size = end - start
     if size <= 1:
         return
@@ -226,6 +247,85 @@ class ForkedProcess:
             os.kill(self.pid, sig)
 
 
+class _ServerProcess:
+    """The part of ``subprocess.Popen`` :class:`ForkServer` uses, for a server forked from the supervisor itself."""
+
+    def __init__(self, pid: int, stdin, stdout):
+        self.pid, self.stdin, self.stdout = pid, stdin, stdout
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            try:
+                pid, raw = os.waitpid(self.pid, os.WNOHANG)
+            except ChildProcessError:  # reaped elsewhere: it has ended, how is not known
+                self.returncode = ForkServer.LOST
+            else:
+                if pid:
+                    self.returncode = _status(raw)
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        import subprocess
+        import time
+
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while self.poll() is None:
+            if deadline is not None and time.monotonic() >= deadline:
+                raise subprocess.TimeoutExpired([sys.executable, "-m", __name__], timeout)
+            time.sleep(0.01)
+        return self.returncode  # type: ignore[return-value]
+
+    def kill(self) -> None:
+        if self.poll() is None:
+            try:
+                os.kill(self.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
+def _fork_server(env: dict[str, str], log_path, preexec_fn) -> _ServerProcess:
+    """The server as a fork of this process, which must have one thread: what the exec'd server would be (its own
+    session, its log as stderr, only its channels open, ``env`` as its environment, its own command line)."""
+    import traceback
+
+    from_supervisor, to_server = os.pipe()
+    from_server, to_supervisor = os.pipe()
+    log = os.open(log_path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    pid = os.fork()
+    if pid == 0:  # the server
+        code = 1
+        try:
+            os.setsid()
+            if preexec_fn is not None:
+                preexec_fn()
+            os.dup2(from_supervisor, 0)
+            os.dup2(to_supervisor, 1)
+            os.dup2(log, 2)
+            os.closerange(3, 1 << 20)  # every descriptor the supervisor had open (its record, its terminal's copies)
+            signal.set_wakeup_fd(-1)
+            for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGCHLD):
+                signal.signal(sig, signal.SIG_DFL)
+            os.environ.clear()
+            os.environ.update(env)
+            set_command_line([sys.executable, "-m", __name__])
+            sys.argv = [__name__]
+            code = serve()
+        except BaseException:
+            traceback.print_exc()
+        finally:
+            try:
+                sys.stdout.flush()
+                sys.stderr.flush()
+            finally:
+                os._exit(code)
+    for fd in (from_supervisor, to_supervisor, log):
+        os.close(fd)
+    return _ServerProcess(pid, os.fdopen(to_server, "wb"), os.fdopen(from_server, "rb"))
+
+
 class ForkServer:
     """The supervisor's end: starts the server, asks it for processes, hears how they end.
 
@@ -237,8 +337,11 @@ class ForkServer:
     LOST = -signal.SIGTERM
 
     def __init__(self, env: dict[str, str], log_path, *, ready_timeout: float = 60.0, preexec_fn=None,
-                 on_exit=None):
-        """``on_exit()`` is called (on the reader thread) whenever a child has ended, and when the server has."""
+                 on_exit=None, fork: bool = False, wait: bool = True):
+        """``on_exit()`` is called (on the reader thread) whenever a child has ended, and when the server has.
+        ``fork``: fork the server from this process where that is safe (one thread, room for command lines), else
+        start ``python -m services.supervisor.forkserver``. ``wait=False``: return at once; :meth:`wait_ready`
+        before the first :meth:`spawn`."""
         import subprocess
         import threading
 
@@ -250,20 +353,30 @@ class ForkServer:
         self._ready = False
         self._closed = False
         self.log_path = log_path
-        with open(log_path, "ab") as log:
-            self.proc = subprocess.Popen(
-                [sys.executable, "-m", __name__, " " * TITLE_SPACE], env=env, stdin=subprocess.PIPE,
-                stdout=subprocess.PIPE, stderr=log, start_new_session=True, preexec_fn=preexec_fn, close_fds=True)
+        self.forked = fork and _threads() == 1 and argument_space() >= TITLE_SPACE
+        if self.forked:
+            self.proc = _fork_server(env, log_path, preexec_fn)
+        else:
+            with open(log_path, "ab") as log:
+                self.proc = subprocess.Popen(
+                    [sys.executable, "-m", __name__, " " * TITLE_SPACE], env=env, stdin=subprocess.PIPE,
+                    stdout=subprocess.PIPE, stderr=log, start_new_session=True, preexec_fn=preexec_fn,
+                    close_fds=True)
         self.pid = self.proc.pid
         self._reader = threading.Thread(target=self._read, name="fork-server", daemon=True)
         self._reader.start()
+        if wait:
+            self.wait_ready(ready_timeout)
+
+    def wait_ready(self, timeout: float) -> None:
+        """Until the server has imported what its children need; RuntimeError if it cannot start."""
         with self._lock:
-            if not self._lock.wait_for(lambda: self._ready or self._closed, ready_timeout):
+            if not self._lock.wait_for(lambda: self._ready or self._closed, timeout):
                 self.close()
-                raise RuntimeError(f"the fork server did not start within {ready_timeout:.0f} s")
+                raise RuntimeError(f"the fork server did not start within {timeout:.0f} s")
             if not self._ready:
                 raise RuntimeError(f"the fork server ended with status {self.proc.wait()} before it was ready "
-                                   f"(its log: {log_path})")
+                                   f"(its log: {self.log_path})")
 
     def _read(self) -> None:
         for line in self.proc.stdout:

@@ -23,6 +23,7 @@ from services.supervisor.children import (
     Exit,
     end_children,
     exit_verdict,
+    fork_server_ready,
     last_error,
     start_fork_server,
 )
@@ -156,6 +157,13 @@ class Supervisor:
             pass
         wake.clear()
 
+    def prestart(self) -> None:
+        """Start the fork server now, forked from this process if it has one thread (before the live line's thread
+        and the event loop), so that it imports the rest of the run's code while this process goes on starting."""
+        if self.server is None:
+            self.server = start_fork_server(self.config.record_dir, self.ready_timeout, self._notify, fork=True,
+                                            wait=False)
+
     # -- main ----------------------------------------------------------------------------------------------------------
     async def run(self) -> int:
         """0 when the run completed, 130/143 when interrupted; raises StartError if a process cannot start."""
@@ -181,7 +189,10 @@ class Supervisor:
             raise StartError(f"nothing listens on the Zenoh endpoint {self.endpoint} (--endpoint): start the router "
                              "first, or leave --endpoint out to host the endpoint in the sim")
         sim = self.children["sim"]
-        self.server = start_fork_server(self.config.record_dir, self.ready_timeout, self._notify)
+        if self.server is None:
+            self.server = start_fork_server(self.config.record_dir, self.ready_timeout, self._notify)
+        else:
+            fork_server_ready(self.server, self.ready_timeout)
         sim.start(server=self.server)
         self._event("start", f"sim pid {sim.pid} ({'connects to' if self.external else 'listens on'} {self.endpoint})")
         # The sim must have opened its endpoint before anyone connects; a short wait for the port is enough.
