@@ -127,19 +127,26 @@ def test_move_graph_matches_networkx_cases():
 def test_fast_path_equals_emulation_on_random_graphs():
     rng = random.Random(11)
     for _ in range(3000):
-        W, H = rng.choice([(14, 15), (6, 5), (22, 35)])
-        starts = rng.sample([(x, y) for x in range(W) for y in range(H)], rng.randint(1, min(24, W * H)))
-        for i in range(1, len(starts)):
-            if rng.random() < 0.08:
-                starts.append(starts[rng.randrange(i)])
-        targets = []
-        for x, y in starts:
-            if rng.random() < 0.3:
-                targets.append((x, y))
-            else:
-                dx, dy = rng.choice([(0, 1), (0, -1), (1, 0), (-1, 0)])
-                targets.append((min(max(x + dx, 0), W - 1), min(max(y + dy, 0), H - 1)))
+        starts, targets, _, _ = _random_moves(rng, [(14, 15), (6, 5), (22, 35)], shared=0.08)
         assert sorted(set(commit_cells(starts, targets))) == sorted(set(networkx_commit_cells(starts, targets)))
+
+
+def _random_moves(rng: random.Random, sizes, shared: float):
+    """(starts, targets, W, H): up to 24 agents on a random grid of ``sizes``, a share ``shared`` of them on a cell
+    another holds too, each staying or asking for a neighbouring cell."""
+    W, H = rng.choice(sizes)
+    starts = rng.sample([(x, y) for x in range(W) for y in range(H)], rng.randint(1, min(24, W * H)))
+    for i in range(1, len(starts)):
+        if rng.random() < shared:
+            starts.append(starts[rng.randrange(i)])
+    targets = []
+    for x, y in starts:
+        if rng.random() < 0.3:
+            targets.append((x, y))
+        else:
+            dx, dy = rng.choice([(0, 1), (0, -1), (1, 0), (-1, 0)])
+            targets.append((min(max(x + dx, 0), W - 1), min(max(y + dy, 0), H - 1)))
+    return starts, targets, W, H
 
 
 def _commit_as_the_warehouse_does(starts, targets, W, H):
@@ -169,18 +176,7 @@ def test_flat_cells_equal_emulation():
         assert _commit_as_the_warehouse_does(starts, targets, W, H) == _cells(case["commit"])
     rng = random.Random(12)
     for _ in range(3000):
-        W, H = rng.choice([(14, 15), (6, 5), (22, 35), (3, 3)])
-        starts = rng.sample([(x, y) for x in range(W) for y in range(H)], rng.randint(1, min(24, W * H)))
-        for i in range(1, len(starts)):
-            if rng.random() < 0.1:
-                starts.append(starts[rng.randrange(i)])
-        targets = []
-        for x, y in starts:
-            if rng.random() < 0.3:
-                targets.append((x, y))
-            else:
-                dx, dy = rng.choice([(0, 1), (0, -1), (1, 0), (-1, 0)])
-                targets.append((min(max(x + dx, 0), W - 1), min(max(y + dy, 0), H - 1)))
+        starts, targets, W, H = _random_moves(rng, [(14, 15), (6, 5), (22, 35), (3, 3)], shared=0.1)
         expected = sorted(set(networkx_commit_cells(starts, targets)))
         assert _commit_as_the_warehouse_does(starts, targets, W, H) == expected, (starts, targets)
 

@@ -139,11 +139,17 @@ def _child(request: dict, server_pid: int, started: int, channels: tuple[int, ..
         traceback.print_exc()
         code = 1
     finally:
-        try:
-            sys.stdout.flush()
-            sys.stderr.flush()
-        finally:
-            os._exit(code)
+        _leave(code)
+
+
+def _leave(code: int) -> None:
+    """End a forked process with ``code``: what it printed reaches its log, and no interpreter teardown runs (it
+    would free, and so copy, what the process shares with its parent)."""
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+    finally:
+        os._exit(code)
 
 
 def _is_service(argv: list[str]) -> bool:
@@ -316,11 +322,7 @@ def _fork_server(env: dict[str, str], log_path, preexec_fn) -> _ServerProcess:
         except BaseException:
             traceback.print_exc()
         finally:
-            try:
-                sys.stdout.flush()
-                sys.stderr.flush()
-            finally:
-                os._exit(code)
+            _leave(code)
     for fd in (from_supervisor, to_supervisor, log):
         os.close(fd)
     return _ServerProcess(pid, os.fdopen(to_server, "wb"), os.fdopen(from_server, "rb"))

@@ -166,7 +166,8 @@ def astar_unit(weights: list[float], H: int, W: int, start: int, goal: int,
             break
         if expanded is not None:
             expanded.append(cur)
-        # --- pop: libstdc++ pop_heap, as in astar() ---
+        # --- pop: libstdc++ pop_heap, as in astar() (written out in each search rather than called: it is the
+        # searches' innermost loop) ---
         last = heap.pop()
         size = len(heap)
         if size:
