@@ -52,8 +52,10 @@ def uniform(*parts: object) -> float:
     return (int.from_bytes(digest, "big") >> 11) * (1.0 / (1 << 53))
 
 
-def draw(lat: Latency, u: float) -> float:
-    return latency_quantile(lat, u) if (lat.delay > 0.0 or lat.jitter > 0.0) else 0.0
+def draw_for(lat: Latency, *parts: object) -> float:
+    """A delay from ``lat`` at the quantile ``uniform(*parts)``, hashing ``parts`` only where the latency has a
+    spread to draw from (the hashes are most of the radio model's cost)."""
+    return latency_quantile(lat, uniform(*parts)) if (lat.delay > 0.0 or lat.jitter > 0.0) else 0.0
 
 
 def default_access_points(layout: Layout, spacing: float) -> np.ndarray:
@@ -233,7 +235,7 @@ class NetworkModel:
             radio.ap = best
             self._track(radio, time)
             return None
-        outage = draw(self.profile.handover.outage, uniform(self.seed, "handover", robot, radio.handovers))
+        outage = draw_for(self.profile.handover.outage, self.seed, "handover", robot, radio.handovers)
         event = HandoverEvent(robot, time, radio.ap, best, outage)
         radio.ap = best
         self._track(radio, time)
@@ -318,7 +320,7 @@ class NetworkModel:
             keep, extra = float(self.zone_keep[y, x]), float(self.zone_delay[y, x])
         if keep < 1.0 and uniform(self.seed, "zone", robot, direction, msg) >= keep:
             return None, "dead_zone"
-        return at + draw(p.latency, uniform(self.seed, "latency", robot, direction, msg)) + extra, None
+        return at + draw_for(p.latency, self.seed, "latency", robot, direction, msg) + extra, None
 
     def fate(self, sent_at: float, sender: object, receiver: object, msg: object, *, size: int = 0,
              sender_cell: tuple[int, int] | None = None,
@@ -326,6 +328,7 @@ class NetworkModel:
         """Decide one message sent at ``sent_at`` (sim seconds) from ``sender`` to ``receiver``. ``msg`` identifies
         it (e.g. ``(publisher, key, seq)``): the draws are a function of it. ``size``: bytes, for the rate limits."""
         self.stats.seen += 1
+        msg = str(msg)  # its identity as each draw hashes it (str(str(m)) == str(m)): once, not once a draw
         if sender_cell is not None and isinstance(sender, int):
             self.move(sender, sent_at, sender_cell)
         at: float | None = sent_at
