@@ -318,3 +318,17 @@ async def test_one_robots_flood_gets_its_share_of_the_inbox_and_the_rest_is_refu
         await sub.close()
         await robots.close()
         await hub.close()
+
+
+def test_a_session_opens_without_waiting_for_scouting():
+    """Scouting is off, so a session waits for nobody when it opens: Zenoh's default scouting delay held every
+    router's open 500 ms, and the sim's endpoint is a router."""
+    import json
+
+    from services.bus.zenoh_bus import endpoint, free_port, zenoh_config
+
+    for mode, where in (("router", "listen"), ("peer", "listen"), ("client", "connect")):
+        cfg = zenoh_config(mode=mode, **{where: endpoint(free_port())})
+        assert json.loads(cfg.get_json("scouting/delay")) == 0, mode
+        assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
+        assert json.loads(cfg.get_json("scouting/gossip/enabled")) is False
