@@ -48,7 +48,7 @@ def add_arguments(parser) -> None:
                         "fleet broadcast and both × five policies × seeds 1–10, T = 800 (2,600 episodes a scale, "
                         "≈ 1 h of two idle cores in all). network's default grid: four scales × five profiles × six "
                         "policies × seeds 301–310, T = 800 (tiny, small), 600 (medium), 400 (large) (1,200 episodes, "
-                        "measured: 6 min on two idle cores)")
+                        "measured: 6–8 min on two idle cores)")
     parser.add_argument("--preset", default=None, help="scale/ablation: MORPH preset reference (scale default) or "
                         "paper (ablation default), or a preset TOML path; emergent: comma-separated presets "
                         "(default reference,paper)")
