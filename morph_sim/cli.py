@@ -65,12 +65,12 @@ def _make_room_for_command_lines(argv: list[str]) -> list[str]:
     line this process was started with: ``morph-sim up`` alone leaves no room for ``… -m services.agent --id 3 …``.
     So a process started with less starts once more, before it imports anything heavy, with an argument of padding;
     it then shows its own command line without it. The argv to parse."""
+    import json
+
     started_as = os.environ.pop(_ROOM, None)
     if started_as is not None:
         if argv and not argv[-1].strip():
             argv = argv[:-1]
-        import json
-
         from services.supervisor.forkserver import set_command_line
 
         set_command_line(json.loads(started_as))  # as it was first started (`morph-sim up …`)
@@ -81,8 +81,6 @@ def _make_room_for_command_lines(argv: list[str]) -> list[str]:
 
     if argument_space() >= TITLE_SPACE or not sys.executable:
         return argv
-    import json
-
     try:
         with open("/proc/self/cmdline", "rb") as f:
             started_as = f.read().rstrip(b"\0").decode(errors="replace").split("\0")

@@ -166,19 +166,26 @@ def _compile_the_sources() -> None:
         compileall.compile_dir(root / package, quiet=1)
 
 
+def _kind(item) -> str | None:
+    return KIND_OF.get(Path(str(item.fspath)).stem)
+
+
+def _group(item) -> str:
+    """One pytest worker per file (its module fixtures are built once), and the tests of a shared session run on one
+    worker whatever their file, so that run is started once (pyproject's `--dist loadgroup`)."""
+    return next((f for f in SHARED_RUNS if f in item.fixturenames), Path(str(item.fspath)).stem)
+
+
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups off the markers (its hook adds them to the ids)
 def pytest_collection_modifyitems(config, items):
     unknown = set()
     for item in items:
-        name = Path(str(item.fspath)).stem
-        kind = KIND_OF.get(name)
+        kind = _kind(item)
         if kind is None:
-            unknown.add(name)
+            unknown.add(Path(str(item.fspath)).stem)
             continue
         item.add_marker(getattr(pytest.mark, kind))
-        # one pytest worker per file (its module fixtures are built once), and the tests of a shared session run on
-        # one worker whatever their file, so that run is started once (pyproject's `--dist loadgroup`)
-        item.add_marker(pytest.mark.xdist_group(next((f for f in SHARED_RUNS if f in item.fixturenames), name)))
+        item.add_marker(pytest.mark.xdist_group(_group(item)))
         if item.get_closest_marker("slow") and not item.get_closest_marker("timeout"):
             item.add_marker(pytest.mark.timeout(SLOW_TIMEOUT))
     if unknown:
@@ -188,25 +195,19 @@ def pytest_collection_modifyitems(config, items):
     # groups, which spend much of their time waiting on wall-clock (paced runs, a process starting, a timeout they
     # provoke), spread among the lab's CPU-bound fidelity groups, so that while one worker waits the others compute;
     # and the many short pure tests last, where they fill in while the other workers end their last long group.
-    def kind(item) -> str:
-        return KIND_OF[Path(str(item.fspath)).stem]
-
-    def group(item) -> str:
-        return next((f for f in SHARED_RUNS if f in item.fixturenames), Path(str(item.fspath)).stem)
-
     spread: dict[str, list[str]] = {"e2e": [], "fidelity": []}
     for item in items:
-        groups = spread.get(kind(item))
-        if groups is not None and group(item) not in groups:
-            groups.append(group(item))
+        groups = spread.get(_kind(item))
+        if groups is not None and _group(item) not in groups:
+            groups.append(_group(item))
     place = {g: (i + 0.5 * (k == "fidelity")) / len(gs) for k, gs in spread.items() for i, g in enumerate(gs)}
 
     def order(item) -> tuple[int, float]:
         if item.get_closest_marker("alone") or any(f in item.fixturenames for f in ALONE_RUNS):
             return (0, 0.0)
-        if kind(item) in spread:
-            return (1, place[group(item)])
-        return (2 + ("services", "unit").index(kind(item)), 0.0)
+        if _kind(item) in spread:
+            return (1, place[_group(item)])
+        return (2 + ("services", "unit").index(_kind(item)), 0.0)
 
     items.sort(key=order)
 
