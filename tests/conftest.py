@@ -289,7 +289,7 @@ with zenoh.open(conf) as session:
 print(json.dumps({"seconds": {k: sorted(v) for k, v in seconds.items()}, "ticks": ticks, "last": last}))
 '''
 
-SHARED_STEPS = 800  # a default run long enough (> 5 s at full speed, ~120 ticks/s here) to judge its streams second by second
+SHARED_STEPS = 800  # a default run long enough (4-5 s at full speed, 165-200 ticks/s here) to judge its streams second by second
 LATE_JOIN_ROWS = 20  # the late watcher joins once the record has this many rows
 
 
