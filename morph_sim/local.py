@@ -59,16 +59,22 @@ async def run_local(config: RunConfig, *, record: bool = True, network: LocalNet
                      on_tick=None if progress is None else lambda t, obs: progress(t, sim.ctl.deliveries))
     tasks = [asyncio.create_task(monitor.run(), name="monitor")]
     tasks += [asyncio.create_task(a.run(), name=f"agent-{a.id}") for a in agents]
+    air = None
+    if config.shared_air:  # the radio's shared capacity: its own service, as in `up`
+        from services.air.service import AirService
+
+        air = asyncio.create_task(AirService(config, session("air")).run(), name="air")
     try:
         sim_result = await sim.run()
-        done, pending = await asyncio.wait(tasks, timeout=max(5.0, config.phase_timeout))
+        done, pending = await asyncio.wait(tasks + ([air] if air is not None else []),
+                                           timeout=max(5.0, config.phase_timeout))
         for task in done:
             task.result()  # surface a crashed service
         if pending:
             raise RuntimeError(f"services did not stop after the run: {sorted(t.get_name() for t in pending)}")
         return LocalRun(sim_result, tasks[0].result(), [t.result() for t in tasks[1:]])
     finally:
-        for task in tasks:
+        for task in tasks + ([air] if air is not None else []):
             if not task.done():
                 task.cancel()
         for bus in buses:

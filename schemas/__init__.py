@@ -21,6 +21,8 @@ from schemas.messages import (
     MESSAGES,
     Ack,
     AgentState,
+    AirPart,
+    AirVerdicts,
     Commit,
     Event,
     FaultCommand,
@@ -44,7 +46,7 @@ from schemas.messages import (
 )
 
 __all__ = [
-    "Ack", "AgentState", "Commit", "Crash", "DecodeError", "Distribution", "Duplicate", "Event", "FaultCommand",
+    "Ack", "AgentState", "AirPart", "AirVerdicts", "Commit", "Crash", "DecodeError", "Distribution", "Duplicate", "Event", "FaultCommand",
     "FaultReply", "FaultSpec", "Heading", "HelpReply", "HelpRequest", "Latency", "Loss", "LossModel", "MESSAGES",
     "MESSAGE_TYPES", "Message", "MetricSample", "MissionType", "OnBoard", "Partition", "PartitionDirection", "Phase", "PolicyAnnouncement", "PolicyMessage",
     "Refusal",

@@ -247,6 +247,16 @@ class RunKeys:
         """The sim tells an AGV and a picker that their commitment was no longer valid when it arrived."""
         return self._k("sim", "refusal", _agent_chunk(agent))
 
+    # -- the shared air (a profile with rate-limited queues) ----------------------------------------------------
+    @cached_property
+    def air_parts(self) -> str:
+        """The sim tells the air what was published at an instant (schemas.messages.AirPart)."""
+        return self._k("air", "part")
+
+    def air_verdicts(self, receiver: int | str) -> str:
+        """The air's verdicts on the radio messages to ``receiver`` (a robot id, or ``sim``)."""
+        return self._k("air", "verdict", _agent_chunk(receiver))
+
     # -- agents ------------------------------------------------------------------------------------------------
     def ack(self, agent: int | str) -> str:
         return self._k("agent", _agent_chunk(agent), "ack")
@@ -403,6 +413,8 @@ class RunKeys:
             return parse_agent_id(rel[1])
         if rel[0] == "sim":
             return "sim"
+        if rel[0] == "air":
+            return "air"
         if rel[0] == "events" and len(rel) == 2:
             return parse_agent_id(rel[1])
         return None

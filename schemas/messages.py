@@ -378,15 +378,70 @@ class PolicyAnnouncement(Message):
         default_factory=dict, max_length=64, description="the values of its parameters")
 
 
+# ------------------------------------------------------------------------------------------------------------------
+# The shared air (a network profile with rate-limited queues: services/faults/air.py)
+# ------------------------------------------------------------------------------------------------------------------
+#: a publisher in the air's messages: a robot id, or -1 for the sim
+AirPublisher = Annotated[int, Field(ge=-1, lt=MAX_ROBOTS)]
+AirKey = Annotated[str, Field(min_length=1, max_length=128)]
+MAX_AIR_ENTRIES = 4096
+
+
+class AirPart(Message):
+    """Sim → the air: what was published at ``sent_at`` by the sim (``part`` 0) or by the robots (``part`` 1), as
+    the sim knows it (its own sends, the robots' acks): ``counts[i]`` publications by ``publishers[i]`` on
+    ``keys[i]`` (relative to ``morph/<run>/``). The air judges the part once all of it has reached it."""
+
+    KIND = "air_part"
+
+    sent_at: SimTime
+    part: Annotated[int, Field(ge=0, le=1)]
+    publishers: list[AirPublisher] = Field(max_length=MAX_AIR_ENTRIES)
+    keys: list[AirKey] = Field(max_length=MAX_AIR_ENTRIES)
+    counts: list[Annotated[int, Field(ge=1, le=MAX_ROBOTS)]] = Field(max_length=MAX_AIR_ENTRIES)
+
+    @model_validator(mode="after")
+    def _shape(self) -> AirPart:
+        for name in ("keys", "counts"):
+            if len(getattr(self, name)) != len(self.publishers):
+                raise PydanticCustomError(
+                    "length_mismatch", "{field} has {got} entries, expected {want} (one per publisher)",
+                    {"field": name, "got": len(getattr(self, name)), "want": len(self.publishers)})
+        return self
+
+
+class AirVerdicts(Message):
+    """The air → one receiver: the radio's verdict on each copy of a message sent to it, identified by (publisher,
+    key, seq): delivered at ``at[i]`` (sim seconds) or, where ``at[i]`` is None, lost with ``causes[i]``."""
+
+    KIND = "air_verdicts"
+
+    publishers: list[AirPublisher] = Field(max_length=MAX_AIR_ENTRIES)
+    keys: list[AirKey] = Field(max_length=MAX_AIR_ENTRIES)
+    seqs: list[Seq] = Field(max_length=MAX_AIR_ENTRIES)
+    at: list[SimTime | None] = Field(max_length=MAX_AIR_ENTRIES)
+    causes: list[Annotated[str, Field(max_length=32)] | None] = Field(max_length=MAX_AIR_ENTRIES)
+
+    @model_validator(mode="after")
+    def _shape(self) -> AirVerdicts:
+        for name in ("keys", "seqs", "at", "causes"):
+            if len(getattr(self, name)) != len(self.publishers):
+                raise PydanticCustomError(
+                    "length_mismatch", "{field} has {got} entries, expected {want} (one per publisher)",
+                    {"field": name, "got": len(getattr(self, name)), "want": len(self.publishers)})
+        return self
+
+
 MESSAGE_TYPES: tuple[type[Message], ...] = (
     Tick, OnBoard, Ack, Resolve, HelpRequest, HelpReply, Commit, Refusal, AgentState, MetricSample, Event, Stop,
-    FaultCommand, FaultReply, RegistrationRequest, RegistrationReply, PolicyAnnouncement, PolicyMessage,
+    FaultCommand, FaultReply, RegistrationRequest, RegistrationReply, PolicyAnnouncement, PolicyMessage, AirPart,
+    AirVerdicts,
 )
 MESSAGES: dict[str, type[Message]] = {cls.KIND: cls for cls in MESSAGE_TYPES}
 register_kinds(*MESSAGE_TYPES)
 
 __all__ = [
-    "Ack", "AgentState", "Commit", "Event", "FaultCommand", "FaultReply", "Heading", "HelpReply", "HelpRequest",
+    "Ack", "AirPart", "AirVerdicts", "AgentState", "Commit", "Event", "FaultCommand", "FaultReply", "Heading", "HelpReply", "HelpRequest",
     "MESSAGES", "MESSAGE_TYPES", "MetricSample", "MissionType", "OnBoard", "Phase", "PolicyAnnouncement", "PolicyMessage", "Refusal",
     "RegistrationReply",
     "RegistrationRequest",

@@ -7,6 +7,7 @@ directory per run, owner-only (0700, every file 0600)::
     endpoint.json5       the endpoint's config: user/password authentication + access control for this run id
     operator.json5       the operator's client config (up's supervisor, watch, faults, record, stop)
     monitor.json5        the monitor's client config
+    air.json5            the shared air's client config (used by runs whose network profile limits rates)
     agent-<N>.json5      robot N's client config
     where                the endpoint the run is hosted on (not a secret: how ``watch`` finds the run's files)
 
@@ -18,6 +19,7 @@ own file. What the access control allows (default deny; docs/deploy.md shows the
 * robot N may publish only under ``agent/N/**``, ``alive/N`` and ``events/N``, and answer fault-list queries; it
   alone receives its on-board state ``sim/@onboard/N``;
 * the monitor publishes ``metrics/**``, its token and events, and answers ``state/**``;
+* the air (a rate-limited network profile's radio) publishes its verdicts ``air/verdict/**``, its token and events;
 * ``up``'s supervisor connects as the operator and answers fault queries for the crash faults it carries out;
 * only the operator may put on ``ctl/**`` (stop, faults), query ``ctl/faults`` (``faults set`` is a query) and publish
   the supervisor's events; nobody else may query ``ctl/**``;
@@ -44,6 +46,7 @@ PASSWORDS_FILE = "passwords.txt"
 WHERE_FILE = "where"
 OPERATOR = "operator"
 MONITOR = "monitor"
+AIR = "air"
 #: the bus identity of `morph-sim up`'s supervisor (it connects with the operator's credentials)
 SUPERVISOR = "supervisor"
 
@@ -75,7 +78,7 @@ def access_control(run_id: str, n_agents: int) -> dict:
     run = f"{ROOT}/{validate_run_id(run_id)}"
     pub = ["put", "delete", "liveliness_token"]
     agents = [user_of_agent(a) for a in range(n_agents)]
-    everyone = [OPERATOR, MONITOR, *agents]
+    everyone = [OPERATOR, MONITOR, AIR, *agents]
     rules = [
         # morph/** rather than this run's prefix: a subscriber on morph/*/metrics/** (any run on this endpoint,
         # which hosts only this one) must be allowed too; observing publishes nothing
@@ -91,6 +94,9 @@ def access_control(run_id: str, n_agents: int) -> dict:
          "key_exprs": [f"{run}/metrics/**", f"{run}/alive/{MONITOR}", f"{run}/events/{MONITOR}"]},
         {"id": "monitor-serve", "flows": ["ingress"], "permission": "allow",
          "messages": ["declare_queryable", "reply"], "key_exprs": [f"{run}/state/**"]},
+        # the shared air (a rate-limited profile's radio) gives each receiver its verdicts
+        {"id": "air-publish", "flows": ["ingress"], "permission": "allow", "messages": pub,
+         "key_exprs": [f"{run}/air/verdict/**", f"{run}/alive/{AIR}", f"{run}/events/{AIR}"]},
         {"id": "operator-control", "flows": ["ingress"], "permission": "allow", "messages": ["put", "delete"],
          "key_exprs": [f"{run}/ctl/**", f"{run}/events/supervisor"]},
         {"id": "operator-query", "flows": ["ingress"], "permission": "allow", "messages": ["query"],
@@ -99,6 +105,7 @@ def access_control(run_id: str, n_agents: int) -> dict:
     policies = [
         {"id": "everyone", "rules": ["observe", "receive", "ask"], "subjects": everyone},
         {"id": "monitor", "rules": ["monitor-publish", "monitor-serve", "monitor-fault-answers"], "subjects": [MONITOR]},
+        {"id": "air", "rules": ["air-publish"], "subjects": [AIR]},
         {"id": "operator", "rules": ["operator-control", "operator-query", "operator-fault-answers"],
          "subjects": [OPERATOR]},
     ]
@@ -182,6 +189,8 @@ class RunCredentials:
             return self.endpoint
         if role == "monitor":
             return self.monitor
+        if role == "air":
+            return self.directory / f"{AIR}.json5"
         if role == "agent":
             assert agent is not None
             return self.agent(agent)
@@ -200,7 +209,7 @@ class RunCredentials:
         directory.mkdir(parents=True, exist_ok=True, mode=0o700)
         os.chmod(directory, 0o700)
         mode = 0o600 if mounted_at is None else 0o644
-        users = [OPERATOR, MONITOR, *(user_of_agent(a) for a in range(n_agents))]
+        users = [OPERATOR, MONITOR, AIR, *(user_of_agent(a) for a in range(n_agents))]
         passwords = {user: secrets.token_urlsafe(24) for user in users}
         creds = cls(directory)
         _write_private(directory / PASSWORDS_FILE, "".join(f"{u}:{p}\n" for u, p in passwords.items()), mode)

@@ -112,17 +112,10 @@ class RunConfig(BaseModel):
         from services.faults.network import load_profile
 
         try:
-            profile = load_profile(value)
+            load_profile(value)
         except ValueError as exc:
             # "network wifi.toml: …" once, under the field's own name
             raise ValueError(str(exc).removeprefix("network: ").removeprefix("network ")) from None
-        if profile.link_rate is not None or profile.ap_rate is not None:
-            # A shared queue is only deterministic where one process sees the queue's traffic in send order; in the
-            # services each receiver judges its own arrivals, in wall order.
-            raise ValueError(f"profile {value!r} limits rates (link_rate/ap_rate): a queue's verdict on a message "
-                             "depends on every message ahead of it, sent by and to robots in other processes, which no "
-                             "service process sees (each judges only its own arrivals, in wall order), so run and up "
-                             "could not agree; the lab models it (EpisodeSpec network=...)")
         return value
 
     @model_validator(mode="after")
@@ -130,7 +123,22 @@ class RunConfig(BaseModel):
         if self.network is not None and self.fault_time != "virtual":
             raise ValueError("network: a network profile needs --fault-time virtual (positions and hand-overs are "
                              "in sim time)")
+        if self.network is not None and self.mode == "paced" and self.shared_air:
+            raise ValueError(f"network: profile {self.network!r} limits rates (link_rate/ap_rate), which the air "
+                             "judges an instant at a time once all of it was sent; a paced fleet acts on what it has "
+                             "in time: use --mode lockstep")
         return self
+
+    @property
+    def shared_air(self) -> bool:
+        """Whether the run's network profile has shared capacity: the air process then judges its radio
+        (services/faults/air.py)."""
+        if self.network is None:
+            return False
+        from services.faults.air import has_shared_capacity
+        from services.faults.network import load_profile
+
+        return has_shared_capacity(load_profile(self.network))
 
     @field_validator("endpoint", "listen")
     @classmethod

@@ -32,7 +32,7 @@ from _procs import FEW_ROBOTS, OPERATOR_CLIENT, LiveRun, Observer, SharedRun
 
 KINDS: dict[str, tuple[str, ...]] = {
     "unit": (
-        "test_bus_faults", "test_bus_local", "test_dependencies", "test_deploy_manifests", "test_errors",
+        "test_air", "test_bus_faults", "test_bus_local", "test_dependencies", "test_deploy_manifests", "test_errors",
         "test_faults_vtime", "test_hot_codec", "test_keys", "test_layout", "test_metrics", "test_network_model",
         "test_fleet_brain", "test_plasticity", "test_policy_interface", "test_protocol", "test_readiness", "test_repo_text", "test_rows", "test_supervisor_units",
         "test_figures", "test_layers", "test_policies", "test_render", "test_schemas", "test_tick_step",
@@ -52,7 +52,7 @@ KINDS: dict[str, tuple[str, ...]] = {
         "test_dashboard_live",
         "test_dockerfile", "test_equivalence", "test_experiment_flags", "test_forkserver", "test_faults_at_tick", "test_faults_cli_live",
         "test_faults_distributed", "test_faults_up", "test_fuzz_services", "test_hostile", "test_inputs",
-        "test_network_services",
+        "test_network_services", "test_shared_air",
         "test_readme_example", "test_report", "test_secure_defaults", "test_sweep", "test_up", "test_warehouse_cli", "test_watch",
         "test_live_streams", "test_long_run", "test_no_run", "test_operator_commands", "test_policy_packages", "test_outcome_streams", "test_realtime_fleet", "test_restore_lockstep", "test_start_lines", "test_up_exit",
     ),

@@ -46,7 +46,7 @@ ROLE_RESTART = {"never": "no", "on-failure": "on-failure"}
 PROMETHEUS_FLAG_EXISTS = any(v.flag == "--prometheus-port" for v in environment.command_variables("monitor"))
 
 
-ROLES = ["sim", "monitor", "agent"]
+ROLES = ["sim", "monitor", "agent", "air"]
 
 
 def role_of(service: dict) -> str:
@@ -146,8 +146,12 @@ SMALL = {"MORPH_SCALE": "small", "COMPOSE_PROFILES": "small", "MORPH_POLICY": "c
          "MORPH_SEED": "7", "MORPH_RUN_ID": "exp-1"}
 
 
+# a rate-limited radio: its air process is the supervisor's too
+CONGESTED = {"MORPH_NETWORK": "congested", "COMPOSE_PROFILES": "air"}
+
+
 @pytest.mark.parametrize("role", ROLES)
-@pytest.mark.parametrize("host_env", [{}, SMALL], ids=["defaults", "small"])
+@pytest.mark.parametrize("host_env", [{}, SMALL, CONGESTED], ids=["defaults", "small", "congested"])
 def test_the_compose_graph_is_the_supervisors(host_env, role):
     compose = interpolate(COMPOSE, host_env)
     services = enabled(compose, host_env)

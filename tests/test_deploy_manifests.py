@@ -395,7 +395,7 @@ def test_each_pod_mounts_only_its_own_credentials_from_morph_sim_credentials():
     acl = endpoint["access_control"]
     assert acl["enabled"] and acl["default_permission"] == "deny"
     users = {u for subject in acl["subjects"] for u in subject["usernames"]}
-    assert users == {"operator", "monitor", *(f"agent-{n}" for n in range(CONFIG.n_agents))}
+    assert users == {"operator", "monitor", "air", *(f"agent-{n}" for n in range(CONFIG.n_agents))}
     assert all(f"morph/{CONFIG.run_id}/" in k for rule in acl["rules"] for k in rule["key_exprs"]
                if not k.startswith("morph/**"))
     assert not [o for o in OBJECTS if o["kind"] == "Secret" and "operator.json5" in o["data"]], \

@@ -16,7 +16,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("services.bus", "services.faults", "services.credentials", "services.rejects",
      "services.intake", "services.inputs"),
     ("services.runconfig", "services.envconfig", "services.process"),  # what every service process shares
-    ("services.sim", "services.agent", "services.monitor"),  # the three services
+    ("services.sim", "services.agent", "services.monitor", "services.air"),  # the services
     ("services.supervisor",),
     ("morph_sim",),
 )

@@ -133,9 +133,9 @@ def test_monitor_streams_handovers(legacy):
 def test_cli_rejects_bad_network_values_with_one_line(capsys):
     from morph_sim.cli import main
 
-    for value, expect in (("wifi", "unknown profile 'wifi'"), ("congested", "limits rates"),
-                          ("/nonexistent/net.toml", "cannot read")):
-        assert main(["run", "--no-record", "--steps", "2", "--network", value]) == 2
+    for value, expect, extra in (("wifi", "unknown profile 'wifi'", []), ("/nonexistent/net.toml", "cannot read", []),
+                                 ("congested", "use --mode lockstep", ["--mode", "paced"])):
+        assert main(["run", "--no-record", "--steps", "2", "--network", value, *extra]) == 2
         lines = capsys.readouterr().err.strip().splitlines()
         assert len(lines) == 1 and "network" in lines[0] and expect in lines[0], lines
 
@@ -267,8 +267,8 @@ def _fate_log(monkeypatch):
     log: dict[tuple, bool] = {}
     judge = fault_layer.FaultLayer.fate
 
-    def fate(self, key, sender, receiver, at=None, *, msg=None, size=0):
-        out = judge(self, key, sender, receiver, at, msg=msg, size=size)
+    def fate(self, key, sender, receiver, at=None, *, msg=None, size=0, radio=None):
+        out = judge(self, key, sender, receiver, at, msg=msg, size=size, radio=radio)
         rel = key.split("/", 2)[2]
         if at is not None and receiver != "monitor" and (rel == FLEET_KEY or "/request/" in rel or "/reply/" in rel
                                                           or rel.endswith("/commit") or "refusal" in rel):

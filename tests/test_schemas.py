@@ -12,6 +12,8 @@ from schemas import (
     MESSAGE_TYPES,
     Ack,
     AgentState,
+    AirPart,
+    AirVerdicts,
     Commit,
     DecodeError,
     Event,
@@ -166,6 +168,16 @@ MESSAGE_STRATEGIES: dict[type, st.SearchStrategy] = {
     | st.builds(RegistrationReply, ok=st.just(False), reason=st.text(max_size=20)),
     PolicyMessage: st.builds(PolicyMessage, t=tick_no, sender=rid, to=st.none() | rid, pseq=st.integers(0, 2**40),
                              data=st.binary(max_size=64)),
+    AirPart: st.integers(0, 5).flatmap(lambda k: st.builds(
+        AirPart, sent_at=nonneg, part=st.sampled_from([0, 1]),
+        publishers=st.lists(st.integers(-1, 99), min_size=k, max_size=k),
+        keys=st.lists(st.sampled_from(["sim/fleet", "agent/3/request/5", "agent/5/commit"]), min_size=k, max_size=k),
+        counts=st.lists(st.integers(1, 9), min_size=k, max_size=k))),
+    AirVerdicts: st.integers(0, 5).flatmap(lambda k: st.builds(
+        AirVerdicts, publishers=st.lists(st.integers(-1, 99), min_size=k, max_size=k),
+        keys=st.lists(st.sampled_from(["sim/fleet", "agent/3/reply/1"]), min_size=k, max_size=k),
+        seqs=st.lists(seq, min_size=k, max_size=k), at=st.lists(st.none() | nonneg, min_size=k, max_size=k),
+        causes=st.lists(st.none() | st.sampled_from(["ap_queue", "loss"]), min_size=k, max_size=k))),
     PolicyAnnouncement: st.builds(PolicyAnnouncement, policy=st.sampled_from(["morph", "proximity", "pkg.mod:Cls"]),
                                   options=st.dictionaries(st.text(min_size=1, max_size=8),
                                                           st.none() | st.booleans() | st.integers(-9, 9)
@@ -232,6 +244,8 @@ def test_one_corrupted_field_is_named(cls: type, data: st.DataObject) -> None:
             # coordinate that no longer fits is named
         if cls is Resolve and field == "pickers":
             allowed.add("requesters")
+        if cls in (AirPart, AirVerdicts) and field == "publishers":
+            allowed |= set(body) - {"v", "sent_at", "part"}  # the lists must be as long as it: the first short one
         if cls is AgentState and field == "w_row":
             allowed |= {"a_row", "theta_row", "age_row"} | {f"rows.{k}" for k in body.get("rows", {})}
         if cls is MetricSample and field == "values":

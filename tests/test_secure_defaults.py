@@ -237,7 +237,7 @@ def test_the_credentials_command_writes_the_files_of_a_by_hand_run(tmp_path):
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     names = sorted(p.name for p in out.iterdir())
-    assert names == sorted(["endpoint.json5", "passwords.txt", "operator.json5", "monitor.json5",
+    assert names == sorted(["endpoint.json5", "passwords.txt", "operator.json5", "monitor.json5", "air.json5",
                             *(f"agent-{i}.json5" for i in range(8))])
     acl = json.loads((out / "endpoint.json5").read_text())["access_control"]
     assert acl["default_permission"] == "deny" and {"id": "agent-7", "usernames": ["agent-7"]} in acl["subjects"]

@@ -28,6 +28,7 @@ from schemas.faults import FaultSpec
 from schemas.keys import FLEET, RunKeys, matches
 from schemas.messages import PolicyMessage
 from schemas.tick import TickObservation
+from services.faults.air import dispatch_size, fleet_size, has_shared_capacity, publisher_rank, receiver_rank
 from services.faults.layer import FaultLayer
 from services.faults.network import NetworkModel
 from services.policies.interface import policy_choice
@@ -59,13 +60,15 @@ POLICY_KEYS = "agent/*/policy/*"
 class DispatchStats:
     decisions: int = 0  # gate evaluations (a request that reached a candidate)
     dispatched: int = 0
+    requests: int = 0  # help requests sent: one per dispatch, one per picker asked by a broadcasting policy
     p_sum: float = 0.0
     w_positive: int = 0  # decisions where the gate was above its floor
     divergent_ticks: int = 0  # ticks where the other dispatch mode would have committed differently
 
-    def count(self, ask: bool, p: float) -> None:
+    def count(self, ask: bool, p: float, requests: int | None = None) -> None:
         self.decisions += 1
         self.dispatched += int(ask)
+        self.requests += int(ask) if requests is None else requests
         self.p_sum += p
         self.w_positive += int(p > 0.25 + 1e-12)
 
@@ -88,26 +91,14 @@ class NetworkStats:
     bytes: int = 0  # wire bytes sent (each message's encoded size, schemas.codec)
 
 
-_WIRE_SIZES: dict[type, int] = {}
-
-
 def wire_size(msg) -> int:
-    """Encoded size of a protocol message on the wire (its schemas.messages form), bytes. Sizes of one kind differ
-    only by a few bytes of integers, so one representative per kind is measured once."""
-    kind = type(msg)
-    size = _WIRE_SIZES.get(kind)
-    if size is None:
-        from schemas import Commit, HelpReply, HelpRequest
-        from schemas.codec import encode
-
-        if kind is Request:
-            wire = HelpRequest(t=100, agv=msg.agv, picker=msg.picker, target_x=10, target_y=10, seq=100)
-        elif kind is Reply:
-            wire = HelpReply(t=100, picker=msg.picker, agv=msg.agv, accepted=msg.accepted, seq=100)
-        else:  # Commitment, Refusal: the same three numbers and a sequence number
-            wire = Commit(t=100, picker=msg.picker, agv=msg.agv, seq=100)
-        size = _WIRE_SIZES[kind] = len(encode(wire))
-    return size
+    """Bytes of a protocol message on the radio (services.faults.air.dispatch_size: one definition for every
+    driver)."""
+    if isinstance(msg, Request):
+        return dispatch_size("request")
+    if isinstance(msg, Reply):
+        return dispatch_size("reply")
+    return dispatch_size("refusal" if isinstance(msg, Refusal) else "commit")
 
 
 class EventNetwork:
@@ -135,6 +126,11 @@ class EventNetwork:
         # (services/bus/base.py): the network model's draws are a function of it
         self._seqs: dict[str, itertools.count] = {}
         self.stats = NetworkStats()
+        # A profile with shared capacity (rate-limited queues) judges the messages of an instant in one order, the
+        # medium's (services/faults/air.py: send time, publisher, key, sequence number, receiver), whatever order the
+        # lab happens to send them in: they wait here until the next delivery.
+        self.shared_air = model is not None and has_shared_capacity(model.profile)
+        self._unjudged: list[tuple[tuple, str, object, object, object, float, int, int]] = []
 
     def touches(self, rel_key: str) -> bool:
         """Whether some fault's scope, or the radio network, can apply to messages on ``rel_key``."""
@@ -169,6 +165,14 @@ class EventNetwork:
             if count:  # one publication to several receivers counts once, as a bus sends it once
                 self.stats.sent += 1
                 self.stats.bytes += size
+        if self.shared_air:
+            order = (round(at, 9), publisher_rank(sender), "/".join(self.keys.relative(key)), seq,
+                     receiver_rank(receiver))
+            self._unjudged.append((order, key, sender, receiver, msg, at, seq, size))
+            return
+        self._judge(key, sender, receiver, msg, at, seq, size)
+
+    def _judge(self, key: str, sender, receiver, msg, at: float, seq: int, size: int) -> None:
         fate = (self.layer.fate(key, sender, receiver, at, msg=(sender, seq), size=size)
                 if self.layer is not None else [0.0])
         if not fate:
@@ -178,6 +182,11 @@ class EventNetwork:
 
     def until(self, t: float) -> list[tuple[float, object, object]]:
         """Every copy due by ``t``: (delivery time, receiver, message), in delivery order."""
+        if self._unjudged:
+            unjudged, self._unjudged = self._unjudged, []
+            unjudged.sort(key=lambda u: u[0])
+            for _, key, sender, receiver, msg, at, seq, size in unjudged:
+                self._judge(key, sender, receiver, msg, at, seq, size)
         self.now = max(self.now, t)
         out = []
         heap = self._heap
@@ -341,14 +350,9 @@ class LabDispatch:
                     net.send(key, robot, receiver, msg, at, seq=seq, size=size, count=i == 0)
 
     def _tick_size(self, obs: TickObservation) -> int:
-        """The Tick's bytes on the wire, for a profile's rate limits (its observation fields; the services' Tick also
-        carries the world's fields, so this is a lower bound there); 0 when no queue counts bytes."""
-        model = self.net.model
-        if model is None or (model.profile.link_rate is None and model.profile.ap_rate is None):
-            return 0
-        from schemas.tick import encode_tick_body, tick_fields
-
-        return len(encode_tick_body(tick_fields(obs, obs.t * self.dt)))
+        """The fleet broadcast's bytes on the radio, for a profile's rate limits (services.faults.air.fleet_size);
+        0 when no queue counts bytes."""
+        return fleet_size(obs, self.dt) if self.net.shared_air else 0
 
     def _gating(self, agv: int, obs: TickObservation):
         """(brain, view) an AGV gates with: its fleet view, with its own cell and target from on board."""
@@ -388,7 +392,7 @@ class LabDispatch:
             g = gate(brain, agv, view, u)
             if g.picker < 0:
                 continue
-            count.count(g.ask, g.p)
+            count.count(g.ask, g.p, len(g.targets))
             for picker in g.targets:  # one, or every free picker of the view for a broadcasting policy
                 req = endpoint.request(picker, obs.target[agv], s_agv, out)
                 net.send(k.request(agv, picker), agv, picker, req, s_agv)

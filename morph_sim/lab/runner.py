@@ -309,9 +309,10 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=(), policy: C
         step.finish(radio=model)
         cols["deliveries_total"][t] = cta.deliveries
         cols["deliveries"][t] = cta.deliveries - delivered
-        cols["requests"][t] = stats.dispatched - requested  # gate successes: the help requests sent in tick t
+        cols["requests"][t] = stats.requests - requested  # the help requests sent in tick t (a broadcasting AGV's
+        # one decision asks several pickers: a request each, as the catalogue and a run's record count them)
         cols["commits"][t] = len(sent)  # the commitments the pickers sent in tick t
-        delivered, requested = cta.deliveries, stats.dispatched
+        delivered, requested = cta.deliveries, stats.requests
         cols["gate_p_sum"][t] = stats.p_sum  # Σ P(respond) over the gate decisions so far
         if driver is not None:
             for name, v in catalogue.outcome_values(driver.outcomes.as_dict()).items():

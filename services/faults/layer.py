@@ -37,8 +37,10 @@ from schemas.faults import FaultSpec, Loss
 from schemas.keys import ONBOARD, RunKeys, matches, parse_agent_id
 from schemas.messages import FaultCommand, FaultReply
 from services.bus.base import Bus, Sample
+from services.faults.air import VerdictBook, kind_of
 from services.faults.distributions import latency_quantile
 from services.faults.linkstats import LinkMeter
+from services.faults.network import Fate
 from services.faults.vtime import EPS as _VT_EPS, VirtualTime
 
 if TYPE_CHECKING:
@@ -163,6 +165,9 @@ class FaultLayer:
         self.on_handover: Callable[[HandoverEvent], None] | None = None
         # the fleet broadcast reaches every robot physically whatever its fate: it says where the robots are
         self._tick_key = self.keys.fleet
+        # a profile with shared capacity: the air process judges the radio (services/faults/air.py); this receiver
+        # takes its verdicts and holds a radio message until its verdict is here
+        self.air: VerdictBook | None = None
 
     # -- control -----------------------------------------------------------------------------------------------
     def set(self, spec: FaultSpec, at: float | None = None) -> str:
@@ -252,11 +257,12 @@ class FaultLayer:
         return link
 
     def fate(self, key: str, sender: object, receiver: object, at: float | None = None, *,
-             msg: object = None, size: int = 0) -> list[float]:
+             msg: object = None, size: int = 0, radio: Fate | None = None) -> list[float]:
         """Delivery delays for one message on link sender → receiver: [] dropped, [d] once, [d1, d2] duplicated.
 
         ``at`` (virtual time): the message's send time; the faults active then decide, healed ones included.
-        ``msg`` (its identity, e.g. (sender, seq); the key is added) and ``size`` (bytes) feed the network model."""
+        ``msg`` (its identity, e.g. (sender, seq); the key is added) and ``size`` (bytes) feed the network model;
+        ``radio``: the air's verdict on the message, which then stands for the network model's."""
         if self._faults:
             self._expire()
         self.stats.seen += 1
@@ -266,8 +272,10 @@ class FaultLayer:
             chunks = self.keys.relative(key)
         except ValueError:
             return [0.0]  # not this run's traffic: untouched
-        if chunks[0] == "ctl":
-            return [0.0]  # control traffic (fault reset, stop) is never faulted: `reset` always works
+        if chunks[0] in ("ctl", "air"):
+            # control traffic (fault reset, stop) is never faulted: `reset` always works; the air's verdicts and
+            # announcements are the radio's own bookkeeping, not radio traffic
+            return [0.0]
         if at is not None and chunks[0] == "events":
             return [0.0]  # virtual time: the presence handshake runs before any boundary could release it
         if len(chunks) == 3 and chunks[0] == "agent" and chunks[2] in ("skip", "ack"):
@@ -278,7 +286,16 @@ class FaultLayer:
         delay = 0.0
         if self.network is not None and at is not None and not matches(ONBOARD, rel):  # sensing is not radio
             # the radio legs first (the robots' Wi-Fi), then the fault specs on top, as netem on a real interface
-            net = self.network.fate(at, sender, receiver, (msg, rel), size=size)
+            if radio is not None:
+                net = radio
+                self.network.stats.seen += 1
+                if radio.delivered_at is None:
+                    self.network.stats.lost[radio.cause or "loss"] = self.network.stats.lost.get(radio.cause or "loss",
+                                                                                                0) + 1
+                else:
+                    self.network.stats.delivered += 1
+            else:
+                net = self.network.fate(at, sender, receiver, (msg, rel), size=size)
             if net.delivered_at is None:
                 self.stats.dropped += 1
                 return []
@@ -368,18 +385,44 @@ class FaultLayer:
             return who
         return parse_agent_id(sample.sender) if sample.sender else ""
 
+    def on_verdicts(self, sample: Sample) -> None:
+        """The air's verdicts on messages to this receiver (``air/verdict/<receiver>``): each releases the message
+        if it came first."""
+        from schemas.messages import AirVerdicts
+
+        try:
+            msg = sample.decode(AirVerdicts)
+        except ValueError:
+            return
+        if self.air is None:
+            return
+        with self.lock:
+            for pub, key, seq, at, cause in zip(msg.publishers, msg.keys, msg.seqs, msg.at, msg.causes):
+                identity = ("sim" if pub < 0 else pub, key, seq)
+                for parked, receiver, deliver in self.air.verdict(identity, Fate(at, cause)):
+                    self._on_deliver(parked, receiver, deliver)
+
     def _on_deliver(self, sample: Sample, receiver: str, deliver: Callable[[Sample], None]) -> None:
         sender = self._sender(sample)
         rcv = self.receiver if self.receiver is not None else parse_agent_id(receiver)
         vt = self.vtime
         at = None
+        radio = None
+        if self.air is not None and vt is not None:
+            rel = sample.key[len(self.keys.prefix) + 1:] if sample.key.startswith(self.keys.prefix + "/") else ""
+            if rel and kind_of(rel) and (isinstance(rcv, int) or rcv == "sim"):
+                identity = (sender, rel, sample.seq)
+                radio = self.air.take(identity)
+                if radio is None:  # the air has not judged it yet: it has not arrived
+                    self.air.park(identity, (sample, receiver, deliver))
+                    return
         if vt is not None:
             at = self.sent_at(sample)
             if self.before_fate is not None:
                 self.before_fate(at)  # the schedule up to the send time: a fault starts at its time everywhere
         if self.network is not None and sample.key == self._tick_key and sample.sender == "sim":
             self._observe_tick(sample)  # only the sim's own Ticks say where the robots are (not a stray publisher's)
-        fate = self.fate(sample.key, sender, rcv, at, msg=(sender, sample.seq), size=len(sample.payload))
+        fate = self.fate(sample.key, sender, rcv, at, msg=(sender, sample.seq), size=len(sample.payload), radio=radio)
         if self.on_fate is not None:
             self.on_fate(sample, fate)
         if self.meter is not None:

@@ -29,6 +29,7 @@ import threading
 import time
 
 from schemas import Ack, RunKeys
+from schemas.keys import parse_agent_id
 from schemas.messages import MetricSample
 from services.bus.base import Bus, Sample
 from services.faults.controller import CrashHook, FaultController
@@ -59,14 +60,22 @@ class FaultRuntime:
         # the Ticks this process sees; every process's model follows the same trajectories with the same seed
         self.network_spec = network
         self.network = None
+        self.air = False
         if network is not None:
             if not virtual:
                 raise ValueError("network: a network profile needs virtual fault time")
+            from services.faults.air import has_shared_capacity
             from services.faults.network import NetworkModel, load_profile
             from services.world.layout import LayoutConfig, layout_for
 
-            self.network = NetworkModel(load_profile(network[0]), layout_for(LayoutConfig.named(network[1])),
-                                        seed=seed)
+            profile = load_profile(network[0])
+            # Shared capacity (rate-limited queues): the air process judges the radio and this process takes its
+            # verdicts (services/faults/air.py); its own model still follows the robots (hand-overs, outages,
+            # silence stops), and judges no queue: what it sees of the air's traffic is not all of it.
+            self.air = has_shared_capacity(profile)
+            if self.air:
+                profile = profile.model_copy(update={"link_rate": None, "ap_rate": None})
+            self.network = NetworkModel(profile, layout_for(LayoutConfig.named(network[1])), seed=seed)
         # phase_owner: this process runs the phase loop (the sim): it receives the agents' skips. Default: the
         # process that owns the run record (events=True) is the sim.
         self.phase_owner = events if phase_owner is None else phase_owner
@@ -85,6 +94,7 @@ class FaultRuntime:
         self.meters: dict[str, LinkMeter] = {}
         self.controller: FaultController | None = None
         self._bus: Bus | None = None
+        self._verdict_buses: list[tuple[FaultLayer, Bus]] = []
         self.likes: list[FaultRuntime] = []
 
     def now(self) -> float:
@@ -141,6 +151,11 @@ class FaultRuntime:
             layer.network_latency = NETWORK_LATENCY
             if self.events and not any(x.network is self.network for x in self.layers):
                 layer.on_handover = self._on_handover  # reported once per process: by the run record's owner
+        if self.air:
+            from services.faults.air import VerdictBook
+
+            layer.air = VerdictBook()
+            self._verdict_buses.append((layer, bus))
         install(bus, layer)
         self.layers.append(layer)
         if self._bus is None:
@@ -157,6 +172,9 @@ class FaultRuntime:
                                           events=self.events, on_crash=self.on_crash, schedule=self.schedule,
                                           lock=self.lock, hold_events=self.events, fleet=self.fleet)
         await self.controller.start()
+        for layer, bus in self._verdict_buses:
+            who = layer.receiver if layer.receiver is not None else parse_agent_id(bus.identity)
+            await bus.subscribe(self.keys.air_verdicts(who), layer.on_verdicts, inline=True)
         if self.phase_owner:
             await self._bus.subscribe(self.keys.skips, self._on_skip, inline=True)
         self.controller.advance(self.now())  # commands scheduled at time 0

@@ -30,15 +30,33 @@ class PhaseBarrier:
         # (delivered, or held / lost by the network: either way nothing more is coming from it this phase)
         self.commit_wanted: dict[int, int] = {}
         self.commit_arrived: set[int] = set()
+        # the shared air: what the acks of this phase say their robots published, and who has not acked yet (a
+        # picker that acked may still owe its Commit's arrival, which waits for the air's verdict on it)
+        self.air: dict[tuple[int | str, str], int] = {}
+        self.acks_left = set(waiting)
         self.lock = threading.Lock()
         self.closed = False
         self._loop = asyncio.get_running_loop()
         self.done = self._loop.create_future()
+        self.all_acked = self._loop.create_future()
         if not self.waiting:
             self.done.set_result(None)
+            self.all_acked.set_result(None)
+
+    def acked(self, agent: int) -> None:
+        """Call with ``lock`` held, from any thread: ``agent``'s ack of this phase is in (or it is absent)."""
+        if agent in self.acks_left:
+            self.acks_left.discard(agent)
+            if not self.acks_left:
+                self._loop.call_soon_threadsafe(self._all_acked)
+
+    def _all_acked(self) -> None:
+        if not self.all_acked.done():
+            self.all_acked.set_result(None)
 
     def answered(self, agent: int) -> None:
         """Call with ``lock`` held, from any thread."""
+        self.acked(agent)
         if agent in self.waiting:
             self.waiting.discard(agent)
             if not self.waiting:
@@ -77,12 +95,21 @@ class PhaseCollection:
             return started + share * self.config.period
         return time.monotonic() + self.config.phase_timeout
 
-    async def _collect(self, ph: PhaseBarrier, deadline: float) -> None:
+    async def _collect(self, ph: PhaseBarrier, deadline: float, on_acked=None) -> None:
+        """Wait for the phase's answers until ``deadline``; ``on_acked()`` runs once every ack is in (or at the
+        deadline), before the phase waits for what the acks announced to arrive."""
         self._phase = ph
         if self._stop is not None:  # the run is ending: take what is already in, wait for nobody
             deadline = min(deadline, time.monotonic() + 0.2)
-        left = deadline - time.monotonic()
         try:
+            if on_acked is not None:
+                left = deadline - time.monotonic()
+                try:
+                    if left > 0:
+                        await asyncio.wait_for(asyncio.shield(ph.all_acked), left)
+                finally:
+                    on_acked()
+            left = deadline - time.monotonic()
             if left > 0:
                 await asyncio.wait_for(asyncio.shield(ph.done), left)
         except asyncio.TimeoutError:

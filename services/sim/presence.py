@@ -22,6 +22,7 @@ PROBE_INTERVAL = 0.25  # seconds between readiness probes
 # start brings every process within a few milliseconds: one probe for all of them, not one each).
 NEWCOMER_GRACE = 0.02
 MONITOR = "monitor"
+AIR = "air"  # the shared air's process (a profile with rate-limited queues): tick 0 waits for it
 # Lockstep: the sim runs at most this many ticks ahead of the rows the monitor has written (it reports them every
 # PROGRESS_EVERY rows). The monitor takes in every message of the run and is not part of the tick's barrier; without
 # this bound a monitor slower than the run builds an unbounded backlog (memory, a record that ends long after the
@@ -94,7 +95,7 @@ class Presence:
 
     async def _probe_loop(self) -> None:
         while True:
-            if any(a not in self.ready and (isinstance(a, int) or a == MONITOR) for a in self.alive):
+            if any(a not in self.ready and (isinstance(a, int) or a in (MONITOR, AIR)) for a in self.alive):
                 self._probe_round += 1
                 await self.bus.publish(self.keys.event("sim"), Event(
                     kind="ready.probe", source="sim", details={"round": self._probe_round}))
@@ -107,7 +108,8 @@ class Presence:
 
     def _everyone_ready(self) -> bool:
         need_monitor = self.wait_for_monitor and MONITOR not in self.ready
-        return len(self.present()) >= self.n and not need_monitor
+        need_air = self.shared_air and AIR not in self.ready
+        return len(self.present()) >= self.n and not need_monitor and not need_air
 
     async def _wait_ready(self) -> None:
         deadline = time.monotonic() + self.config.ready_timeout
@@ -120,7 +122,8 @@ class Presence:
                 raise TimeoutError(
                     f"ready_timeout: {len(missing)} of {self.n} agents not ready after "
                     f"{self.config.ready_timeout:.0f} s (missing: {missing[:20]})"
-                    + ("" if MONITOR in self.ready or not self.wait_for_monitor else "; monitor not ready"))
+                    + ("" if MONITOR in self.ready or not self.wait_for_monitor else "; monitor not ready")
+                    + ("; air not ready" if self.shared_air and AIR not in self.ready else ""))
             self._ready_changed.clear()
             try:
                 await asyncio.wait_for(self._ready_changed.wait(), min(left, PROBE_INTERVAL))

@@ -49,6 +49,7 @@ from services.protocol.claims import (
 )
 from services.protocol.tick import TickStep
 from services.runconfig import RunConfig
+from services.sim import air
 from services.sim.phases import PhaseBarrier, PhaseCollection
 from services.sim.presence import MONITOR, Presence
 from services.sim.result import SimResult
@@ -119,6 +120,10 @@ class SimService(Presence, PhaseCollection):
         self._monitor_rows: int | None = None  # rows the monitor reported written (None: not heard since it joined)
         self._monitor_progress = asyncio.Event()
         self._monitor_gone_at: float | None = None  # when the monitor left mid-run (lockstep waits for its return)
+        # a profile with shared capacity: the air process judges the radio and waits for the sim's announcements of
+        # what was published at each instant (services/sim/air.py); tick 0 waits for it as for the monitor
+        self.shared_air = config.shared_air
+        self._air_refusals: dict[tuple[int | str, str], int] = {}  # the sim's refusals since its last Tick
 
     # -- control ------------------------------------------------------------------------------------------------------
     def _count_refused(self, total: int) -> None:
@@ -216,6 +221,11 @@ class SimService(Presence, PhaseCollection):
             if ph.closed or (msg.agent not in ph.waiting and msg.agent not in ph.held):
                 return  # duplicate
             ph.held.discard(msg.agent)
+            if self.shared_air:
+                if ph.phase == Phase.TICK:
+                    air.tick_publications(msg.agent, msg.requests_sent, msg.policy_to, self.n, ph.air)
+                else:
+                    air.resolve_publications(msg.agent, msg.committed_to, msg.replied_to, self.n, ph.air)
             if ph.phase == Phase.TICK:
                 for to in msg.policy_to:  # its policy's messages: the receivers wait for them next tick
                     if to == -1:
@@ -235,6 +245,7 @@ class SimService(Presence, PhaseCollection):
                         self._replied[a] += 1
                 if msg.committed_to is not None and msg.agent not in ph.commit_arrived:
                     ph.commit_wanted[msg.agent] = msg.committed_to  # answered when its Commit arrives
+                    ph.acked(msg.agent)
                     return
             ph.answered(msg.agent)
 
@@ -277,6 +288,8 @@ class SimService(Presence, PhaseCollection):
             await self.bus.publish(self.keys.refusal(r.picker), refusal)
             self._refused[r.agv] += 1
             self._refused[r.picker] += 1
+            if self.shared_air:
+                air.refusal_publications((r.agv, r.picker), self._air_refusals)
 
     # -- main ----------------------------------------------------------------------------------------------------------
     async def run(self) -> SimResult:
@@ -357,6 +370,18 @@ class SimService(Presence, PhaseCollection):
                 body, robot, robot in free, replied[robot] if robot < n_agvs else 0, refused[robot],
                 messaged[robot])))
             for robot in range(self.n)])
+        if self.shared_air:  # the sim's part of this instant: the fleet broadcast and the refusals before it
+            counts, self._air_refusals = self._air_refusals, {}
+            counts[("sim", "sim/fleet")] = 1
+            bus.put(k.air_parts, air.announcement(obs.t * self.config.dt, air.SIM_PART, counts))
+
+    def _announce_robots(self, ph: PhaseBarrier, sent_at: float) -> None:
+        """The robots' part of an instant, as their acks of ``ph`` listed it (the shared air)."""
+        if self.shared_air:
+            with ph.lock:
+                counts = dict(ph.air)
+            if counts:
+                self.bus.put(self.keys.air_parts, air.announcement(sent_at, air.ROBOTS_PART, counts))
 
     async def _event(self, kind: str, **details) -> None:
         t = self.ctl.t
@@ -416,6 +441,7 @@ class SimService(Presence, PhaseCollection):
             self._phase = ph  # before the tick goes out: inline acks may arrive before _collect starts
             self._publish_tick(obs)
             await self._collect(ph, self._deadline(started, Phase.TICK))
+            self._announce_robots(ph, t * cfg.dt)
             t2 = time.monotonic()
             spent["tick_phase"] += t2 - t1
             more, self._more = self._more, set()
@@ -428,7 +454,8 @@ class SimService(Presence, PhaseCollection):
                 self._phase = ph
                 await self.bus.publish(k.resolve, Resolve(t=t, pickers=pickers,
                                                           requesters=[expected[p] for p in pickers]))
-                await self._collect(ph, self._deadline(started, Phase.RESOLVE))
+                await self._collect(ph, self._deadline(started, Phase.RESOLVE), on_acked=(
+                    (lambda ph=ph, t=t: self._announce_robots(ph, t * cfg.dt + cfg.dt / 2)) if self.shared_air else None))
             if self.faults is not None:
                 self.faults.advance((t + 1) * cfg.dt)  # the step boundary: what is due by now is delivered
             t3 = time.monotonic()

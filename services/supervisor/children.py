@@ -129,6 +129,7 @@ class Exit(Enum):
     RECORD_FAILED = "the monitor cannot write the record"  # the run is stopped: its record cannot be the truth
     RESTART = "restart"  # an agent or the monitor failed (or a crash fault killed it): start it again
     MONITOR_FAILED = "the monitor failed"  # beyond its restart budget: the record is lost
+    AIR_FAILED = "the air failed"  # the radio's queues so far are gone with it: the run cannot go on as it was
     DONE = "done"  # it finished for good (after the run's stop), or an agent's crash loop ran out of restarts
 
 
@@ -144,6 +145,8 @@ def exit_verdict(role: str, restart: str, code: int, *, running: bool, planned: 
         return Exit.RESTART
     if role == "monitor" and code != 0:
         return Exit.MONITOR_FAILED
+    if role == "air" and code != 0:  # (it leaves with 0 only once the run has finished)
+        return Exit.AIR_FAILED
     return Exit.DONE
 
 

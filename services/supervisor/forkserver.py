@@ -54,7 +54,7 @@ PRELOAD = (
     "services.monitor.service",
 )
 #: the service processes a request may start: ``[python, "-m", "services.<name>", flags...]`` (``ProcessSpec.command()``)
-SERVICES = ("sim", "agent", "monitor")
+SERVICES = ("sim", "agent", "monitor", "air")
 #: bytes of argument space the server reserves for its children's command lines (a medium run's is ~400)
 TITLE_SPACE = 4096
 

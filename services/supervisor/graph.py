@@ -1,6 +1,7 @@
 """The process graph of a distributed run, as data.
 
-``process_graph(config, endpoint)`` lists every OS process of a run (sim, one agent per robot, monitor): its name, the
+``process_graph(config, endpoint)`` lists every OS process of a run (sim, one agent per robot, monitor, and the air
+where the network profile has shared capacity): its name, the
 ``morph-sim`` command line with real flags, the environment it needs and its restart policy. The supervisor starts
 exactly these; docker-compose.yml is tested against them.
 """
@@ -37,8 +38,8 @@ _SHARED_FIELDS = tuple(name for name in RunConfig.model_fields if name not in ("
 class ProcessSpec:
     """One process of the run."""
 
-    name: str  # "sim", "monitor", "agent-3"
-    role: Literal["sim", "agent", "monitor"]
+    name: str  # "sim", "monitor", "agent-3", "air"
+    role: Literal["sim", "agent", "monitor", "air"]
     argv: tuple[str, ...]  # starts with PROGRAM ("morph-sim")
     env: dict[str, str] = field(default_factory=dict)  # added to the parent's environment
     restart: Literal["never", "on-failure"] = "never"
@@ -55,8 +56,9 @@ class ProcessSpec:
 
 
 def role_of(cmdline: list[str]) -> str | None:
-    """The role of a run's process from its command line (``ps``, psutil): ``sim``, ``agent``, ``monitor``, or None."""
-    for role in ("sim", "agent", "monitor"):
+    """The role of a run's process from its command line (``ps``, psutil): ``sim``, ``agent``, ``monitor``, ``air``,
+    or None."""
+    for role in ("sim", "agent", "monitor", "air"):
         if f"services.{role}" in cmdline:
             return role
     return None
@@ -89,4 +91,8 @@ def process_graph(config: RunConfig, endpoint: str, monitor_args: tuple[str, ...
     # monitor_args: the monitor's own flags (`up --max-rate/--prometheus-*`)
     specs.append(ProcessSpec("monitor", "monitor", (PROGRAM, "monitor", *shared, "--endpoint", endpoint, *monitor_args),
                              dict(CHILD_ENV), "on-failure"))
+    if config.shared_air:
+        # never restarted: its queues are the run's radio so far, which a new process could not know
+        specs.append(ProcessSpec("air", "air", (PROGRAM, "air", *shared, "--endpoint", endpoint), dict(CHILD_ENV),
+                                 "never"))
     return specs

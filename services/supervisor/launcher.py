@@ -280,13 +280,16 @@ class Supervisor:
             if verdict is Exit.FAILED_BEFORE_START:
                 raise StartError(f"{child.spec.name} exited with status {code} before the run started:\n"
                                  f"{child.log_tail()}")
-            if verdict is Exit.RECORD_FAILED:
-                self._event("record", "the monitor cannot write the run record")
+            if verdict in (Exit.RECORD_FAILED, Exit.AIR_FAILED):
+                why = ("the run record cannot be written" if verdict is Exit.RECORD_FAILED else
+                       "the air process ended mid-run: its queues cannot be rebuilt")
+                self._event("record" if verdict is Exit.RECORD_FAILED else "air", why)
                 try:
-                    await self._bus.publish(self._keys.stop, Stop(reason="the run record cannot be written"))
+                    await self._bus.publish(self._keys.stop, Stop(reason=why))
                 except Exception:
                     pass
-                raise RunFailed(f"{last_error(child)}; the run was stopped")
+                raise RunFailed(f"{last_error(child) if verdict is Exit.RECORD_FAILED else why} (status {code}); "
+                                "the run was stopped")
             if verdict is Exit.RESTART:
                 old_pid = child.pid
                 cold = child.planned.pop(old_pid, False)

@@ -1,0 +1,188 @@
+"""The air service: one process per run through whose judgement every radio message passes when the run's network
+profile has shared capacity (rate-limited queues; services/faults/air.py, docs/faults.md).
+
+It receives every radio message of the run (the sim's fleet broadcasts, its refusals, the robots' requests,
+replies, commitments and policy messages) and the sim's announcements of what was published at each instant; once
+an instant's part is whole it judges it with the run's network model in the medium's order and sends each receiver
+the verdicts on its copies (``air/verdict/<receiver>``). Receivers hold a radio message until its verdict is there,
+so no decision point acts before the air has judged what it waits for. Like the monitor it answers the sim's
+readiness probe: tick 0 waits for it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+
+from schemas import AirPart, AirVerdicts, Event, RunKeys, Stop
+from schemas.tick import decode_tick, observation_from_arrays
+from services.bus.base import Bus, Sample
+from services.faults.air import (
+    Ledger,
+    Medium,
+    Publication,
+    Verdict,
+    dispatch_size,
+    fleet_size,
+    kind_of,
+    receivers_of,
+)
+from services.intake import Intake
+from services.runconfig import RunConfig
+
+log = logging.getLogger("morph_sim.air")
+
+AIR = "air"
+# A part the sim announced and that stays incomplete this long (wall seconds) is judged with what arrived: a robot
+# that announced a message it never sent (or one lost to a crash) must not stall the fleet.
+PART_TIMEOUT_FACTOR = 1.0
+
+
+class AirService:
+    """The medium of one run over ``bus``. ``await run()`` returns when the run ends."""
+
+    def __init__(self, config: RunConfig, bus: Bus):
+        from services.faults.network import NetworkModel, load_profile
+        from services.world.layout import LayoutConfig, layout_for
+
+        self.config = config
+        self.bus = bus
+        self.keys = RunKeys(config.run_id)
+        self.n = config.n_agents
+        self.model = NetworkModel(load_profile(config.network), layout_for(LayoutConfig.named(config.scale)),
+                                  seed=config.seed)
+        self.ledger = Ledger(Medium(self.model))
+        self.intake = Intake(bus, self.keys, log, AIR)
+        self.lock = threading.Lock()  # transport threads (one per subscription) share the ledger
+        self._stop = asyncio.Event()
+        self._loop = asyncio.get_running_loop()
+        self._waiting_since: float | None = None
+        self.verdicts = 0
+        self.parts = 0
+
+    # -- in ---------------------------------------------------------------------------------------------------------
+    def _on_tick(self, sample: Sample) -> None:
+        """The world record's Tick: where the robots are (from (t+1)·Δ on, as every process's model) and the fleet
+        broadcast of tick t, which every robot receives over the radio."""
+        if self.keys.sender_of(sample.key) != "sim":
+            return
+        try:
+            arrays = decode_tick(sample.payload)
+            obs = observation_from_arrays(arrays)
+        except ValueError as exc:
+            self.intake.refuse(sample.key, exc)
+            return
+        dt = self.config.dt
+        pub = Publication(obs.t * dt, "sim", "sim/fleet", obs.t, tuple(range(self.n)), fleet_size(obs, dt))
+        with self.lock:
+            self.model.observe_tick(obs.t, dt, obs.cells.tolist())
+            out = self.ledger.arrive(pub)
+        self._send(out)
+
+    def _on_radio(self, sample: Sample) -> None:
+        try:
+            rel = "/".join(self.keys.relative(sample.key))
+            publisher = self.keys.sender_of(sample.key)
+        except ValueError as exc:
+            self.intake.refuse(sample.key, exc)
+            return
+        kind = kind_of(rel)
+        if not kind or kind == "fleet" or publisher is None or publisher == AIR:
+            return
+        try:
+            receivers = receivers_of(rel, publisher, self.n)
+            if any(isinstance(r, int) and not 0 <= r < self.n for r in receivers) or (
+                    isinstance(publisher, int) and not 0 <= publisher < self.n):
+                raise ValueError(f"robot id outside 0..{self.n - 1}")
+        except ValueError as exc:
+            self.intake.refuse(sample.key, exc)
+            return
+        size = len(sample.payload) if kind == "policy" else dispatch_size(kind)
+        pub = Publication(sample.sent_at, publisher, rel, sample.seq, receivers, size)
+        with self.lock:
+            out = self.ledger.arrive(pub)
+        self._send(out)
+
+    def _on_part(self, sample: Sample) -> None:
+        msg = self.intake.decode(sample, AirPart)
+        if msg is None:
+            return
+        if self.keys.sender_of(sample.key) is None or sample.sender != "sim":
+            self.intake.refuse(sample.key, "an air announcement not from the sim")
+            return
+        counts = {("sim" if p < 0 else p, key): c for p, key, c in zip(msg.publishers, msg.keys, msg.counts)}
+        with self.lock:
+            self.parts += 1
+            out = self.ledger.announce(msg.sent_at, msg.part, counts)
+        self._send(out)
+
+    # -- out --------------------------------------------------------------------------------------------------------
+    def _send(self, verdicts: list[Verdict]) -> None:
+        with self.lock:
+            self._waiting_since = time.monotonic() if self.ledger.parts else None
+        if not verdicts:
+            return
+        by_receiver: dict[int | str, list[Verdict]] = {}
+        for v in verdicts:
+            by_receiver.setdefault(v.receiver, []).append(v)
+        for receiver, vs in by_receiver.items():
+            self.bus.put(self.keys.air_verdicts(receiver), AirVerdicts(
+                publishers=[-1 if v.publisher == "sim" else v.publisher for v in vs], keys=[v.key for v in vs],
+                seqs=[v.seq for v in vs], at=[v.at for v in vs], causes=[v.cause for v in vs]))
+        self.verdicts += len(verdicts)
+
+    def _on_event(self, sample: Sample) -> None:
+        msg = self.intake.decode(sample, Event)
+        if msg is None:
+            return
+        if msg.kind == "ready.probe" and msg.source == "sim":
+            self.bus.put(self.keys.event(AIR), Event(kind="ready.ack", source=AIR,
+                                                     details={"round": msg.details.get("round", 0)}))
+        elif msg.kind == "run.finished" and msg.source == "sim":
+            self._stop.set()
+
+    def _on_stop(self, sample: Sample) -> None:
+        if self.intake.decode(sample, Stop) is not None:
+            self._stop.set()
+
+    def stop(self, why: str = "") -> None:
+        self._loop.call_soon_threadsafe(self._stop.set)
+
+    async def _watch_stalls(self) -> None:
+        """A part the sim announced that stays incomplete past the phase timeout is judged with what arrived."""
+        limit = self.config.phase_timeout * PART_TIMEOUT_FACTOR
+        while not self._stop.is_set():
+            await asyncio.sleep(min(1.0, limit / 4))
+            with self.lock:
+                since = self._waiting_since
+                stuck = since is not None and time.monotonic() - since > limit and self.ledger.parts
+                if stuck:
+                    missing = self.ledger.waiting_for()
+                    log.warning("air: part at %.3f s still misses %s after %.0f s; judged without them",
+                                self.ledger.parts[0].sent_at, missing, limit)
+                    out = self.ledger.force()
+                else:
+                    out = []
+            if out:
+                self._send(out)
+
+    async def run(self) -> dict:
+        k, bus = self.keys, self.bus
+        await bus.subscribe(k.tick, self._on_tick, inline=True)
+        for expr in (k.requests, k.replies, k.commits, k._k("agent", "*", "policy", "*"),
+                     k._k("sim", "refusal", "*")):
+            await bus.subscribe(expr, self._on_radio, inline=True)
+        await bus.subscribe(k.air_parts, self._on_part, inline=True)
+        await bus.subscribe(k.events, self._on_event)
+        await bus.subscribe(k.stop, self._on_stop)
+        token = await bus.declare_token(k.alive(AIR))
+        watcher = asyncio.get_running_loop().create_task(self._watch_stalls())
+        try:
+            await self._stop.wait()
+        finally:
+            watcher.cancel()
+        await token.close()
+        return {"verdicts": self.verdicts, "parts": self.parts, "judged": self.ledger.judged,
+                "strays": self.ledger.strays, "rejected": self.intake.refused}

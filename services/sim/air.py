@@ -1,0 +1,57 @@
+"""The sim's side of the shared air (a network profile with rate-limited queues, services/faults/air.py): it tells
+the air process what was published at each instant, so the air judges an instant once all of it has reached it.
+
+The sim knows every radio publication of a run without seeing the robots' traffic: its own (the fleet broadcast of
+each tick, its refusals at each step boundary) and the robots', which their acks list (the requests an AGV sent and
+the policy messages any robot sent, in the tick's phase; a picker's commitment and replies, in the resolve phase).
+Each instant has two parts, judged in this order: the sim's (before the robots act on the Tick) and the robots'
+(announced once every present robot has answered).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from schemas import AirPart
+from services.faults.air import ROBOTS_PART, SIM_PART
+
+
+def tick_publications(agent: int, requests_sent: Iterable[int], policy_to: Iterable[int], n: int,
+                      counts: dict[tuple[int | str, str], int]) -> None:
+    """Count what robot ``agent``'s ack of a tick's phase says it published: a request to each picker it asked and
+    each policy message (to one robot, or ``-1``: to every other)."""
+    for picker in requests_sent:
+        if 0 <= picker < n:
+            _add(counts, agent, f"agent/{agent}/request/{picker}")
+    for to in policy_to:
+        if to == -1 or 0 <= to < n:
+            _add(counts, agent, f"agent/{agent}/policy/{'all' if to == -1 else to}")
+
+
+def resolve_publications(picker: int, committed_to: int | None, replied_to: Iterable[int], n: int,
+                         counts: dict[tuple[int | str, str], int]) -> None:
+    """Count what a picker's ack of the resolve phase says it published: its commitment and its replies."""
+    if committed_to is not None:
+        _add(counts, picker, f"agent/{picker}/commit")
+    for agv in replied_to:
+        if 0 <= agv < n:
+            _add(counts, picker, f"agent/{picker}/reply/{agv}")
+
+
+def refusal_publications(robots: Iterable[int], counts: dict[tuple[int | str, str], int]) -> None:
+    for robot in robots:
+        _add(counts, "sim", f"sim/refusal/{robot}")
+
+
+def _add(counts: dict[tuple[int | str, str], int], publisher: int | str, key: str) -> None:
+    counts[(publisher, key)] = counts.get((publisher, key), 0) + 1
+
+
+def announcement(sent_at: float, part: int, counts: dict[tuple[int | str, str], int]) -> AirPart:
+    items = sorted(counts.items(), key=lambda kv: (-1 if kv[0][0] == "sim" else kv[0][0], kv[0][1]))
+    return AirPart(sent_at=sent_at, part=part, publishers=[-1 if p == "sim" else p for (p, _), _ in items],
+                   keys=[key for (_, key), _ in items], counts=[c for _, c in items])
+
+
+__all__ = ["ROBOTS_PART", "SIM_PART", "announcement", "refusal_publications", "resolve_publications",
+           "tick_publications"]

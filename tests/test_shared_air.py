@@ -1,0 +1,117 @@
+"""The shared air in the services: a network profile whose access points and radios have rate-limited queues runs in
+``morph-sim run`` and ``morph-sim up`` through the air process, and gives the lab's answer — the same record, tick
+for tick, the same queue drops, the same messages per delivery and view ages."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from morph_sim.lab.runner import EpisodeSpec, run_episode
+from morph_sim.local import run_local
+from services.faults.runtime import FaultRuntime
+from services.metrics import catalogue
+from services.monitor.recorder import read_metrics
+from services.runconfig import RunConfig
+
+SATURATED = str(Path(__file__).parent / "data" / "saturated.toml")
+SEED = 42
+
+
+def _lab(scale: str, policy: str, steps: int, network: str):
+    return run_episode(EpisodeSpec(scale=scale, condition=policy, seed=SEED, steps=steps, network=network,
+                                   fiedler_every=1))
+
+
+def _shared_columns(lab, rows, steps: int, rtol: float = 0.0) -> list[str]:
+    """Every column the lab's table and a run's rows share, checked equal: exactly for the monitor's own rows, to the
+    12 significant digits metrics.csv writes (``rtol``) for a record read back."""
+    run = {c: np.array([np.nan if r[c] in ("", None) else float(r[c]) for r in rows]) for c in rows[0]}
+    table = {"t": np.arange(steps, dtype=float), **lab.ticks}
+    shared = [c for c in table if c in run]
+    for c in shared:
+        np.testing.assert_allclose(run[c], np.asarray(table[c], dtype=float), rtol=rtol, atol=0, err_msg=c)
+    return shared
+
+
+@pytest.mark.parametrize("policy", ["full-broadcast", "morph"])
+def test_run_gives_the_labs_episode_and_queue_drops_on_a_saturated_air(policy, tmp_path):
+    """In one process (``morph-sim run``): every service's radio messages judged by the air service, each receiver
+    holding what reaches it until the air's verdict; the record equals the lab's table column by column, and the
+    network lost the same messages to the same causes."""
+    steps = 120
+    cfg = RunConfig(run_id=f"air-{policy}", scale="tiny", policy=policy, preset="reference", seed=SEED, steps=steps,
+                    output_dir=tmp_path, network=SATURATED)
+    rt = FaultRuntime.for_service(cfg, "sim")
+    result = asyncio.run(run_local(cfg, faults=rt))
+    lab = _lab("tiny", policy, steps, SATURATED)
+    shared = _shared_columns(lab, result.monitor.rows, steps)  # the values metrics.csv was written from
+    assert {"deliveries_total", "requests", "commits", "links", "view_age_mean", "view_age_max"} <= set(shared)
+    lost = rt.network_losses()
+    assert {c: n for c, n in lost.items() if n} == {
+        c.removeprefix("network_lost_"): n for c, n in lab.summary.items() if c.startswith("network_lost_") and n}
+    if policy == "full-broadcast":  # its requests to every free picker overflow the queues: their order mattered
+        assert lost["link_queue"] + lost["ap_queue"] > 0, lost
+    assert lab.summary["deliveries"] > 0
+
+
+def _up(tmp_path, run_id: str, scale: str, policy: str, steps: int, network: str) -> Path:
+    import subprocess
+    import sys
+
+    from _procs import kill_tree
+
+    argv = [sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", scale, "--policy", policy,
+            "--preset", "reference", "--steps", str(steps), "--seed", str(SEED), "--run-id", run_id,
+            "--output-dir", str(tmp_path), "--state-every", "10", "--snapshot-every", "50", "--network", network]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        out, err = proc.communicate(timeout=600)
+    finally:
+        kill_tree(proc)
+    assert proc.returncode == 0, err[-3000:]
+    assert f"completed; {steps} rows" in out.strip().splitlines()[-1], out
+    return tmp_path / run_id
+
+
+def check_up_run_and_lab(tmp_path, scale: str, policy: str, steps: int, network: str = "congested"):
+    """``up`` (one process per robot, the air its own process) writes ``run``'s metrics.csv byte for byte, and both
+    are the lab's episode; returns (lab episode, up's record directory)."""
+    up = _up(tmp_path / "up", "air", scale, policy, steps, network)
+    cfg = RunConfig(run_id="air", scale=scale, policy=policy, preset="reference", seed=SEED, steps=steps,
+                    state_every=10, snapshot_every=50, output_dir=tmp_path / "run", network=network)
+    asyncio.run(run_local(cfg))
+    assert (up / "metrics.csv").read_bytes() == (cfg.record_dir / "metrics.csv").read_bytes()
+    lab = _lab(scale, policy, steps, network)
+    _shared_columns(lab, read_metrics(up), steps, rtol=1e-11)
+    return lab, up
+
+
+def test_up_gives_the_labs_messages_per_delivery_and_view_ages_under_congested_tiny(tmp_path):
+    """The broadcast Full-Graph (the talkiest policy) over Zenoh under ``congested``: the air process judges every
+    radio message, and up's record equals run's and the lab's; its dispatch messages per delivery and its agents'
+    view ages are the lab's."""
+    lab, up = check_up_run_and_lab(tmp_path, "tiny", "full-broadcast", 120)
+    summary = json.loads((up / "summary.json").read_text())
+    rows = read_metrics(up)
+    messages = summary["messages"]
+    refusals = summary["finished"]["protocol"]["refused_stale"] * 2  # the sim tells both sides
+    sent = messages.get("request", 0) + messages.get("reply", 0) + messages.get("commit", 0) + refusals
+    deliveries = summary["deliveries_total"]
+    assert deliveries == lab.summary["deliveries"] > 0
+    assert sent / deliveries == lab.summary["messages_sent"] / lab.summary["deliveries"]
+    ages = np.array([float(r["view_age_mean"]) for r in rows if r["view_age_mean"] != ""])
+    assert ages.mean() == pytest.approx(lab.summary["view_age_mean"], rel=1e-9)
+    assert list(rows[0]) == list(catalogue.COLUMNS)
+    # the air was a process of its own, and it judged the run
+    assert any(p.name.startswith("air") for p in (up / "logs").iterdir()), sorted((up / "logs").iterdir())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("scale", "steps"), [("small", 400), ("medium", 400)])
+def test_up_equals_run_and_the_lab_under_congested(tmp_path, scale, steps):
+    check_up_run_and_lab(tmp_path, scale, "morph", steps)
