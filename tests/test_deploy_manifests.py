@@ -49,11 +49,17 @@ def _env_file(path: Path) -> dict[str, str]:
 def render(directory: Path) -> list[dict]:
     """The objects `kubectl apply -k <directory>` creates (without kustomize's name hashes)."""
     kust = yaml.safe_load((directory / "kustomization.yaml").read_text())
-    known = {"apiVersion", "kind", "namespace", "labels", "resources", "configMapGenerator", "secretGenerator"}
+    known = {"apiVersion", "kind", "namespace", "labels", "resources", "configMapGenerator", "secretGenerator",
+             "components"}
     assert set(kust) <= known, f"kustomization uses {set(kust) - known}: teach render() or drop it"
     objs = []
     for res in kust["resources"]:
         objs += [d for d in yaml.safe_load_all((directory / res).read_text()) if d]
+    for component in kust.get("components", []):  # a Component adds its resources to the kustomization's
+        comp = yaml.safe_load((directory / component / "kustomization.yaml").read_text())
+        assert comp["kind"] == "Component" and set(comp) <= {"apiVersion", "kind", "resources"}, component
+        for res in comp["resources"]:
+            objs += [d for d in yaml.safe_load_all((directory / component / res).read_text()) if d]
 
     def files(gen: dict) -> dict[str, str]:
         data = {}
@@ -370,6 +376,7 @@ def test_each_pod_mounts_only_its_own_credentials_from_morph_sim_credentials():
     argv = credentials_command()
     mounted_at = argv[argv.index("--mounted-at") + 1]
     owners = {"morph-endpoint": ["endpoint.json5", "passwords.txt"], "morph-monitor": ["monitor.json5"],
+              "morph-air": ["air.json5"],
               **{f"morph-agent-{n}": [f"agent-{n}.json5"] for n in range(CONFIG.n_agents)}}
     for obj in [WORKLOADS["sim"], WORKLOADS["monitor"], *AGENTS]:
         pod = obj["spec"]["template"]["spec"]
@@ -388,6 +395,8 @@ def test_each_pod_mounts_only_its_own_credentials_from_morph_sim_credentials():
         config_file = Path(env["ZENOH_CONFIG"])
         assert config_file.parent == Path(mounted_at) and config_file.name in files
         assert vol["secret"]["defaultMode"] & 0o007 == 0, "not readable by other users of the node"
+    # mounted by the air component's pod, with MORPH_NETWORK=congested (test_the_air_component_…)
+    assert sorted(_secret_files("morph-air")) == owners.pop("morph-air")
     assert not owners, f"Secrets no pod mounts: {sorted(owners)}"
     # the endpoint reads the passwords where its Secret is mounted; its access control is this run's fleet
     endpoint = json.loads(_secret_files("morph-endpoint")["endpoint.json5"])
@@ -431,6 +440,44 @@ def admitted(policies: list[dict], target: dict[str, str], source: dict[str, str
                                 and _selects(peer["podSelector"], source) for peer in peers):
                 return True
     return False
+
+
+def _with_the_air() -> list[dict]:
+    """The objects of a run under a rate-limited profile: run.env's MORPH_NETWORK=congested and the air component on,
+    as the kustomization's comment says."""
+    into = Path(tempfile.mkdtemp(prefix="k8s-air-"))
+    shutil.copytree(RENDERED, into / "k8s")
+    kust_path = into / "k8s" / "kustomization.yaml"
+    text = kust_path.read_text()
+    assert "# components:\n#   - air\n" in text
+    kust_path.write_text(text.replace("# components:\n#   - air\n", "components:\n  - air\n"))
+    (into / "k8s" / "run.env").write_text((into / "k8s" / "run.env").read_text() + "MORPH_NETWORK=congested\n")
+    return render(into / "k8s")
+
+
+def test_the_air_component_is_the_supervisors_air_process():
+    """Under a rate-limited profile the run has one more process, the air: the component's Job runs the
+    supervisor's command with the air's own credentials, passes the schema and the restricted standard, and may
+    reach the endpoint."""
+    objects = _with_the_air()
+    config = RunConfig.from_env(_get("ConfigMap", "morph-run", objects)["data"])
+    assert config.shared_air
+    (spec,) = [s for s in process_graph(config, "tcp/zenoh:7447") if s.role == "air"]
+    air = _get("Job", "air", objects)
+    kubernetes_validate.validate(air, KUBE_VERSION, strict=True)
+    pod = air["spec"]["template"]["spec"]
+    assert not restricted_violations(pod) and pod["restartPolicy"] == "Never" and air["spec"]["backoffLimit"] == 0
+    c = _container(air)
+    args = build_parser().parse_args(c["command"][1:])
+    assert args.command == "air" and args.cfg_endpoint == spec.argv[spec.argv.index("--endpoint") + 1]
+    env = {e["name"]: e.get("value") for e in c["env"]}
+    assert env["ZENOH_CONFIG"] == "/run/secrets/morph/air.json5"
+    assert all(env[k] == v for k, v in CHILD_ENV.items())
+    (secret,) = [v["secret"]["secretName"] for v in pod["volumes"] if "secret" in v]
+    assert secret == "morph-air" and sorted(_secret_files(secret)) == ["air.json5"]
+    policies = [o for o in objects if o["kind"] == "NetworkPolicy"]
+    sim_labels = WORKLOADS["sim"]["spec"]["template"]["metadata"]["labels"]
+    assert admitted(policies, sim_labels, air["spec"]["template"]["metadata"]["labels"], 7447)
 
 
 def test_only_the_runs_pods_reach_the_endpoint():

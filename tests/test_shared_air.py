@@ -27,14 +27,14 @@ def _lab(scale: str, policy: str, steps: int, network: str):
                                    fiedler_every=1))
 
 
-def _shared_columns(lab, rows, steps: int, rtol: float = 0.0) -> list[str]:
+def _shared_columns(lab, rows, steps: int, atol: float = 0.0) -> list[str]:
     """Every column the lab's table and a run's rows share, checked equal: exactly for the monitor's own rows, to the
-    12 significant digits metrics.csv writes (``rtol``) for a record read back."""
+    12 decimals metrics.csv writes (``atol``) for a record read back."""
     run = {c: np.array([np.nan if r[c] in ("", None) else float(r[c]) for r in rows]) for c in rows[0]}
     table = {"t": np.arange(steps, dtype=float), **lab.ticks}
     shared = [c for c in table if c in run]
     for c in shared:
-        np.testing.assert_allclose(run[c], np.asarray(table[c], dtype=float), rtol=rtol, atol=0, err_msg=c)
+        np.testing.assert_allclose(run[c], np.asarray(table[c], dtype=float), rtol=0, atol=atol, err_msg=c)
     return shared
 
 
@@ -87,7 +87,7 @@ def check_up_run_and_lab(tmp_path, scale: str, policy: str, steps: int, network:
     asyncio.run(run_local(cfg))
     assert (up / "metrics.csv").read_bytes() == (cfg.record_dir / "metrics.csv").read_bytes()
     lab = _lab(scale, policy, steps, network)
-    _shared_columns(lab, read_metrics(up), steps, rtol=1e-11)
+    _shared_columns(lab, read_metrics(up), steps, atol=1e-12)
     return lab, up
 
 

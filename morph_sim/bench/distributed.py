@@ -41,6 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=800, help="ticks of the distributed run (default 800)")
     parser.add_argument("--barrier-ticks", type=int, default=2000, help="ticks of the barrier run (default 2000)")
     parser.add_argument("--seed", type=int, default=42)
+    parser.add_argument("--network", default=None, metavar="PROFILE",
+                        help="a network profile (docs/faults.md); one with rate-limited queues (congested) adds the "
+                             "air process, whose CPU per tick is its own row")
     parser.add_argument("--output-dir", default=None, help="keep the run record here (default: a temporary dir)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--code", default=None, metavar="DIR",
@@ -243,7 +246,8 @@ def measure_code(args: argparse.Namespace, root: Path | None) -> dict:
             "--policy", args.policy, "--preset", args.preset, "--steps", str(args.steps),
             "--barrier-ticks", str(args.barrier_ticks), "--seed", str(args.seed),
             *(["--agvs", str(args.agvs)] if args.agvs is not None else []),
-            *(["--pickers", str(args.pickers)] if args.pickers is not None else [])]
+            *(["--pickers", str(args.pickers)] if args.pickers is not None else []),
+            *(["--network", args.network] if args.network else [])]
     if args.insecure and _knows_insecure(env, cwd):
         argv.append("--insecure")
     done = subprocess.run(argv, capture_output=True, text=True, env=env, cwd=cwd, timeout=3600)
@@ -362,6 +366,7 @@ def measure(args: argparse.Namespace) -> int:
         config = RunConfig.coerce(dict(
             run_id=f"bench-{args.scale}-{args.policy}", scale=args.scale, policy=args.policy, preset=args.preset,
             agvs=args.agvs, pickers=args.pickers, steps=args.steps, seed=args.seed, output_dir=out,
+            network=args.network,
             state_every=max(10, args.steps // 8), snapshot_every=max(10, args.steps // 8) * 4))
         dist = distributed_rate(config, insecure=args.insecure)
     n = config.n_agents
@@ -376,7 +381,8 @@ def measure(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(result))
     else:
-        label = args.policy + (f"/{args.preset}" if args.policy == "morph" else "")
+        label = args.policy + (f"/{args.preset}" if args.policy == "morph" else "") + (
+            f", network {args.network}" if args.network else "")
         print(f"distributed {args.scale} ({n} agent processes, {label}): {dist['ticks_per_s']:.0f} ticks/s "
               f"over {dist['ticks']} ticks")
         cpu = dist["cpu_ms_per_tick"]

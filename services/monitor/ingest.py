@@ -75,6 +75,10 @@ class Ingest:
         kind = head if head != "agent" else rel[2]
         self.counts[kind] = self.counts.get(kind, 0) + 1
         self.sizes[kind] = self.sizes.get(kind, 0) + len(sample.payload)
+        if head == "air":
+            # the shared air's bookkeeping (the sim's announcements, the verdicts): traffic of the run, counted, but
+            # nothing the record or the link streams take (and the busiest key class of a congested run)
+            return None
         author = self.keys.sender_of(sample.key)
         if author in self.cut_off:
             raise ValueError(f"robot {author} is cut off for flooding")
