@@ -22,6 +22,7 @@ from schemas.messages import (
     Ack,
     AgentState,
     AirPart,
+    AirStats,
     AirVerdicts,
     Commit,
     Event,
@@ -46,7 +47,7 @@ from schemas.messages import (
 )
 
 __all__ = [
-    "Ack", "AgentState", "AirPart", "AirVerdicts", "Commit", "Crash", "DecodeError", "Distribution", "Duplicate", "Event", "FaultCommand",
+    "Ack", "AgentState", "AirPart", "AirStats", "AirVerdicts", "Commit", "Crash", "DecodeError", "Distribution", "Duplicate", "Event", "FaultCommand",
     "FaultReply", "FaultSpec", "Heading", "HelpReply", "HelpRequest", "Latency", "Loss", "LossModel", "MESSAGES",
     "MESSAGE_TYPES", "Message", "MetricSample", "MissionType", "OnBoard", "Partition", "PartitionDirection", "Phase", "PolicyAnnouncement", "PolicyMessage",
     "Refusal",

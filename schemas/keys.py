@@ -253,6 +253,11 @@ class RunKeys:
         """The sim tells the air what was published at an instant (schemas.messages.AirPart)."""
         return self._k("air", "part")
 
+    @cached_property
+    def air_stats(self) -> str:
+        """The air's per access point load, queue and drops, once a tick (schemas.messages.AirStats)."""
+        return self._k("air", "stats")
+
     def air_verdicts(self, receiver: int | str) -> str:
         """The air's verdicts on the radio messages to ``receiver`` (a robot id, or ``sim``)."""
         return self._k("air", "verdict", _agent_chunk(receiver))

@@ -432,16 +432,38 @@ class AirVerdicts(Message):
         return self
 
 
+class AirStats(Message):
+    """The air → the monitor: each access point's shared medium as judged up to sim time ``sim_time`` (the start of
+    tick ``t``): bytes it took in so far, messages queued then, messages it dropped with a full queue so far."""
+
+    KIND = "air_stats"
+
+    t: TickNo
+    sim_time: SimTime
+    ap_bytes: list[Annotated[int, Field(ge=0, lt=2**63)]] = Field(max_length=MAX_AIR_ENTRIES)
+    ap_queue: list[Annotated[int, Field(ge=0, lt=2**31)]] = Field(max_length=MAX_AIR_ENTRIES)
+    ap_drops: list[Annotated[int, Field(ge=0, lt=2**63)]] = Field(max_length=MAX_AIR_ENTRIES)
+
+    @model_validator(mode="after")
+    def _shape(self) -> AirStats:
+        for name in ("ap_queue", "ap_drops"):
+            if len(getattr(self, name)) != len(self.ap_bytes):
+                raise PydanticCustomError(
+                    "length_mismatch", "{field} has {got} entries, expected {want} (one per access point)",
+                    {"field": name, "got": len(getattr(self, name)), "want": len(self.ap_bytes)})
+        return self
+
+
 MESSAGE_TYPES: tuple[type[Message], ...] = (
     Tick, OnBoard, Ack, Resolve, HelpRequest, HelpReply, Commit, Refusal, AgentState, MetricSample, Event, Stop,
     FaultCommand, FaultReply, RegistrationRequest, RegistrationReply, PolicyAnnouncement, PolicyMessage, AirPart,
-    AirVerdicts,
+    AirVerdicts, AirStats,
 )
 MESSAGES: dict[str, type[Message]] = {cls.KIND: cls for cls in MESSAGE_TYPES}
 register_kinds(*MESSAGE_TYPES)
 
 __all__ = [
-    "Ack", "AirPart", "AirVerdicts", "AgentState", "Commit", "Event", "FaultCommand", "FaultReply", "Heading", "HelpReply", "HelpRequest",
+    "Ack", "AirPart", "AirStats", "AirVerdicts", "AgentState", "Commit", "Event", "FaultCommand", "FaultReply", "Heading", "HelpReply", "HelpRequest",
     "MESSAGES", "MESSAGE_TYPES", "MetricSample", "MissionType", "OnBoard", "Phase", "PolicyAnnouncement", "PolicyMessage", "Refusal",
     "RegistrationReply",
     "RegistrationRequest",

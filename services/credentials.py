@@ -19,7 +19,8 @@ own file. What the access control allows (default deny; docs/deploy.md shows the
 * robot N may publish only under ``agent/N/**``, ``alive/N`` and ``events/N``, and answer fault-list queries; it
   alone receives its on-board state ``sim/@onboard/N``;
 * the monitor publishes ``metrics/**``, its token and events, and answers ``state/**``;
-* the air (a rate-limited network profile's radio) publishes its verdicts ``air/verdict/**``, its token and events;
+* the air (a rate-limited network profile's radio) publishes its verdicts ``air/verdict/**``, its per access point
+  counters ``air/stats``, its token and events;
 * ``up``'s supervisor connects as the operator and answers fault queries for the crash faults it carries out;
 * only the operator may put on ``ctl/**`` (stop, faults), query ``ctl/faults`` (``faults set`` is a query) and publish
   the supervisor's events; nobody else may query ``ctl/**``;
@@ -96,7 +97,7 @@ def access_control(run_id: str, n_agents: int) -> dict:
          "messages": ["declare_queryable", "reply"], "key_exprs": [f"{run}/state/**"]},
         # the shared air (a rate-limited profile's radio) gives each receiver its verdicts
         {"id": "air-publish", "flows": ["ingress"], "permission": "allow", "messages": pub,
-         "key_exprs": [f"{run}/air/verdict/**", f"{run}/alive/{AIR}", f"{run}/events/{AIR}"]},
+         "key_exprs": [f"{run}/air/verdict/**", f"{run}/air/stats", f"{run}/alive/{AIR}", f"{run}/events/{AIR}"]},
         {"id": "operator-control", "flows": ["ingress"], "permission": "allow", "messages": ["put", "delete"],
          "key_exprs": [f"{run}/ctl/**", f"{run}/events/supervisor"]},
         {"id": "operator-query", "flows": ["ingress"], "permission": "allow", "messages": ["query"],

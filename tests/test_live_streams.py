@@ -19,8 +19,8 @@ from services.monitor.recorder import read_metrics
 from services.runconfig import RunConfig
 
 # Streams that have a value in every second of a default run (dispatch_delay exists only in ticks with a dispatch,
-# net/* only with --network).
-EVERY_SECOND = {m.name for m in CATALOGUE if m.name != "dispatch_delay" and m.source != "network"}
+# net/* only with --network, the air's only with a rate-limited one).
+EVERY_SECOND = {m.name for m in CATALOGUE if m.name != "dispatch_delay" and m.source not in ("network", "air")}
 # ticks in which every stream has a value: twice k, as agents publish their states (and the monitor its link
 # counters) every k ticks
 WINDOW_TICKS = 2 * RunConfig.model_fields["state_every"].default

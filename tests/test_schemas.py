@@ -13,6 +13,7 @@ from schemas import (
     Ack,
     AgentState,
     AirPart,
+    AirStats,
     AirVerdicts,
     Commit,
     DecodeError,
@@ -178,6 +179,10 @@ MESSAGE_STRATEGIES: dict[type, st.SearchStrategy] = {
         keys=st.lists(st.sampled_from(["sim/fleet", "agent/3/reply/1"]), min_size=k, max_size=k),
         seqs=st.lists(seq, min_size=k, max_size=k), at=st.lists(st.none() | nonneg, min_size=k, max_size=k),
         causes=st.lists(st.none() | st.sampled_from(["ap_queue", "loss"]), min_size=k, max_size=k))),
+    AirStats: st.integers(0, 4).flatmap(lambda k: st.builds(
+        AirStats, t=tick_no, sim_time=nonneg, ap_bytes=st.lists(st.integers(0, 2**40), min_size=k, max_size=k),
+        ap_queue=st.lists(st.integers(0, 99), min_size=k, max_size=k),
+        ap_drops=st.lists(st.integers(0, 2**20), min_size=k, max_size=k))),
     PolicyAnnouncement: st.builds(PolicyAnnouncement, policy=st.sampled_from(["morph", "proximity", "pkg.mod:Cls"]),
                                   options=st.dictionaries(st.text(min_size=1, max_size=8),
                                                           st.none() | st.booleans() | st.integers(-9, 9)
@@ -244,6 +249,8 @@ def test_one_corrupted_field_is_named(cls: type, data: st.DataObject) -> None:
             # coordinate that no longer fits is named
         if cls is Resolve and field == "pickers":
             allowed.add("requesters")
+        if cls is AirStats and field == "ap_bytes":
+            allowed |= {"ap_queue", "ap_drops"}  # the lists must be as long as it: the first short one
         if cls in (AirPart, AirVerdicts) and field == "publishers":
             allowed |= set(body) - {"v", "sent_at", "part"}  # the lists must be as long as it: the first short one
         if cls is AgentState and field == "w_row":

@@ -47,7 +47,22 @@ def test_run_gives_the_labs_episode_and_queue_drops_on_a_saturated_air(policy, t
     cfg = RunConfig(run_id=f"air-{policy}", scale="tiny", policy=policy, preset="reference", seed=SEED, steps=steps,
                     output_dir=tmp_path, network=SATURATED)
     rt = FaultRuntime.for_service(cfg, "sim")
-    result = asyncio.run(run_local(cfg, faults=rt))
+    drops: dict[str, float] = {}  # the air's per access point drops, as the monitor streams them
+
+    async def main():
+        from schemas import MetricSample, RunKeys
+        from services.bus import LocalNetwork
+
+        net = LocalNetwork()
+        probe = net.session("probe")
+        await probe.subscribe(RunKeys(cfg.run_id).metric("net/ap_drops"), lambda sample: drops.__setitem__(
+            sample.decode(MetricSample).labels["ap"], sample.decode(MetricSample).value))
+        run = await run_local(cfg, faults=rt, network=net)
+        await asyncio.sleep(0.1)
+        await probe.close()
+        return run
+
+    result = asyncio.run(main())
     lab = _lab("tiny", policy, steps, SATURATED)
     shared = _shared_columns(lab, result.monitor.rows, steps)  # the values metrics.csv was written from
     assert {"deliveries_total", "requests", "commits", "links", "view_age_mean", "view_age_max"} <= set(shared)
@@ -56,6 +71,8 @@ def test_run_gives_the_labs_episode_and_queue_drops_on_a_saturated_air(policy, t
         c.removeprefix("network_lost_"): n for c, n in lab.summary.items() if c.startswith("network_lost_") and n}
     if policy == "full-broadcast":  # its requests to every free picker overflow the queues: their order mattered
         assert lost["link_queue"] + lost["ap_queue"] > 0, lost
+    # the air's own count of each access point's drops, streamed: every copy an access point dropped, once
+    assert drops and sum(drops.values()) == lost["ap_queue"], (drops, lost)
     assert lab.summary["deliveries"] > 0
 
 

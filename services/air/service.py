@@ -16,10 +16,11 @@ import logging
 import threading
 import time
 
-from schemas import AirPart, AirVerdicts, Event, RunKeys, Stop
+from schemas import AirPart, AirStats, AirVerdicts, Event, RunKeys, Stop
 from schemas.tick import decode_tick, observation_from_arrays
 from services.bus.base import Bus, Sample
 from services.faults.air import (
+    SIM_PART,
     Ledger,
     Medium,
     Publication,
@@ -54,6 +55,7 @@ class AirService:
         self.model = NetworkModel(load_profile(config.network), layout_for(LayoutConfig.named(config.scale)),
                                   seed=config.seed)
         self.ledger = Ledger(Medium(self.model))
+        self.ledger.on_part = self._judged
         self.intake = Intake(bus, self.keys, log, AIR)
         self.lock = threading.Lock()  # transport threads (one per subscription) share the ledger
         self._stop = asyncio.Event()
@@ -119,6 +121,16 @@ class AirService:
         self._send(out)
 
     # -- out --------------------------------------------------------------------------------------------------------
+    def _judged(self, sent_at: float, part: int) -> None:
+        """(Under the lock.) The sim's part of tick t's instant is judged: everything sent before t·Δ and the
+        sim's own sends at t·Δ are in the access points' counters, the same in every run of this configuration."""
+        if part != SIM_PART:
+            return
+        t = round(sent_at / self.config.dt)
+        self.bus.put(self.keys.air_stats, AirStats(
+            t=t, sim_time=sent_at, ap_bytes=list(self.model.ap_bytes), ap_queue=self.model.ap_queue_depths(sent_at),
+            ap_drops=list(self.model.ap_drops)))
+
     def _send(self, verdicts: list[Verdict]) -> None:
         with self.lock:
             self._waiting_since = time.monotonic() if self.ledger.parts else None

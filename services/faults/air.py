@@ -21,7 +21,7 @@ the robots act on it, the robots' part once they have answered.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
 from services.faults.network import Fate, NetworkModel
@@ -190,6 +190,9 @@ class Ledger:
     judged_through: tuple[float, int] = (-1.0, -1)
     judged: int = 0
     strays: int = 0
+    #: called after each part is judged, with its (send time, part): a point in the judging that is the same in every
+    #: run of the same configuration (the air publishes its per access point counters there)
+    on_part: Callable[[float, int], None] | None = None
 
     def announce(self, sent_at: float, part: int, counts: dict[tuple[int | str, str], int]) -> list[Verdict]:
         self.parts.append(_Part(instant(sent_at), part, {k: v for k, v in counts.items() if v > 0}))
@@ -240,6 +243,8 @@ class Ledger:
             self.judged += len(pubs)
             out += self.medium.judge(pubs)
             self.judged_through = max(self.judged_through, where)
+            if self.on_part is not None:
+                self.on_part(head.sent_at, head.part)
         return out
 
 

@@ -199,6 +199,9 @@ class NetworkModel:
             self.zone_delay[mask] += zone.delay
         self.dead = self.zone_keep < 1.0
         self._ap_queues = [Queue(profile.ap_rate) if profile.ap_rate else None for _ in range(len(aps))]
+        # per access point: bytes its shared medium took in and messages it dropped with a full queue
+        self.ap_bytes = [0] * len(aps)
+        self.ap_drops = [0] * len(aps)
         self._radios: dict[int, _Radio] = {}
         self.events: list[HandoverEvent] = []  # every hand-over, in the order they happened
         self.stats = NetworkStats()
@@ -309,7 +312,9 @@ class NetworkModel:
         if ap >= 0 and self._ap_queues[ap] is not None:
             out = self._ap_queues[ap].admit(at, size)  # type: ignore[union-attr]
             if out is None:
+                self.ap_drops[ap] += 1
                 return None, "ap_queue"
+            self.ap_bytes[ap] += size
             at = out
         p = self.profile
         if p.loss > 0.0 and uniform(self.seed, "loss", robot, direction, msg) < p.loss / 100.0:
@@ -346,6 +351,10 @@ class NetworkModel:
         if at > sent_at:
             self.stats.delayed += 1
         return Fate(at, None)
+
+    def ap_queue_depths(self, at: float) -> list[int]:
+        """Messages in each access point's queue at sim time ``at`` (0 without shared capacity)."""
+        return [q.depth(at) if q is not None else 0 for q in self._ap_queues]
 
     # -- what a monitor shows --------------------------------------------------------------------------------------
     def counters(self, at: float) -> dict[str, float]:

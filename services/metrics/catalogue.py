@@ -8,7 +8,8 @@ nothing else lists metric names. Each entry says where its value comes from:
   dispatch outcomes: the sim's counters on its ticks plus each robot's on its acks);
 * ``messages`` — the monitor's statistics of the messages themselves (counts, sequence gaps, latency, dispatch);
 * ``link`` — the per key class link statistics (``services.faults.linkstats``), every ``--state-every`` ticks;
-* ``network`` — the network model's counters, under a network profile (``--network``).
+* ``network`` — the network model's counters, under a network profile (``--network``);
+* ``air`` — the shared air's counters per access point, under a profile with rate-limited queues (label ``ap``).
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ class Metric:
     name: str
     unit: str
     help: str
-    source: str  # "row" | "messages" | "link" | "network" (module docstring)
+    source: str  # "row" | "messages" | "link" | "network" | "air" (module docstring)
     #: Prometheus family name (counters without the ``_total`` the client adds) and type, if exported
     prometheus: str | None = None
     kind: str = "gauge"  # "gauge" | "counter" | "histogram"
@@ -101,6 +102,13 @@ CATALOGUE: tuple[Metric, ...] = (
     Metric("net/outage_seconds", "s", "with `--network`: cumulative hand-over outage, all robots", "network"),
     Metric("net/stopped", "robots",
            "with `--network`: robots held in place at step t, silent for the profile's `silence_stop`", "network"),
+    # with a rate-limited profile (congested): each access point's shared medium, as the air judged it (label ap)
+    Metric("net/ap_load", "B/s", "rate-limited profile: bytes the access point took in per sim second over the last "
+           "step; label ap", "air", "morph_net_ap_load_bytes_per_second"),
+    Metric("net/ap_queue", "messages", "rate-limited profile: messages in the access point's queue at the start of "
+           "step t; label ap", "air", "morph_net_ap_queue_messages"),
+    Metric("net/ap_drops", "messages", "rate-limited profile: messages the access point dropped with a full queue, "
+           "cumulative; label ap", "air", "morph_net_ap_drops", "counter"),
 )
 
 BY_NAME: dict[str, Metric] = {m.name: m for m in CATALOGUE}

@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from typing import TYPE_CHECKING, Union
 
-from schemas import Ack, AgentState, Commit, Event, Phase, Stop
+from schemas import Ack, AgentState, AirStats, Commit, Event, Phase, Stop
 from schemas.keys import RunKeys, check_robot_key
 from schemas.tick import TickArrays, decode_tick
 from services.bus.base import Sample
@@ -77,7 +77,12 @@ class Ingest:
         self.sizes[kind] = self.sizes.get(kind, 0) + len(sample.payload)
         if head == "air":
             # the shared air's bookkeeping (the sim's announcements, the verdicts): traffic of the run, counted, but
-            # nothing the record or the link streams take (and the busiest key class of a congested run)
+            # nothing the record or the link streams take (and the busiest key class of a congested run); its per
+            # access point counters become streams
+            if rel[1:] == ["stats"]:
+                if sample.sender != "air":
+                    raise ValueError(f"air counters published by {sample.sender!r}, not the air")
+                return sample.decode(AirStats)
             return None
         author = self.keys.sender_of(sample.key)
         if author in self.cut_off:

@@ -21,7 +21,9 @@ from services.metrics import catalogue
 #: exported from the monitor's message statistics (labels per kind or reason, histograms), not from a stream's value
 FROM_STATS = ("messages_total", "drops_total", "refused_by_robot", "latency_seconds", "dispatch_delay")
 #: the streams exported as one gauge or counter each, with the catalogue's name and help
-EXPORTED = tuple(m for m in catalogue.CATALOGUE if m.prometheus and m.name not in FROM_STATS)
+EXPORTED = tuple(m for m in catalogue.CATALOGUE if m.prometheus and m.name not in FROM_STATS and m.source != "air")
+#: the shared air's per access point streams, one series per access point (label ``ap``)
+AIR_EXPORTED = tuple(m for m in catalogue.CATALOGUE if m.prometheus and m.source == "air")
 #: the link meter's quantile streams (``link/latency/p50`` …) as a summary's ``quantile`` label values
 LINK_QUANTILES = {f"p{round(q * 100)}": str(q) for q in QUANTILES}
 
@@ -103,6 +105,14 @@ class MonitorCollector:
         yield links
         yield latency
         yield latency_max
+        air = list(mon.latest_air)
+        for metric in AIR_EXPORTED:
+            family = (CounterMetricFamily if metric.kind == "counter" else GaugeMetricFamily)(
+                metric.prometheus, metric.help, labels=["run", "ap"])
+            for s in air:
+                if s.name == metric.name and s.value is not None:
+                    family.add_metric([run, s.labels.get("ap", "")], s.value)
+            yield family
         # the bus latency is measured in the clock its messages are stamped with: before the first one arrives, the
         # clock the run's fault time stamps them with
         clock = stats.clock if stats.latency.count else ("sim" if mon.config.fault_time == "virtual" else "wall")

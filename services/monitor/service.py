@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from schemas import Ack, AgentState, Commit, Event, Stop
+from schemas import Ack, AgentState, AirStats, Commit, Event, Stop
 from schemas.keys import RunKeys
 from schemas.tick import TickArrays
 from services.bus.base import Bus, Query, Sample
@@ -138,6 +138,11 @@ class MonitorService:
         return self.streams.latest_metric
 
     @property
+    def latest_air(self) -> list:
+        """The shared air's newest per access point samples (label ``ap``), under a rate-limited profile."""
+        return self.streams.latest_air
+
+    @property
     def latest_links(self) -> list:
         """The latest link statistics, one sample per (counter, key class)."""
         return self.streams.latest_links
@@ -235,6 +240,8 @@ class MonitorService:
                     self._snapshot(snapshot)
             elif kind is Event:
                 self._on_event(message)
+            elif kind is AirStats:
+                self.streams.air(message)
             elif kind is Stop:
                 if sample.sender == "sim":
                     self._stop.set()

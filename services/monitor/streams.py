@@ -156,7 +156,12 @@ class MessageStats:
         return out
 
 
+def _stream(s: MetricSample) -> tuple:
+    return (s.name, tuple(sorted(s.labels.items()))) if s.labels else (s.name, ())
+
+
 NET_STREAMS = tuple(m.name.split("/", 1)[1] for m in CATALOGUE if m.source == "network")
+AIR_STREAMS = tuple(m.name for m in CATALOGUE if m.source == "air")
 HEARTBEAT = 0.5  # seconds: no stream goes longer than about this plus its decimation without a sample
 PUBLISH_BURST, PUBLISH_PAUSE = 256, 0.005  # metric samples published back to back at most, then a pause (s)
 
@@ -186,6 +191,10 @@ class StreamPublisher:
         self._fresh: dict[str, tuple[int, float, float]] = {}  # stream -> newest (t, sim time, value) unpublished
         self._unbuilt = False  # rows noted since the metric samples were last built
         self._links_due = False
+        # the shared air's per access point samples (label ap), newest first kept, published like the link samples
+        self.latest_air: list[MetricSample] = []
+        self._air_due = False
+        self._air_before: tuple[float, list[int]] | None = None
 
     def row(self, values: dict) -> None:
         """Note the row's stream values; build and publish MetricSamples only when a publication is due.
@@ -220,6 +229,23 @@ class StreamPublisher:
             self._last_publish = now
             self.bus.spawn(self.publish_pending(), "metrics")
 
+    def air(self, stats) -> None:
+        """The air's counters as of the start of tick ``stats.t`` (schemas.messages.AirStats): one sample per access
+        point and stream, published with the next publication."""
+        load = [0.0] * len(stats.ap_bytes)
+        if self._air_before is not None and stats.sim_time > self._air_before[0]:
+            span = stats.sim_time - self._air_before[0]
+            load = [(b - a) / span for a, b in zip(self._air_before[1], stats.ap_bytes)]
+        self._air_before = (stats.sim_time, list(stats.ap_bytes))
+        out = []
+        for ap, (rate, queued, dropped) in enumerate(zip(load, stats.ap_queue, stats.ap_drops)):
+            labels = {"ap": str(ap)}
+            out += [sample("net/ap_load", stats.t, stats.sim_time, value=float(rate), labels=labels),
+                    sample("net/ap_queue", stats.t, stats.sim_time, value=float(queued), labels=labels),
+                    sample("net/ap_drops", stats.t, stats.sim_time, value=float(dropped), labels=labels)]
+        self.latest_air = out
+        self._air_due = True
+
     def finish(self) -> None:
         """The last rows' samples: ``latest_metric`` ends on the run's final values."""
         if self._unbuilt:
@@ -236,12 +262,16 @@ class StreamPublisher:
         if self._links_due:
             samples += self.latest_links
             self._links_due = False
+        if self._air_due:
+            samples += self.latest_air
+            self._air_due = False
         if self.max_rate <= 0:  # every row's samples, in order
             self._pending += samples
             return
-        # per stream the newest sample since the last publication: a sparse stream (dispatch_delay) is not lost
-        pending = {s.name: s for s in self._pending}
-        pending.update((s.name, s) for s in samples)
+        # per stream the newest sample since the last publication: a sparse stream (dispatch_delay) is not lost. A
+        # stream is a name and its labels: the link meter's key classes, the air's access points, each its own
+        pending = {_stream(s): s for s in self._pending}
+        pending.update((_stream(s), s) for s in samples)
         self._pending = list(pending.values())
 
     async def heartbeat(self, done: Callable[[], bool]) -> None:
