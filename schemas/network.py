@@ -107,10 +107,28 @@ class NetworkProfile(_Spec):
     handover: Handover = Field(default_factory=Handover)
     dead_zones: list[DeadZone] = Field(default_factory=list)
     link_rate: Rate | None = Field(default=None, description="each robot's radio (uplink and downlink each)")
-    ap_rate: Rate | None = Field(default=None, description="each access point's shared medium")
+    ap_rate: Rate | None = Field(default=None, description="each access point's shared medium, both directions")
+    ap_uplink_rate: Rate | None = Field(
+        default=None, description="each access point's airtime for its robots' uplink (robots → AP), shared by every "
+        "robot associated with it, apart from its downlink; instead of ap_rate")
+    ap_downlink_rate: Rate | None = Field(
+        default=None, description="each access point's airtime for its downlink (AP → its robots), apart from its "
+        "uplink; instead of ap_rate")
     silence_stop: Seconds | None = Field(
         default=None, description="AGV software's safety stop: a robot whose radio has been silent this long (in a "
         "hand-over outage) stands still until it hears again; None = robots never stop")
+
+    @model_validator(mode="after")
+    def _one_ap_budget(self) -> NetworkProfile:
+        if self.ap_rate is not None and (self.ap_uplink_rate is not None or self.ap_downlink_rate is not None):
+            raise ValueError("ap_rate shares one queue between both directions; give it or ap_uplink_rate/"
+                             "ap_downlink_rate, not both")
+        return self
+
+    @property
+    def shared_capacity(self) -> bool:
+        """Whether a message's fate depends on other robots' traffic (a rate-limited queue anywhere)."""
+        return any(r is not None for r in (self.link_rate, self.ap_rate, self.ap_uplink_rate, self.ap_downlink_rate))
 
 
 def _explain(exc: ValidationError, where: str) -> ValueError:

@@ -194,6 +194,34 @@ def test_access_point_rate_is_shared_by_its_robots():
     assert last[2] == pytest.approx(10.0, abs=0.1)  # alone on its AP
 
 
+def test_an_access_point_may_budget_its_uplink_and_downlink_apart():
+    """Separate airtime per direction: one chatty robot's uplink slows its neighbour's uplink (a shared medium), and
+    neither their downlink; a direction without a budget is not limited."""
+    profile = quiet("lan", ap_uplink_rate=Rate(rate=10.0, limit=10_000), access_points=Placement())
+    model = NetworkModel(profile, TINY, seed=0)
+    model.move(0, 0.0, (0, 0))
+    model.move(1, 0.0, (1, 0))  # same AP as robot 0
+    up = [model.fate(i * 0.01, 0, "sim", (0, i), size=1) for i in range(100)]  # robot 0 floods its uplink
+    neighbour = model.fate(1.0, 1, "sim", (1, 0), size=1)
+    assert max(f.delivered_at for f in up) == pytest.approx(10.0, abs=0.2)
+    assert neighbour.delivered_at > 9.9  # behind robot 0's backlog on their access point's uplink
+    down = model.fate(1.0, "sim", 1, ("sim", 0), size=1)
+    assert down.delivered_at == pytest.approx(1.0)  # the downlink has its own airtime: no budget, no wait
+    assert model.ap_bytes[model.ap_of(0)] == 101 and model.ap_queue_depths(1.0)[model.ap_of(0)] > 0
+    both = quiet("lan", ap_uplink_rate=Rate(rate=10.0, limit=2), ap_downlink_rate=Rate(rate=10.0, limit=2))
+    model = NetworkModel(both.model_copy(update={"access_points": Placement()}), TINY, seed=0)
+    model.move(0, 0.0, (0, 0))
+    fates = [model.fate(0.0, "sim", 0, ("sim", i), size=1) for i in range(3)]
+    assert [f.cause for f in fates] == [None, None, "ap_queue"] and sum(model.ap_drops) == 1
+
+
+def test_a_profile_gives_one_access_point_budget_or_one_per_direction():
+    from schemas.network import parse_profile
+
+    with pytest.raises(ValueError, match="ap_rate shares one queue"):
+        parse_profile({"name": "x", "ap_rate": {"rate": 10}, "ap_downlink_rate": {"rate": 10}}, "network x")
+
+
 def test_robot_to_robot_crosses_two_legs():
     model = NetworkModel(quiet("wifi-legacy-roaming"), TINY, seed=2)
     drive_along_row(model, 0, y=0)

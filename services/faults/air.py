@@ -101,7 +101,7 @@ class Medium:
 
 def has_shared_capacity(profile) -> bool:
     """Whether a network profile's verdicts depend on other robots' traffic (rate limits with queues)."""
-    return profile is not None and (profile.link_rate is not None or profile.ap_rate is not None)
+    return profile is not None and profile.shared_capacity
 
 
 # -- sizes --------------------------------------------------------------------------------------------------------------

@@ -8,8 +8,9 @@ downlink from its own; the sim, the monitor and the AP backbone are wired and id
 1. **hand-over outage** — the robot's radio is silent in ``[start, start + D)`` after it roams; the message is lost
    (cause ``handover``) or waits until the radio is back (``during = "delayed"``);
 2. **queues** — the robot's radio (``link_rate``, one queue per direction) and then its access point's shared medium
-   (``ap_rate``): FIFO at ``rate`` bytes/s with room for ``limit`` messages; a full queue drops (``link_queue``,
-   ``ap_queue``); waiting is latency that grows with load;
+   (``ap_rate`` for both directions, or ``ap_uplink_rate`` and ``ap_downlink_rate`` apart): FIFO at ``rate`` bytes/s
+   with room for ``limit`` messages, shared by every robot associated with the access point; a full queue drops
+   (``link_queue``, ``ap_queue``); waiting is latency that grows with load;
 3. **loss** — the leg's Bernoulli loss (``loss``) and, in a dead zone, the zone's extra loss (``dead_zone``);
 4. **latency** — the leg's latency distribution plus the dead zone's extra delay.
 
@@ -198,7 +199,12 @@ class NetworkModel:
             self.zone_keep[mask] *= 1.0 - zone.loss / 100.0
             self.zone_delay[mask] += zone.delay
         self.dead = self.zone_keep < 1.0
+        # each access point's airtime: one queue for both directions (ap_rate), or one per direction
+        # (ap_uplink_rate / ap_downlink_rate: a direction without a budget is not limited)
         self._ap_queues = [Queue(profile.ap_rate) if profile.ap_rate else None for _ in range(len(aps))]
+        up, down = profile.ap_uplink_rate, profile.ap_downlink_rate
+        self._ap_up = [Queue(up) if up else None for _ in range(len(aps))] if up or down else None
+        self._ap_down = [Queue(down) if down else None for _ in range(len(aps))] if up or down else None
         # per access point: bytes its shared medium took in and messages it dropped with a full queue
         self.ap_bytes = [0] * len(aps)
         self.ap_drops = [0] * len(aps)
@@ -309,8 +315,9 @@ class NetworkModel:
                 return None, "link_queue"
             at = out
         cell, ap = radio.at(at)
-        if ap >= 0 and self._ap_queues[ap] is not None:
-            out = self._ap_queues[ap].admit(at, size)  # type: ignore[union-attr]
+        ap_queues = self._ap_queues if self._ap_up is None else self._ap_up if direction == "up" else self._ap_down
+        if ap >= 0 and ap_queues[ap] is not None:  # type: ignore[index]
+            out = ap_queues[ap].admit(at, size)  # type: ignore[index,union-attr]
             if out is None:
                 self.ap_drops[ap] += 1
                 return None, "ap_queue"
@@ -354,7 +361,11 @@ class NetworkModel:
 
     def ap_queue_depths(self, at: float) -> list[int]:
         """Messages in each access point's queue at sim time ``at`` (0 without shared capacity)."""
-        return [q.depth(at) if q is not None else 0 for q in self._ap_queues]
+        out = [q.depth(at) if q is not None else 0 for q in self._ap_queues]
+        for queues in (self._ap_up, self._ap_down):
+            for i, q in enumerate(queues or ()):
+                out[i] += q.depth(at) if q is not None else 0
+        return out
 
     # -- what a monitor shows --------------------------------------------------------------------------------------
     def counters(self, at: float) -> dict[str, float]:

@@ -74,7 +74,8 @@ class FaultRuntime:
             # silence stops), and judges no queue: what it sees of the air's traffic is not all of it.
             self.air = has_shared_capacity(profile)
             if self.air:
-                profile = profile.model_copy(update={"link_rate": None, "ap_rate": None})
+                profile = profile.model_copy(update={"link_rate": None, "ap_rate": None, "ap_uplink_rate": None,
+                                                     "ap_downlink_rate": None})
             self.network = NetworkModel(profile, layout_for(LayoutConfig.named(network[1])), seed=seed)
         # phase_owner: this process runs the phase loop (the sim): it receives the agents' skips. Default: the
         # process that owns the run record (events=True) is the sim.
