@@ -84,6 +84,20 @@ def test_a_grid_cut_short_resumes_to_the_same_tables(tmp_path) -> None:
     assert (tmp_path / "b" / "network.md").read_text() == straight["md"]
 
 
+def test_a_cell_is_cross_checked_through_the_services_under_a_rate_limited_profile(tmp_path, capsys) -> None:
+    """--services-cell runs one cell again through morph-sim run's services (the air among them under `congested`)
+    and says, seed by seed, that they give the lab's deliveries and view ages."""
+    res = _cli(["--scales", "tiny", "--seeds", "1", "--steps", "60", "--profiles", "congested", "--conditions",
+                "full-broadcast", "--jobs", "1", "--services-cell", "tiny:congested:full-broadcast", "--out",
+                str(tmp_path), "--run-id", "x", "--no-progress"], capsys)
+    assert res.returncode == 0, res.stderr
+    assert "services cross-check of Full-Graph (broadcast) under congested at tiny: 1 seed, the lab's" in res.stderr
+    check = json.loads((tmp_path / "x" / "services_check.json").read_text())
+    (row,) = check["seeds"]
+    assert check["equal"] and row["equal"] and row["lab_deliveries"] == row["services_deliveries"] > 0
+    assert "## Services cross-check" in (tmp_path / "x" / "network.md").read_text()
+
+
 def test_default_grid_is_the_study_the_issue_asks_for() -> None:
     plan = grid_plan()
     assert plan["scales"] == ["tiny", "small", "medium", "large"]
@@ -100,6 +114,8 @@ def test_default_grid_is_the_study_the_issue_asks_for() -> None:
     (["--scales", "huge"], "scales: unknown scale 'huge'"),
     (["--steps", "0"], "steps: must be >= 1"),
     (["--quick"], "quick: experiment network does not take --quick"),
+    (["--services-cell", "tiny:congested"], "services_cell: expected SCALE:PROFILE:CONDITION"),
+    (["--scales", "tiny", "--services-cell", "small:lan:morph"], "services_cell: 'small:lan:morph' is not a cell"),
 ])
 def test_bad_values_are_refused_in_one_line(tmp_path, argv, message, capsys) -> None:
     res = _cli([*argv, "--out", str(tmp_path / "never")], capsys)

@@ -67,6 +67,10 @@ def add_arguments(parser) -> None:
                         "and Full-Graph, loss 0/30 %%, latency 0/1 tick, 1 seed, 150 steps)")
     parser.add_argument("--profiles", default=None, help="network: comma-separated network profiles (default lan, "
                         "wifi-fast-roaming, wifi-legacy-roaming, congested, lossy-mesh)")
+    parser.add_argument("--services-cell", default=None, metavar="SCALE:PROFILE:CONDITION",
+                        help="network: also run this cell's seeds through the services in one process (morph-sim "
+                             "run's sim, agents, monitor and, under a rate-limited profile, the air) and check they "
+                             "give the lab's deliveries and view ages; exit 1 if not")
     parser.add_argument("--targets", default=None, help="faults: where the faults act, comma-separated: dispatch "
                         "(request, reply, commitment, refusal), fleet (the fleet broadcast), both; default all three")
     parser.add_argument("--loss-levels", default=None, help="faults: loss levels in percent, Bernoulli and "
@@ -108,7 +112,7 @@ FLAGS = {
     "emergent": _COMMON | {"preset", "scales", "seeds", "steps", "loss", "jobs"},
     "faults": _COMMON | {"quick", "scales", "seeds", "steps", "jobs", "conditions", "targets", "loss_levels",
                          "latency_levels"},
-    "network": _COMMON | {"scales", "seeds", "steps", "jobs", "conditions", "profiles"},
+    "network": _COMMON | {"scales", "seeds", "steps", "jobs", "conditions", "profiles", "services_cell"},
     # audit: --conditions names the variants (morph_sim/lab/audit.py)
     "audit": _COMMON | {"scales", "seeds", "steps", "conditions", "jobs"},
 }
@@ -286,7 +290,7 @@ def _run_grid(study: str, run_dir, n: int, run) -> int:
 
 
 def _run_network(args) -> int:
-    from morph_sim.lab.network_study import PROFILES, SCALES, SEEDS, grid_plan, network_tasks, run_study
+    from morph_sim.lab.network_study import PROFILES, SCALES, SEEDS, grid_plan, network_tasks, parse_cell, run_study
 
     plan = grid_plan(scales=_scales(args.scales, ",".join(SCALES)),
                      profiles=_csv(args.profiles) if args.profiles else PROFILES,
@@ -295,13 +299,31 @@ def _run_network(args) -> int:
     jobs = 2 if args.jobs is None else args.jobs
     if jobs < 1:
         raise ValueError(f"jobs: must be at least 1, got {jobs}")
+    cell = parse_cell(args.services_cell, plan) if args.services_cell else None
     run_dir = _run_dir(args, "network")
     n = len(network_tasks(plan))
     print(f"experiment network: {len(plan['scales'])} scales × {len(plan['profiles'])} profiles × "
           f"{len(plan['conditions'])} policies × {len(plan['seeds'])} seeds = {n} episodes → {run_dir}",
           file=sys.stderr)
-    return _run_grid("network", run_dir, n, lambda: run_study(
-        run_dir, plan, jobs=jobs, progress=not args.no_progress, argv=["morph-sim", *sys.argv[1:]]))
+    checked: list[dict] = []
+
+    def study():
+        res = run_study(run_dir, plan, jobs=jobs, progress=not args.no_progress, argv=["morph-sim", *sys.argv[1:]],
+                        services_cell=cell)
+        checked.append(res)
+        return res
+
+    code = _run_grid("network", run_dir, n, study)
+    check = checked[0].get("services_check") if checked else None
+    if code == 0 and check is not None:
+        if not check["equal"]:
+            print(f"experiment network: the services differ from the lab in {check['condition']} under "
+                  f"{check['profile']} at {check['scale']}: {run_dir}/services_check.json", file=sys.stderr)
+            return 1
+        print(f"experiment network: services cross-check of {check['condition']} under {check['profile']} at "
+              f"{check['scale']}: {len(check['seeds'])} seed{'s' if len(check['seeds']) != 1 else ''}, the lab's "
+              "deliveries and view ages", file=sys.stderr)
+    return code
 
 
 def _run_audit(args) -> int:

@@ -289,7 +289,65 @@ def plot(rows: list[dict], path: str | Path, scale: str) -> Path:
     return path
 
 
-def run_study(run_dir: str | Path, plan: dict, *, jobs: int = 2, progress=False, argv=None) -> dict:
+def services_check(plan: dict, episodes: list[dict], cell: tuple[str, str, str], out: Path) -> dict:
+    """One cell of the grid (scale, profile, condition label) run again through the services in one process (what
+    ``morph-sim run`` runs: sim, agents, monitor and, under a rate-limited profile, the air, over the in-process bus),
+    seed by seed, beside the lab's episodes: the services' deliveries and mean view age must be the lab's."""
+    import asyncio
+
+    from morph_sim.local import run_local
+    from services.runconfig import RunConfig
+
+    scale, profile, label = cell
+    cond = CONDITIONS[label]
+    rows = []
+    for seed in plan["seeds"]:
+        lab = next(e for e in episodes if (e["scale"], e["profile"], e["condition"], e["seed"]) ==
+                   (scale, profile, label, seed))
+        cfg = RunConfig(run_id=f"check-{seed}", scale=scale, policy=cond.policy, ablation=cond.ablation,
+                        preset=cond.preset or "reference", seed=seed, steps=plan["steps"][scale], network=profile,
+                        output_dir=out)
+        result = asyncio.run(run_local(cfg, record=False))
+        ages = [r["view_age_mean"] for r in result.monitor.rows if r.get("view_age_mean") is not None]
+        age = sum(ages) / len(ages) if ages else None
+        same = result.sim.deliveries == lab["deliveries"] and (
+            age is None and lab["view_age_mean"] is None
+            or age is not None and lab["view_age_mean"] is not None and abs(age - lab["view_age_mean"]) <= 1e-9)
+        rows.append({"seed": seed, "lab_deliveries": lab["deliveries"], "services_deliveries": result.sim.deliveries,
+                     "lab_view_age_mean": lab["view_age_mean"], "services_view_age_mean": age, "equal": same})
+    return {"scale": scale, "profile": profile, "condition": label, "seeds": rows,
+            "equal": all(r["equal"] for r in rows)}
+
+
+def services_check_markdown(check: dict) -> str:
+    lines = [f"## Services cross-check: {check['condition']} under `{check['profile']}` at {check['scale']}", "",
+             "| seed | lab deliveries | services deliveries | lab view age (s) | services view age (s) | equal |",
+             "|---|---|---|---|---|---|"]
+    for r in check["seeds"]:
+        lines.append(f"| {r['seed']} | {r['lab_deliveries']} | {r['services_deliveries']} | "
+                     f"{_f(r['lab_view_age_mean'], '{:.3f}')} | {_f(r['services_view_age_mean'], '{:.3f}')} | "
+                     f"{'yes' if r['equal'] else '**no**'} |")
+    return "\n".join(lines)
+
+
+def parse_cell(value: str, plan: dict) -> tuple[str, str, str]:
+    """``SCALE:PROFILE:CONDITION`` (a cell of ``plan``) as (scale, profile, condition label); ValueError naming the
+    flag otherwise."""
+    parts = value.split(":")
+    if len(parts) != 3:
+        raise ValueError(f"services_cell: expected SCALE:PROFILE:CONDITION, got {value!r}")
+    scale, profile, condition = parts
+    label = CONDITION_KEYS.get(condition, condition)
+    if scale not in plan["scales"] or profile not in plan["profiles"] or label not in plan["conditions"]:
+        raise ValueError(f"services_cell: {value!r} is not a cell of this grid (scales {', '.join(plan['scales'])}; "
+                         f"profiles {', '.join(plan['profiles'])}; conditions {', '.join(plan['conditions'])})")
+    if label not in CONDITIONS:
+        raise ValueError(f"services_cell: {condition!r} is a policy from outside; the cross-check runs the study's own")
+    return scale, profile, label
+
+
+def run_study(run_dir: str | Path, plan: dict, *, jobs: int = 2, progress=False, argv=None,
+              services_cell: tuple[str, str, str] | None = None) -> dict:
     """Run (or resume) the grid into the run record ``run_dir``; write ``network.json``, ``network.csv``,
     ``network.md`` and ``network_<scale>.png`` there."""
     from morph_sim.lab.grid import run_grid
@@ -303,6 +361,11 @@ def run_study(run_dir: str | Path, plan: dict, *, jobs: int = 2, progress=False,
     rows = summarize(plan, episodes)
     claim_rows = claims(plan, episodes)
     md = markdown(plan, rows, claim_rows)
+    check = None
+    if services_cell is not None:
+        check = services_check(plan, episodes, services_cell, out / "services-check")
+        (out / "services_check.json").write_text(json.dumps(check, indent=1))
+        md += "\n\n" + services_check_markdown(check)
     (out / "network.json").write_text(json.dumps({"plan": plan, "rows": rows, "claims": claim_rows,
                                                   "episodes": episodes}, indent=1))
     with open(out / "network.csv", "w", newline="", encoding="utf-8") as f:
@@ -315,5 +378,5 @@ def run_study(run_dir: str | Path, plan: dict, *, jobs: int = 2, progress=False,
     pngs = [str(plot(rows, out / f"network_{sc}.png", sc)) for sc in plan["scales"]]
     return {"rows": rows, "claims": claim_rows, "markdown": md, "md": str(out / "network.md"),
             "json": str(out / "network.json"), "pngs": pngs, "ran": grid.ran, "skipped": grid.skipped,
-            "wall_s": time.perf_counter() - t0,
+            "wall_s": time.perf_counter() - t0, "services_check": check,
             "cpu_s": sum(grid.done[t.key].get("cpu_s", 0.0) for t in tasks)}
