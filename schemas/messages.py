@@ -385,6 +385,8 @@ class PolicyAnnouncement(Message):
 AirPublisher = Annotated[int, Field(ge=-1, lt=MAX_ROBOTS)]
 AirKey = Annotated[str, Field(min_length=1, max_length=128)]
 MAX_AIR_ENTRIES = 4096
+#: entries per air message as the services send them: well inside the transport's 32 KiB message (~40 B an entry)
+AIR_CHUNK = 256
 
 
 class AirPart(Message):
@@ -396,6 +398,8 @@ class AirPart(Message):
 
     sent_at: SimTime
     part: Annotated[int, Field(ge=0, le=1)]
+    more: bool = Field(default=False, description="more announcements of this part follow (a part too large for one "
+                                                  "message)")
     publishers: list[AirPublisher] = Field(max_length=MAX_AIR_ENTRIES)
     keys: list[AirKey] = Field(max_length=MAX_AIR_ENTRIES)
     counts: list[Annotated[int, Field(ge=1, le=MAX_ROBOTS)]] = Field(max_length=MAX_AIR_ENTRIES)

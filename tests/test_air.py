@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from schemas.codec import encode
 from services.faults.air import (
     ROBOTS_PART,
     SIM_PART,
@@ -145,12 +146,17 @@ def test_the_sim_announces_what_the_acks_say_was_published():
     sim_air.tick_publications(2, [6, 7, 99], [-1, 5, 1000], N, counts)  # ids outside the fleet sent nothing
     sim_air.resolve_publications(6, 2, [2, 3], N, counts)
     sim_air.refusal_publications([2, 6], counts)
-    msg = sim_air.announcement(4.0, ROBOTS_PART, counts)
+    (msg,) = sim_air.announcements(4.0, ROBOTS_PART, counts)
     got = {(p, k): c for p, k, c in zip(msg.publishers, msg.keys, msg.counts)}
     assert got == {(2, "agent/2/request/6"): 1, (2, "agent/2/request/7"): 1, (2, "agent/2/policy/all"): 1,
                    (2, "agent/2/policy/5"): 1, (6, "agent/6/commit"): 1, (6, "agent/6/reply/2"): 1,
                    (6, "agent/6/reply/3"): 1, (-1, "sim/refusal/2"): 1, (-1, "sim/refusal/6"): 1}
-    assert msg.publishers == sorted(msg.publishers)
+    assert msg.publishers == sorted(msg.publishers) and not msg.more
+    # a broadcasting policy's requests at 128 robots: thousands of keys, in messages of bounded size
+    many = {(agv, f"agent/{agv}/request/{p}"): 1 for agv in range(96) for p in range(96, 128)}
+    msgs = sim_air.announcements(4.0, ROBOTS_PART, many)
+    assert [m.more for m in msgs] == [True] * (len(msgs) - 1) + [False] and len(msgs) == 12
+    assert sum(len(m.keys) for m in msgs) == len(many) and all(len(encode(m)) < 32 * 1024 for m in msgs)
 
 
 @pytest.mark.parametrize("value", ["congested", SATURATED])
@@ -160,3 +166,44 @@ def test_a_shared_air_profile_is_refused_only_in_a_paced_run(value, tmp_path):
     assert RunConfig(network=value, output_dir=tmp_path).shared_air
     with pytest.raises(ValueError, match="use --mode lockstep"):
         RunConfig(network=value, mode="paced", output_dir=tmp_path)
+
+
+def test_a_verdict_counts_only_from_the_air():
+    """A robot's own session publishing on another receiver's verdict key (the access control forbids it over Zenoh;
+    in one process nothing does) releases nothing and is counted."""
+    from schemas import AirVerdicts
+    from schemas.codec import encode as enc
+    from services.bus.base import Sample
+    from services.faults.layer import FaultLayer
+
+    layer = FaultLayer("r")
+    layer.air = VerdictBook()
+    released = []
+    layer.air.park(("sim", "sim/fleet", 3), (Sample("k", b"", "sim", 3, 3.0), "agent-1", released.append))
+    forged = enc(AirVerdicts(publishers=[-1], keys=["sim/fleet"], seqs=[3], at=[3.5], causes=[None]))
+    layer.on_verdicts(Sample("morph/r/air/verdict/1", forged, "agent-4", 0, 3.0))
+    assert layer.air_refused == 1 and layer.air.take(("sim", "sim/fleet", 3)) is None and not released
+
+
+async def test_the_air_refuses_a_stamp_beyond_the_run_and_keeps_nothing_of_it(tmp_path):
+    """A robot stamping its message far in the future (its own key, its own credentials) would keep it waiting in
+    the air for a part that never comes: refused on arrival, counted."""
+    import asyncio
+
+    from schemas import HelpRequest, RunKeys
+    from services.air.service import AirService
+    from services.bus import LocalNetwork
+    from services.runconfig import RunConfig
+
+    cfg = RunConfig(run_id="r", network="congested", output_dir=tmp_path)
+    net = LocalNetwork()
+    air = AirService(cfg, net.session("air"))
+    task = asyncio.create_task(air.run())
+    robot = net.session("agent-2")
+    robot.set_clock(lambda: 1e6)
+    await asyncio.sleep(0.05)
+    robot.put(RunKeys("r").request(2, 6), HelpRequest(t=5, agv=2, picker=6, target_x=1, target_y=1, seq=0))
+    await asyncio.sleep(0.05)
+    assert air.intake.refused == 1 and not air.ledger.arrived
+    air.stop()
+    await asyncio.wait_for(task, 5)

@@ -17,6 +17,7 @@ import threading
 import time
 
 from schemas import AirPart, AirStats, AirVerdicts, Event, RunKeys, Stop
+from schemas.messages import AIR_CHUNK
 from schemas.tick import decode_tick, observation_from_arrays
 from services.bus.base import Bus, Sample
 from services.faults.air import (
@@ -39,6 +40,10 @@ AIR = "air"
 # A part the sim announced and that stays incomplete this long (wall seconds) is judged with what arrived: a robot
 # that announced a message it never sent (or one lost to a crash) must not stall the fleet.
 PART_TIMEOUT_FACTOR = 1.0
+# A robot's message may be stamped up to this many ticks beyond the newest Tick the air saw (a robot acts on tick t
+# once the Tick of t has gone out; one tick of slack for the order in which the two reach the air).
+AHEAD_TICKS = 2
+MAX_OPEN_ANNOUNCEMENTS = 8
 
 
 class AirService:
@@ -63,6 +68,8 @@ class AirService:
         self._waiting_since: float | None = None
         self.verdicts = 0
         self.parts = 0
+        self._announcing: dict[tuple[float, int], dict] = {}  # parts announced in several messages, until the last
+        self._newest_tick = -1  # the newest Tick seen: a publication stamped far beyond it is refused
 
     # -- in ---------------------------------------------------------------------------------------------------------
     def _on_tick(self, sample: Sample) -> None:
@@ -79,6 +86,7 @@ class AirService:
         dt = self.config.dt
         pub = Publication(obs.t * dt, "sim", "sim/fleet", obs.t, tuple(range(self.n)), fleet_size(obs, dt))
         with self.lock:
+            self._newest_tick = max(self._newest_tick, obs.t)
             self.model.observe_tick(obs.t, dt, obs.cells.tolist())
             out = self.ledger.arrive(pub)
         self._send(out)
@@ -101,6 +109,11 @@ class AirService:
         except ValueError as exc:
             self.intake.refuse(sample.key, exc)
             return
+        horizon = (self._newest_tick + AHEAD_TICKS) * self.config.dt
+        if sample.sent_at > horizon:  # a forged stamp would keep it waiting for a part that never comes
+            self.intake.refuse(sample.key, f"sent at {sample.sent_at:.3f} s, beyond the run's sim time "
+                                           f"({horizon:.3f} s at most)")
+            return
         size = len(sample.payload) if kind == "policy" else dispatch_size(kind)
         pub = Publication(sample.sent_at, publisher, rel, sample.seq, receivers, size)
         with self.lock:
@@ -114,8 +127,16 @@ class AirService:
         if self.keys.sender_of(sample.key) is None or sample.sender != "sim":
             self.intake.refuse(sample.key, "an air announcement not from the sim")
             return
-        counts = {("sim" if p < 0 else p, key): c for p, key, c in zip(msg.publishers, msg.keys, msg.counts)}
         with self.lock:
+            counts = self._announcing.setdefault((msg.sent_at, msg.part), {})
+            for p, key, c in zip(msg.publishers, msg.keys, msg.counts):
+                who = "sim" if p < 0 else p
+                counts[(who, key)] = counts.get((who, key), 0) + c
+            if msg.more:
+                if len(self._announcing) > MAX_OPEN_ANNOUNCEMENTS:  # the sim finishes one part before the next
+                    self._announcing.pop(next(iter(self._announcing)))
+                return
+            del self._announcing[(msg.sent_at, msg.part)]
             self.parts += 1
             out = self.ledger.announce(msg.sent_at, msg.part, counts)
         self._send(out)
@@ -139,10 +160,12 @@ class AirService:
         by_receiver: dict[int | str, list[Verdict]] = {}
         for v in verdicts:
             by_receiver.setdefault(v.receiver, []).append(v)
-        for receiver, vs in by_receiver.items():
-            self.bus.put(self.keys.air_verdicts(receiver), AirVerdicts(
-                publishers=[-1 if v.publisher == "sim" else v.publisher for v in vs], keys=[v.key for v in vs],
-                seqs=[v.seq for v in vs], at=[v.at for v in vs], causes=[v.cause for v in vs]))
+        for receiver, all_of in by_receiver.items():
+            for i in range(0, len(all_of), AIR_CHUNK):  # a flooded receiver's verdicts in messages of bounded size
+                vs = all_of[i:i + AIR_CHUNK]
+                self.bus.put(self.keys.air_verdicts(receiver), AirVerdicts(
+                    publishers=[-1 if v.publisher == "sim" else v.publisher for v in vs], keys=[v.key for v in vs],
+                    seqs=[v.seq for v in vs], at=[v.at for v in vs], causes=[v.cause for v in vs]))
         self.verdicts += len(verdicts)
 
     def _on_event(self, sample: Sample) -> None:

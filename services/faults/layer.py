@@ -168,6 +168,7 @@ class FaultLayer:
         # a profile with shared capacity: the air process judges the radio (services/faults/air.py); this receiver
         # takes its verdicts and holds a radio message until its verdict is here
         self.air: VerdictBook | None = None
+        self.air_refused = 0  # verdict messages refused: not from the air, or not decodable
 
     # -- control -----------------------------------------------------------------------------------------------
     def set(self, spec: FaultSpec, at: float | None = None) -> str:
@@ -390,11 +391,13 @@ class FaultLayer:
         if it came first."""
         from schemas.messages import AirVerdicts
 
+        if self.air is None or sample.sender != "air":  # (the access control lets only the air publish there)
+            self.air_refused += 1
+            return
         try:
             msg = sample.decode(AirVerdicts)
         except ValueError:
-            return
-        if self.air is None:
+            self.air_refused += 1
             return
         with self.lock:
             for pub, key, seq, at, cause in zip(msg.publishers, msg.keys, msg.seqs, msg.at, msg.causes):

@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 from schemas import AirPart
+from schemas.messages import AIR_CHUNK
 from services.faults.air import ROBOTS_PART, SIM_PART
 
 
@@ -47,11 +48,15 @@ def _add(counts: dict[tuple[int | str, str], int], publisher: int | str, key: st
     counts[(publisher, key)] = counts.get((publisher, key), 0) + 1
 
 
-def announcement(sent_at: float, part: int, counts: dict[tuple[int | str, str], int]) -> AirPart:
+def announcements(sent_at: float, part: int, counts: dict[tuple[int | str, str], int]) -> list[AirPart]:
+    """The part as air messages of at most AIR_CHUNK entries each (a broadcasting policy's requests at 128 robots
+    are thousands of keys): every one but the last says ``more``."""
     items = sorted(counts.items(), key=lambda kv: (-1 if kv[0][0] == "sim" else kv[0][0], kv[0][1]))
-    return AirPart(sent_at=sent_at, part=part, publishers=[-1 if p == "sim" else p for (p, _), _ in items],
-                   keys=[key for (_, key), _ in items], counts=[c for _, c in items])
+    chunks = [items[i:i + AIR_CHUNK] for i in range(0, len(items), AIR_CHUNK)] or [[]]
+    return [AirPart(sent_at=sent_at, part=part, more=i < len(chunks) - 1,
+                    publishers=[-1 if p == "sim" else p for (p, _), _ in chunk], keys=[key for (_, key), _ in chunk],
+                    counts=[c for _, c in chunk]) for i, chunk in enumerate(chunks)]
 
 
-__all__ = ["ROBOTS_PART", "SIM_PART", "announcement", "refusal_publications", "resolve_publications",
+__all__ = ["ROBOTS_PART", "SIM_PART", "announcements", "refusal_publications", "resolve_publications",
            "tick_publications"]

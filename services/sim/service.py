@@ -373,15 +373,16 @@ class SimService(Presence, PhaseCollection):
         if self.shared_air:  # the sim's part of this instant: the fleet broadcast and the refusals before it
             counts, self._air_refusals = self._air_refusals, {}
             counts[("sim", "sim/fleet")] = 1
-            bus.put(k.air_parts, air.announcement(obs.t * self.config.dt, air.SIM_PART, counts))
+            for msg in air.announcements(obs.t * self.config.dt, air.SIM_PART, counts):
+                bus.put(k.air_parts, msg)
 
     def _announce_robots(self, ph: PhaseBarrier, sent_at: float) -> None:
         """The robots' part of an instant, as their acks of ``ph`` listed it (the shared air)."""
         if self.shared_air:
             with ph.lock:
                 counts = dict(ph.air)
-            if counts:
-                self.bus.put(self.keys.air_parts, air.announcement(sent_at, air.ROBOTS_PART, counts))
+            for msg in air.announcements(sent_at, air.ROBOTS_PART, counts) if counts else ():
+                self.bus.put(self.keys.air_parts, msg)
 
     async def _event(self, kind: str, **details) -> None:
         t = self.ctl.t
