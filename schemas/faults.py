@@ -195,8 +195,18 @@ class Scope(_Spec):
         return _normalize_agents(value)
 
 
+class Airtime(_Spec):
+    """The shared air's access points get this airtime (netem ``rate RATE limit N`` on each access point's queue)
+    while the fault is in force: a run whose network profile gives access points a budget (``ap_rate``,
+    ``ap_uplink_rate``, ``ap_downlink_rate``), judged by its air process (docs/faults.md)."""
+
+    rate: float = Field(gt=0.0, allow_inf_nan=False, description="bytes per second, each access point and direction")
+    limit: int = Field(default=1000, ge=1, le=1_000_000, description="queue capacity, messages")
+
+
 class FaultSpec(_Spec):
-    """One fault: any combination of network effects (or a crash), a scope, an optional duration, a seed."""
+    """One fault: any combination of network effects (or a crash, or the shared air's airtime), a scope, an optional
+    duration, a seed."""
 
     id: str | None = Field(default=None, pattern=r"^[A-Za-z0-9_.\-]{1,64}$")
     latency: Latency | None = None
@@ -205,14 +215,20 @@ class FaultSpec(_Spec):
     reorder: Reorder | None = None
     partition: Partition | None = None
     crash: Crash | None = None
+    rate: Airtime | None = Field(default=None, description="the shared air: every access point's airtime")
     scope: Scope = Field(default_factory=Scope)
     duration: Seconds | None = Field(default=None, description="auto-heal after this long; None = until reset")
     seed: int | None = Field(default=None, ge=0, lt=2**63)
 
     @model_validator(mode="after")
     def _some_fault(self) -> FaultSpec:
-        if all(x is None for x in (self.latency, self.loss, self.duplicate, self.reorder, self.partition, self.crash)):
-            raise ValueError("a fault spec needs at least one of latency, loss, duplicate, reorder, partition, crash")
+        effects = (self.latency, self.loss, self.duplicate, self.reorder, self.partition, self.crash)
+        if all(x is None for x in effects) and self.rate is None:
+            raise ValueError("a fault spec needs at least one of latency, loss, duplicate, reorder, partition, crash, "
+                             "rate")
+        if self.rate is not None and (any(x is not None for x in effects) or self.scope != Scope()):
+            raise ValueError("rate changes every access point's airtime for the whole run's radio: give it alone, "
+                             "without other effects or a scope")
         if self.reorder is not None and self.latency is None:
             raise ValueError("reorder needs latency (as in netem: reordered messages skip the delay)")
         if self.duration is not None and not math.isfinite(self.duration):

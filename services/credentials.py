@@ -106,13 +106,14 @@ def access_control(run_id: str, n_agents: int) -> dict:
     policies = [
         {"id": "everyone", "rules": ["observe", "receive", "ask"], "subjects": everyone},
         {"id": "monitor", "rules": ["monitor-publish", "monitor-serve", "monitor-fault-answers"], "subjects": [MONITOR]},
-        {"id": "air", "rules": ["air-publish"], "subjects": [AIR]},
+        {"id": "air", "rules": ["air-publish", "air-fault-answers"], "subjects": [AIR]},
         {"id": "operator", "rules": ["operator-control", "operator-query", "operator-fault-answers"],
          "subjects": [OPERATOR]},
     ]
     # each process answers fault queries under its own key only (schemas/keys.py fault_answers), so an answer's key
     # says who gave it; up's supervisor (operator credentials) carries out crash faults and answers for them
-    for rule, identity in (("monitor-fault-answers", MONITOR), ("operator-fault-answers", SUPERVISOR)):
+    for rule, identity in (("monitor-fault-answers", MONITOR), ("operator-fault-answers", SUPERVISOR),
+                           ("air-fault-answers", AIR)):
         rules.append({"id": rule, "flows": ["ingress"], "permission": "allow", "messages": ["declare_queryable", "reply"],
                       "key_exprs": [f"{run}/ctl/faults/{identity}"]})
     for agent, user in enumerate(agents):

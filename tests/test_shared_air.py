@@ -132,3 +132,108 @@ def test_up_gives_the_labs_messages_per_delivery_and_view_ages_under_congested_t
 @pytest.mark.parametrize(("scale", "steps"), [("small", 400), ("medium", 400)])
 def test_up_equals_run_and_the_lab_under_congested(tmp_path, scale, steps):
     check_up_run_and_lab(tmp_path, scale, "morph", steps)
+
+
+# -- airtime faults: `morph-sim faults set --rate`, a schedule's rate specs --------------------------------------------
+RATE_AT = 40
+
+
+def _airtime_run(tmp_path, *, schedule: bool, runtime_command: bool, steps: int = 100):
+    """A tiny run under `congested` in one process whose access points get 600 B/s of airtime (queues of 4) from
+    tick RATE_AT: by a schedule file, or by an operator's `faults set --rate … --at-tick` sent at its first tick."""
+    from schemas import FaultSpec, RunKeys
+    from schemas.faults import Airtime
+    from schemas.messages import FaultCommand
+    from services.bus import LocalNetwork
+
+    spec = FaultSpec(id="crowded", rate=Airtime(rate=600.0, limit=4))
+    path = None
+    if schedule:
+        tmp_path.mkdir(parents=True, exist_ok=True)
+        path = tmp_path / "rate.toml"
+        path.write_text(f'[[at]]\ntick = {RATE_AT}\n[at.spec]\nid = "crowded"\nrate = {{ rate = 600.0, limit = 4 }}\n')
+    cfg = RunConfig(run_id="rate", scale="tiny", policy="full-broadcast", seed=SEED, steps=steps, network="congested",
+                    output_dir=tmp_path, fault_schedule=str(path) if path else None)
+    rt = FaultRuntime.for_service(cfg, "sim")
+
+    async def main():
+        net = LocalNetwork()
+        operator = net.session("operator")
+        sent = asyncio.Event()
+
+        def on_tick(sample):
+            if runtime_command and not sent.is_set():
+                sent.set()
+                operator.put(RunKeys(cfg.run_id).faults, FaultCommand(op="set", spec=spec, at_tick=RATE_AT))
+
+        await operator.subscribe(RunKeys(cfg.run_id).tick, on_tick)
+        try:
+            return await run_local(cfg, record=False, network=net, faults=rt)
+        finally:
+            await operator.close()
+
+    return asyncio.run(main()), rt
+
+
+def test_an_airtime_fault_at_a_tick_is_the_same_from_the_operator_and_from_a_schedule(tmp_path):
+    """The air carries out `faults set --rate` from the tick it names, and the sim records it: the run equals the
+    one with the same fault in its schedule, equals the clean run before that tick, and loses more to the queues
+    after it."""
+    clean, rt_clean = _airtime_run(tmp_path / "clean", schedule=False, runtime_command=False)
+    scheduled, rt_s = _airtime_run(tmp_path / "scheduled", schedule=True, runtime_command=False)
+    live, rt_l = _airtime_run(tmp_path / "live", schedule=False, runtime_command=True)
+    assert live.sim.per_tick_deliveries == scheduled.sim.per_tick_deliveries
+    assert rt_l.network_losses() == rt_s.network_losses()
+    assert [(e.kind, e.t, e.details["fault_id"], e.details["spec"]["rate"]) for e in rt_l.controller.log
+            if e.kind.startswith("fault.")] == [("fault.set", RATE_AT, "crowded", {"rate": 600.0, "limit": 4})]
+    queued = lambda rt: rt.network_losses()["ap_queue"]  # noqa: E731
+    assert queued(rt_l) > queued(rt_clean), (rt_l.network_losses(), rt_clean.network_losses())
+    assert live.sim.per_tick_deliveries[:RATE_AT] == clean.sim.per_tick_deliveries[:RATE_AT]
+
+
+def test_an_airtime_fault_is_refused_where_no_air_judges_the_radio(tmp_path):
+    """A run without shared capacity has nobody to carry `--rate` out: its record owner (the sim) refuses it in one
+    line naming the field; a robot's process gives no verdict on it."""
+    from schemas import FaultSpec
+    from schemas.faults import Airtime
+    from schemas.messages import FaultCommand
+    from services.bus import LocalNetwork
+    from services.faults.controller import FaultController
+    from services.faults.layer import FaultLayer
+
+    command = FaultCommand(op="set", spec=FaultSpec(rate=Airtime(rate=500.0)))
+    bus = LocalNetwork().session("sim")
+    sim = FaultController(bus, "r", [FaultLayer("r")], clock=lambda: 3.0, events=True, air_run=False)
+    reply = sim.handle(command)
+    assert not reply.ok and reply.error.startswith("rate: this run has no shared air")
+    agent = FaultController(bus, "r", [FaultLayer("r")], clock=lambda: 3.0, events=False, air_run=True)
+    assert agent.handle(command) is None
+    with pytest.raises(ValueError, match="give it alone"):
+        FaultSpec(rate=Airtime(rate=500.0), loss={"percent": 5})
+
+
+@pytest.mark.slow  # a long `up` so that the operator's command comes well before its tick (reduced: the test above)
+def test_faults_set_rate_at_a_tick_on_a_live_up_run_equals_the_scheduled_run(tmp_path, live_run):
+    import subprocess
+    import sys
+
+    steps, at = 1500, 1000
+    up = live_run("airtime", "--network", "congested", "--policy", "full-broadcast", "--seed", str(SEED), "--steps",
+                  str(steps), output_dir=tmp_path / "up")
+    up.wait_for_rows(2, timeout=60)
+    cli = subprocess.run([sys.executable, "-m", "morph_sim.cli", "faults", "set", "--run", "airtime", "--endpoint",
+                          up.endpoint, "--output-dir", str(up.output_dir), "--rate", "600", "--limit", "4", "--id",
+                          "crowded", "--at-tick", str(at), "--each"], capture_output=True, text=True, timeout=60)
+    replies = [json.loads(line) for line in cli.stdout.splitlines()]
+    assert cli.returncode == 0 and {r["source"] for r in replies} >= {"sim", "air"}, (cli.stdout, cli.stderr)
+    assert up.wait(timeout=300) == 0, up.stderr()[-2000:]
+    schedule = tmp_path / "rate.toml"
+    schedule.write_text(f'[[at]]\ntick = {at}\n[at.spec]\nid = "crowded"\nrate = {{ rate = 600.0, limit = 4 }}\n')
+    local = subprocess.run([sys.executable, "-m", "morph_sim.cli", "run", "--network", "congested", "--policy",
+                            "full-broadcast", "--seed", str(SEED), "--steps", str(steps), "--run-id", "airtime",
+                            "--fault-schedule", str(schedule), "--output-dir", str(tmp_path / "local")],
+                           capture_output=True, text=True, timeout=300)
+    assert local.returncode == 0, local.stderr[-2000:]
+    assert read_metrics(tmp_path / "up" / "airtime") == read_metrics(tmp_path / "local" / "airtime")
+    events = [json.loads(x) for x in (tmp_path / "up" / "airtime" / "events.jsonl").read_text().splitlines()]
+    assert [(e["t"], e["details"]["fault_id"]) for e in events if e["kind"] == "fault.set"] == [(at, "crowded")]

@@ -51,6 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p.add_argument("--jitter", type=float, help="latency jitter, seconds")
         p.add_argument("--distribution", choices=("uniform", "normal", "pareto"), help="latency distribution")
         p.add_argument("--duplicate", type=float, help="duplicate, percent")
+        p.add_argument("--rate", type=float, help="the shared air: every access point's airtime, bytes/s (a run whose "
+                                                  "network profile limits it, e.g. congested; alone, without a scope)")
+        p.add_argument("--limit", type=int, help="with --rate: each access point's queue, messages (default 1000)")
         p.add_argument("--key", help="scope: key expression relative to morph/<run>/ (default **)")
         p.add_argument("--agents", help="scope: comma-separated agent ids")
         p.add_argument("--duration", type=float,
@@ -60,7 +63,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p.add_argument("--seed", type=int, help="seed of this fault's random streams")
 
 
-_FLAG_FIELDS = ("loss", "burst", "delay", "jitter", "distribution", "duplicate", "key", "agents", "duration", "seed")
+_FLAG_FIELDS = ("loss", "burst", "delay", "jitter", "distribution", "duplicate", "rate", "limit", "key", "agents",
+                "duration", "seed")
 
 
 def build_command(args: argparse.Namespace):
@@ -105,6 +109,10 @@ def build_command(args: argparse.Namespace):
             raise ValueError("jitter: --jitter and --distribution need --delay")
         if "duplicate" in flags:
             spec["duplicate"] = {"percent": flags["duplicate"]}
+        if "rate" in flags:
+            spec["rate"] = {"rate": flags["rate"], **({"limit": flags["limit"]} if "limit" in flags else {})}
+        elif "limit" in flags:
+            raise ValueError("limit: needs --rate")
         scope = {}
         if "key" in flags:
             scope["key_expr"] = flags["key"]

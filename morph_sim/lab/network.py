@@ -118,6 +118,12 @@ class EventNetwork:
             self.layer = FaultLayer(run, base_seed=seed, clock=lambda: self.now, per_key=True)
             self.layer.network = model
             for spec in faults:
+                if spec.rate is not None:  # the shared air's airtime, from the start: the model's own queues
+                    if model is None or not model.has_ap_budget:
+                        raise ValueError("rate: an airtime fault needs a network profile whose access points have "
+                                         "an airtime budget (ap_rate, ap_uplink_rate, ap_downlink_rate)")
+                    model.set_airtime(spec.rate.rate, spec.rate.limit, 0.0, spec.duration, spec.id)
+                    continue
                 self.layer.set(spec, at=0.0)
         self.faults = tuple(faults)
         self._heap: list[tuple[float, int, object, object]] = []

@@ -62,7 +62,8 @@ class AirService:
         self.ledger = Ledger(Medium(self.model))
         self.ledger.on_part = self._judged
         self.intake = Intake(bus, self.keys, log, AIR)
-        self.lock = threading.Lock()  # transport threads (one per subscription) share the ledger
+        # transport threads (one per subscription) share the ledger; the fault controller takes it too
+        self.lock = threading.RLock()
         self._stop = asyncio.Event()
         self._loop = asyncio.get_running_loop()
         self._waiting_since: float | None = None
@@ -70,6 +71,24 @@ class AirService:
         self.parts = 0
         self._announcing: dict[tuple[float, int], dict] = {}  # parts announced in several messages, until the last
         self._newest_tick = -1  # the newest Tick seen: a publication stamped far beyond it is refused
+        self.faults = None  # its fault controller (airtime faults), mounted by run()
+
+    # -- airtime faults (faults set --rate, a fault schedule's rate specs) --------------------------------------------
+    def _rate(self, spec, at: float | None) -> str | None:
+        """(Under the lock.) Every access point's airtime becomes the spec's from sim time ``at`` (a scheduled or
+        --at-tick command's own time: the same in every run) or, at once, from the newest tick."""
+        if not self.model.has_ap_budget:
+            return (f"rate: profile {self.config.network!r} gives its access points no airtime budget (ap_rate, "
+                    "ap_uplink_rate, ap_downlink_rate) to change")
+        start = at if at is not None else max(self._newest_tick, 0) * self.config.dt
+        end = None if spec.duration is None else start + spec.duration
+        self.model.set_airtime(spec.rate.rate, spec.rate.limit, start, end, spec.id)
+        log.info("air: airtime %s B/s (queue %d) from %.3f s%s", spec.rate.rate, spec.rate.limit, start,
+                 "" if end is None else f" to {end:.3f} s")
+        return None
+
+    def _rate_reset(self, fault_id: str | None, at: float | None) -> None:
+        self.model.end_airtime(at if at is not None else max(self._newest_tick, 0) * self.config.dt, fault_id)
 
     # -- in ---------------------------------------------------------------------------------------------------------
     def _on_tick(self, sample: Sample) -> None:
@@ -85,6 +104,8 @@ class AirService:
             return
         dt = self.config.dt
         pub = Publication(obs.t * dt, "sim", "sim/fleet", obs.t, tuple(range(self.n)), fleet_size(obs, dt))
+        if self.faults is not None:
+            self.faults.advance(obs.t * dt)  # scheduled airtime faults due by this tick's start, at their own times
         with self.lock:
             self._newest_tick = max(self._newest_tick, obs.t)
             self.model.observe_tick(obs.t, dt, obs.cells.tolist())
@@ -205,6 +226,19 @@ class AirService:
 
     async def run(self) -> dict:
         k, bus = self.keys, self.bus
+        from services.faults.controller import FaultController
+
+        schedule = None
+        if self.config.fault_schedule:
+            from services.faults.schedule import load_schedule
+
+            schedule = load_schedule(self.config.fault_schedule, self.n)
+        self.faults = FaultController(bus, self.config.run_id, [], clock=lambda: max(self._newest_tick, 0) *
+                                      self.config.dt, dt=self.config.dt, on_rate=self._rate,
+                                      on_rate_reset=self._rate_reset, schedule=schedule, lock=self.lock,
+                                      fleet=self.n, air_run=True)
+        await self.faults.start()
+        self.faults.advance(0.0)  # airtime faults scheduled at time 0
         await bus.subscribe(k.tick, self._on_tick, inline=True)
         for expr in (k.requests, k.replies, k.commits, k._k("agent", "*", "policy", "*"),
                      k._k("sim", "refusal", "*")):

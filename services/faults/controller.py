@@ -42,6 +42,9 @@ from services.faults.schedule import FaultSchedule
 log = logging.getLogger("morph_sim.faults")
 
 CrashHook = Callable[[FaultSpec], str | None]  # returns an error message, or None when accepted
+#: the shared air's airtime faults: (spec, its start in sim seconds or None for now) -> an error message, or None
+RateHook = Callable[[FaultSpec, float | None], str | None]
+RateResetHook = Callable[[str | None, float | None], None]  # end one airtime fault (by id) or all, at a sim time
 CrashResetHook = Callable[[str | None], None]  # forget one crash spec (by id) or all of them
 
 
@@ -55,8 +58,14 @@ class FaultController:
     def __init__(self, bus: Bus, run: str, layers: list[FaultLayer], *, clock: Callable[[], float],
                  dt: float = 1.0, events: bool = False, on_crash: CrashHook | None = None,
                  schedule: FaultSchedule | None = None, lock=None, hold_events: bool = False,
-                 on_crash_reset: CrashResetHook | None = None, fleet: int | None = None):
+                 on_crash_reset: CrashResetHook | None = None, fleet: int | None = None,
+                 on_rate: RateHook | None = None, on_rate_reset: RateResetHook | None = None,
+                 air_run: bool = False):
         self.bus = bus
+        # airtime faults (FaultSpec.rate): the air carries them out (on_rate); the run record's owner (events) records
+        # them, or refuses them in a run without an air (air_run False); any other process stays silent on them
+        self.on_rate, self.on_rate_reset, self.air_run = on_rate, on_rate_reset, air_run
+        self.rates: list[tuple[FaultSpec, float]] = []  # (airtime fault, its start) in force, as this process knows
         self.on_crash_reset = on_crash_reset
         self.fleet = fleet  # number of robots (ids 0..fleet-1), to refuse a spec naming one outside the run
         # ids of crash specs this process left to the supervisor: a reset of one of them is not this process's to judge
@@ -111,12 +120,13 @@ class FaultController:
             spec = command.spec
             crash_here = spec.crash is not None and self.on_crash is not None
             network_here = _network_part(spec) and bool(self.layers)
+            rate_here = spec.rate is not None and (self.on_rate is not None or (self.events and bool(self.layers)))
             if spec.crash is not None and not crash_here and spec.id is not None:
                 self._crash_ids_elsewhere.add(spec.id)
-            return crash_here or network_here
+            return crash_here or network_here or rate_here
         if command.op == "reset" and command.fault_id is not None:
             fid = command.fault_id
-            if any(fid == s.id for s in self.crashes):
+            if any(fid == s.id for s in self.crashes) or any(fid == s.id for s, _ in self.rates):
                 return True
             if not self.layers:
                 return False  # a network fault: the processes with layers answer
@@ -176,12 +186,25 @@ class FaultController:
                     for crash in self.crashes:
                         self._event("fault.reset", crash.id or "crash", None, at)
                     self.crashes.clear()
+                    for rate, _ in self.rates:
+                        self._event("fault.reset", rate.id or "rate", None, at)
+                    self.rates.clear()
+                    if self.on_rate_reset is not None:
+                        self.on_rate_reset(None, at)
                     if self.on_crash_reset is not None:
                         self.on_crash_reset(None)
                     return FaultReply(ok=True, active=[], source=source)
                 fid = command.fault_id
                 crash_held = any(fid == s.id for s in self.crashes)
                 layer_held = any(fid in {s.id for s in layer.active()} for layer in self.layers)
+                rate_held = any(fid == s.id for s, _ in self._rates_in_force())
+                if rate_held:
+                    self.rates = [(s, t0) for s, t0 in self.rates if s.id != fid]
+                    if self.on_rate_reset is not None:
+                        self.on_rate_reset(fid, at)
+                    if not crash_held and not layer_held:
+                        self._event("fault.reset", fid, None, at)
+                        return FaultReply(ok=True, active=self._active(), source=source)
                 if not crash_held and not layer_held:
                     return FaultReply(ok=False, error=f"fault_id: no active fault {fid!r}",
                                       active=self._active(), source=source)
@@ -207,6 +230,8 @@ class FaultController:
                                           active=self._active(), source=source)
                     self.crashes.append(spec)
                     self._event("fault.crash_planned", spec.id or "crash", spec, at)
+                if spec.rate is not None:
+                    return self._set_rate(spec, at)
                 if not _network_part(spec) or not self.layers:
                     return FaultReply(ok=True, active=self._active(), source=source)
                 if spec.crash is not None:  # carried out by the supervisor; the network part is this process's
@@ -222,6 +247,28 @@ class FaultController:
             return FaultReply(ok=False, error=error, active=self._active(), source=source)
         return FaultReply(ok=True, active=self._active(), source=source)
 
+    def _set_rate(self, spec: FaultSpec, at: float | None) -> FaultReply:
+        """An airtime fault: the air applies it, the run record's owner records it (or refuses it: no air)."""
+        source = self.bus.identity
+        if self.on_rate is None and not self.air_run:
+            return FaultReply(ok=False, error="rate: this run has no shared air (its network profile limits no access "
+                              "point's airtime: --network congested or a profile with ap_rate)",
+                              active=self._active(), source=source)
+        when = self.clock() if at is None else at
+        if spec.id is None:
+            spec = spec.model_copy(update={"id": f"fault-{len(self.log) + len(self.rates) + 1}-{round(when * 1000)}"})
+        if self.on_rate is not None:
+            error = self.on_rate(spec, at)
+            if error:
+                return FaultReply(ok=False, error=error, active=self._active(), source=source)
+        self.rates = [(s, t0) for s, t0 in self.rates if s.id != spec.id] + [(spec, when)]
+        self._event("fault.set", spec.id or "", spec, at)
+        return FaultReply(ok=True, active=self._active(), source=source)
+
+    def _rates_in_force(self) -> list[tuple[FaultSpec, float]]:
+        now = self.clock()
+        return [(s, t0) for s, t0 in self.rates if s.duration is None or now < t0 + s.duration]
+
     def retire_crash(self, fault_id: str) -> None:
         """A one-shot crash was carried out: it is no longer an active fault (its record is the agent.crash event)."""
         with self.lock:
@@ -229,7 +276,8 @@ class FaultController:
 
     def _active(self) -> list[FaultSpec]:
         # a process lists what it carries out: its network faults, and (the supervisor) its crash faults
-        return (self.layers[0].active() if self.layers else []) + list(self.crashes)
+        return ((self.layers[0].active() if self.layers else []) + list(self.crashes)
+                + [s for s, _ in self._rates_in_force()])
 
     def advance(self, now: float) -> list[FaultReply]:
         """Apply the scheduled commands due by sim time ``now`` (call at each tick start, or register on a

@@ -205,6 +205,10 @@ class NetworkModel:
         up, down = profile.ap_uplink_rate, profile.ap_downlink_rate
         self._ap_up = [Queue(up) if up else None for _ in range(len(aps))] if up or down else None
         self._ap_down = [Queue(down) if down else None for _ in range(len(aps))] if up or down else None
+        # airtime faults (schemas.faults.Airtime) in force over windows of sim time: (start, end or None, rate, limit),
+        # judged by a message's time at the access point, so they depend on nothing but the messages' own times
+        self._airtime: list[tuple[float, float | None, float, int, str | None]] = []
+        self._airtime_now: tuple[float, int] | None = None
         # per access point: bytes its shared medium took in and messages it dropped with a full queue
         self.ap_bytes = [0] * len(aps)
         self.ap_drops = [0] * len(aps)
@@ -316,6 +320,8 @@ class NetworkModel:
             at = out
         cell, ap = radio.at(at)
         ap_queues = self._ap_queues if self._ap_up is None else self._ap_up if direction == "up" else self._ap_down
+        if self._airtime or self._airtime_now is not None:
+            self._airtime_at(at)
         if ap >= 0 and ap_queues[ap] is not None:  # type: ignore[index]
             out = ap_queues[ap].admit(at, size)  # type: ignore[index,union-attr]
             if out is None:
@@ -358,6 +364,49 @@ class NetworkModel:
         if at > sent_at:
             self.stats.delayed += 1
         return Fate(at, None)
+
+    @property
+    def has_ap_budget(self) -> bool:
+        """Whether access points have an airtime budget an airtime fault can change."""
+        p = self.profile
+        return len(self.access_points) > 0 and any(r is not None for r in (p.ap_rate, p.ap_uplink_rate,
+                                                                            p.ap_downlink_rate))
+
+    def set_airtime(self, rate: float, limit: int, start: float, end: float | None = None,
+                    fault_id: str | None = None) -> None:
+        """Every access point's budget is ``rate`` bytes/s with room for ``limit`` messages in [start, end) (a
+        fault set again under its id replaces its window from ``start`` on)."""
+        if fault_id is not None:
+            self.end_airtime(start, fault_id)
+        self._airtime.append((start, end, float(rate), int(limit), fault_id))
+
+    def end_airtime(self, at: float, fault_id: str | None = None) -> None:
+        """The airtime faults in force (the one of ``fault_id``, or all) end at ``at`` (a reset)."""
+        kept = []
+        for s, e, r, n, fid in self._airtime:
+            if fault_id is None or fid == fault_id:
+                if s >= at:
+                    continue  # not begun: gone
+                e = at if e is None or e > at else e
+            kept.append((s, e, r, n, fid))
+        self._airtime = kept
+
+    def _airtime_at(self, at: float) -> None:
+        """Set the access points' queues to the budget in force at ``at`` (the newest fault in force, else the
+        profile's)."""
+        now = None
+        for start, end, rate, limit, _ in self._airtime:
+            if start <= at and (end is None or at < end):
+                now = (rate, limit)
+        if now == self._airtime_now:
+            return
+        self._airtime_now = now
+        p = self.profile
+        for group, spec in ((self._ap_queues, p.ap_rate), (self._ap_up, p.ap_uplink_rate),
+                            (self._ap_down, p.ap_downlink_rate)):
+            for q in group or ():
+                if q is not None:
+                    q.rate, q.limit = (now if now is not None else (spec.rate, spec.limit))
 
     def ap_queue_depths(self, at: float) -> list[int]:
         """Messages in each access point's queue at sim time ``at`` (0 without shared capacity)."""

@@ -171,7 +171,8 @@ class FaultRuntime:
             raise RuntimeError("attach a bus before start()")
         self.controller = FaultController(self._bus, self.run, self.layers, clock=self.now, dt=self.dt,
                                           events=self.events, on_crash=self.on_crash, schedule=self.schedule,
-                                          lock=self.lock, hold_events=self.events, fleet=self.fleet)
+                                          lock=self.lock, hold_events=self.events, fleet=self.fleet,
+                                          air_run=self.air)
         await self.controller.start()
         for layer, bus in self._verdict_buses:
             who = layer.receiver if layer.receiver is not None else parse_agent_id(bus.identity)
