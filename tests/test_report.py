@@ -6,6 +6,7 @@ import asyncio
 import json
 import os
 import signal
+import time
 
 import numpy as np
 import psutil
@@ -90,8 +91,8 @@ def test_a_killed_recorder_never_leaves_a_row_on_disk_without_its_positions_and_
     assert (on_disk > 0) == (flush_chars < 1 << 20)  # the size rule flushed on its own, before a second was up
 
 
-STEPS = 1000  # the monitor is killed after KILL_AT rows: a gap of up to a few hundred ticks, then the rest recorded
-KILL_AT = 100
+STEPS = 1000  # the monitor is killed after KILL_AT rows: the run is paused at tick ~300-450 (the rows on disk lag), a gap, then the rest recorded
+KILL_AT = 50
 
 
 def test_a_monitor_killed_and_restarted_mid_run_leaves_a_record_equal_apart_from_the_gap(tmp_path, live_run):
@@ -99,12 +100,18 @@ def test_a_monitor_killed_and_restarted_mid_run_leaves_a_record_equal_apart_from
     up = live_run("killed", "--steps", str(STEPS), "--seed", "5", "--policy", "morph", *FEW_ROBOTS,
                   output_dir=tmp_path / "live")
     up.wait_for_endpoint()
+    procs: dict = {}
+    deadline = time.monotonic() + 30
+    while len(procs) < 2 and time.monotonic() < deadline:  # the sim and the monitor, before the rows are waited for
+        procs = {role_of(p.cmdline()): p for p in psutil.Process(up.pid).children(recursive=True)
+                 if role_of(p.cmdline()) in ("sim", "monitor")}
+        time.sleep(0.02)
+    assert set(procs) == {"sim", "monitor"}, procs
     up.wait_for_rows(KILL_AT)
-    procs = {role_of(p.cmdline()): p for p in psutil.Process(up.pid).children(recursive=True)
-             if role_of(p.cmdline()) in ("sim", "monitor")}
     # The run is paused while its monitor is killed, so that it is killed mid-run: this small lockstep run makes
-    # ~450 ticks/s and may run up to MONITOR_WINDOW ticks ahead of the rows on disk, so by the time a test reads
-    # KILL_AT rows the sim was seen to have finished (and closed its endpoint on the monitor's successor).
+    # ~450 ticks/s and may run up to MONITOR_WINDOW ticks ahead of the rows on disk, so by the time a test had read
+    # KILL_AT rows and looked for the monitor the sim was seen to have finished (and closed its endpoint on the
+    # monitor's successor).
     os.kill(procs["sim"].pid, signal.SIGSTOP)
     try:
         os.kill(procs["monitor"].pid, signal.SIGKILL)  # no chance to flush or close; the supervisor restarts it
