@@ -91,7 +91,9 @@ def test_a_killed_recorder_never_leaves_a_row_on_disk_without_its_positions_and_
     assert (on_disk > 0) == (flush_chars < 1 << 20)  # the size rule flushed on its own, before a second was up
 
 
-STEPS = 1000  # the monitor is killed after KILL_AT rows: the run is paused at tick ~300-450 (the rows on disk lag), a gap, then the rest recorded
+# the monitor is killed after KILL_AT rows on disk, which lag the run by up to a second: the run is paused at tick
+# ~100-470, then a gap, then the rest recorded
+STEPS = 1000
 KILL_AT = 50
 
 
