@@ -38,7 +38,9 @@ def _shared_columns(lab, rows, steps: int, atol: float = 0.0) -> list[str]:
     return shared
 
 
-@pytest.mark.parametrize("policy", ["full-broadcast", "morph"])
+# MORPH with -m slow: by default the broadcast Full-Graph, whose queues overflow (MORPH's learning under the air is
+# checked at small by the up == run == lab test below)
+@pytest.mark.parametrize("policy", ["full-broadcast", pytest.param("morph", marks=pytest.mark.slow)])
 def test_run_gives_the_labs_episode_and_queue_drops_on_a_saturated_air(policy, tmp_path):
     """In one process (``morph-sim run``): every service's radio messages judged by the air service, each receiver
     holding what reaches it until the air's verdict; the record equals the lab's table column by column, and the
@@ -137,10 +139,10 @@ def test_up_equals_run_and_the_lab_under_congested(tmp_path, scale, steps):
 
 
 # -- airtime faults: `morph-sim faults set --rate`, a schedule's rate specs --------------------------------------------
-RATE_AT = 40
+RATE_AT = 30
 
 
-def _airtime_run(tmp_path, *, schedule: bool, runtime_command: bool, steps: int = 100):
+def _airtime_run(tmp_path, *, schedule: bool, runtime_command: bool, steps: int = 70):
     """A tiny run under `congested` in one process whose access points get 600 B/s of airtime (queues of 4) from
     tick RATE_AT: by a schedule file, or by an operator's `faults set --rate … --at-tick` sent at its first tick."""
     from schemas import FaultSpec, RunKeys
