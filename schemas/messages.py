@@ -383,6 +383,17 @@ class PolicyAnnouncement(Message):
 # ------------------------------------------------------------------------------------------------------------------
 #: a publisher in the air's messages: a robot id, or -1 for the sim
 AirPublisher = Annotated[int, Field(ge=-1, lt=MAX_ROBOTS)]
+
+
+def _as_long_as(msg, anchor: str, each: str, names: tuple[str, ...]):
+    """``msg`` if each list of ``names`` has an entry per entry of ``anchor``, else the first that has not, named."""
+    want = len(getattr(msg, anchor))
+    for name in names:
+        got = len(getattr(msg, name))
+        if got != want:
+            raise PydanticCustomError("length_mismatch", "{field} has {got} entries, expected {want} (one per {each})",
+                                      {"field": name, "got": got, "want": want, "each": each})
+    return msg
 AirKey = Annotated[str, Field(min_length=1, max_length=128)]
 MAX_AIR_ENTRIES = 4096
 #: entries per air message as the services send them: well inside the transport's 32 KiB message (~40 B an entry)
@@ -406,12 +417,7 @@ class AirPart(Message):
 
     @model_validator(mode="after")
     def _shape(self) -> AirPart:
-        for name in ("keys", "counts"):
-            if len(getattr(self, name)) != len(self.publishers):
-                raise PydanticCustomError(
-                    "length_mismatch", "{field} has {got} entries, expected {want} (one per publisher)",
-                    {"field": name, "got": len(getattr(self, name)), "want": len(self.publishers)})
-        return self
+        return _as_long_as(self, "publishers", "publisher", ("keys", "counts"))
 
 
 class AirVerdicts(Message):
@@ -428,12 +434,7 @@ class AirVerdicts(Message):
 
     @model_validator(mode="after")
     def _shape(self) -> AirVerdicts:
-        for name in ("keys", "seqs", "at", "causes"):
-            if len(getattr(self, name)) != len(self.publishers):
-                raise PydanticCustomError(
-                    "length_mismatch", "{field} has {got} entries, expected {want} (one per publisher)",
-                    {"field": name, "got": len(getattr(self, name)), "want": len(self.publishers)})
-        return self
+        return _as_long_as(self, "publishers", "publisher", ("keys", "seqs", "at", "causes"))
 
 
 class AirStats(Message):
@@ -450,12 +451,7 @@ class AirStats(Message):
 
     @model_validator(mode="after")
     def _shape(self) -> AirStats:
-        for name in ("ap_queue", "ap_drops"):
-            if len(getattr(self, name)) != len(self.ap_bytes):
-                raise PydanticCustomError(
-                    "length_mismatch", "{field} has {got} entries, expected {want} (one per access point)",
-                    {"field": name, "got": len(getattr(self, name)), "want": len(self.ap_bytes)})
-        return self
+        return _as_long_as(self, "ap_bytes", "access point", ("ap_queue", "ap_drops"))
 
 
 MESSAGE_TYPES: tuple[type[Message], ...] = (

@@ -45,30 +45,28 @@ class PhaseBarrier:
 
     def acked(self, agent: int) -> None:
         """Call with ``lock`` held, from any thread: ``agent``'s ack of this phase is in (or it is absent)."""
-        if agent in self.acks_left:
-            self.acks_left.discard(agent)
-            if not self.acks_left:
-                self._loop.call_soon_threadsafe(self._all_acked)
-
-    def _all_acked(self) -> None:
-        if not self.all_acked.done():
-            self.all_acked.set_result(None)
+        self._strike(self.acks_left, agent, self.all_acked)
 
     def answered(self, agent: int) -> None:
         """Call with ``lock`` held, from any thread."""
         self.acked(agent)
-        if agent in self.waiting:
-            self.waiting.discard(agent)
-            if not self.waiting:
-                self._loop.call_soon_threadsafe(self._finish)
+        self._strike(self.waiting, agent, self.done)
 
-    def _finish(self) -> None:
-        if not self.done.done():
-            self.done.set_result(None)
+    def _strike(self, left: set[int], agent: int, done: asyncio.Future) -> None:
+        """``agent`` is no longer waited for in ``left``; the last one resolves ``done`` (on the loop)."""
+        if agent in left:
+            left.discard(agent)
+            if not left:
+                self._loop.call_soon_threadsafe(_resolve, done)
 
     def close(self) -> None:
         with self.lock:
             self.closed = True
+
+
+def _resolve(done: asyncio.Future) -> None:
+    if not done.done():
+        done.set_result(None)
 
 
 class PhaseCollection:
