@@ -58,5 +58,35 @@ def announcements(sent_at: float, part: int, counts: dict[tuple[int | str, str],
                     counts=[c for _, c in chunk]) for i, chunk in enumerate(chunks)]
 
 
-__all__ = ["ROBOTS_PART", "SIM_PART", "announcements", "refusal_publications", "resolve_publications",
+class AirAnnouncements:
+    """The sim's announcements to the air (a mixin of :class:`services.sim.service.SimService`, which sets
+    ``shared_air`` and ``_air_refusals``)."""
+
+    def _air_count(self, ph, msg) -> None:
+        """With ``ph.lock`` held: what an ack of ``ph`` says its robot published (phase TICK: requests and policy
+        messages; RESOLVE: a commitment and replies)."""
+        from schemas import Phase
+
+        if ph.phase == Phase.TICK:
+            tick_publications(msg.agent, msg.requests_sent, msg.policy_to, self.n, ph.air)
+        else:
+            resolve_publications(msg.agent, msg.committed_to, msg.replied_to, self.n, ph.air)
+
+    def _announce_sim(self, obs) -> None:
+        """The sim's part of tick ``obs.t``'s instant: its fleet broadcast and the refusals of the boundary before."""
+        counts, self._air_refusals = self._air_refusals, {}
+        counts[("sim", "sim/fleet")] = 1
+        for msg in announcements(obs.t * self.config.dt, SIM_PART, counts):
+            self.bus.put(self.keys.air_parts, msg)
+
+    def _announce_robots(self, ph, sent_at: float) -> None:
+        """The robots' part of an instant, as their acks of ``ph`` listed it."""
+        if self.shared_air:
+            with ph.lock:
+                counts = dict(ph.air)
+            for msg in announcements(sent_at, ROBOTS_PART, counts) if counts else ():
+                self.bus.put(self.keys.air_parts, msg)
+
+
+__all__ = ["ROBOTS_PART", "SIM_PART", "AirAnnouncements", "announcements", "refusal_publications", "resolve_publications",
            "tick_publications"]
