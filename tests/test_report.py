@@ -93,7 +93,7 @@ def test_a_killed_recorder_never_leaves_a_row_on_disk_without_its_positions_and_
 
 # the monitor is killed after KILL_AT rows on disk, which lag the run by up to a second: the run is paused at tick
 # ~100-470, then a gap, then the rest recorded
-STEPS = 1000
+STEPS = 700
 KILL_AT = 50
 
 

@@ -126,8 +126,12 @@ def test_up_gives_the_labs_messages_per_delivery_and_view_ages_under_congested_t
     ages = np.array([float(r["view_age_mean"]) for r in rows if r["view_age_mean"] != ""])
     assert ages.mean() == pytest.approx(lab.summary["view_age_mean"], rel=1e-9)
     assert list(rows[0]) == list(catalogue.COLUMNS)
-    # the air was a process of its own, and it judged the run
-    assert any(p.name.startswith("air") for p in (up / "logs").iterdir()), sorted((up / "logs").iterdir())
+    # the air was a process of its own, and it lost the lab's messages to the lab's causes (its last line: what it
+    # judged)
+    air = json.loads((up / "logs" / "air.log").read_text().strip().splitlines()[-1])
+    assert air["lost"] == {c.removeprefix("network_lost_"): n for c, n in lab.summary.items()
+                           if c.startswith("network_lost_")}, air
+    assert sum(air["ap_drops"]) == air["lost"]["ap_queue"] and air["strays"] == 0 and air["rejected"] == 0
 
 
 # small at 400 ticks and medium with -m slow; by default small's first 60 ticks (robots start to deliver and roam)
@@ -142,7 +146,7 @@ def test_up_equals_run_and_the_lab_under_congested(tmp_path, scale, steps):
 RATE_AT = 30
 
 
-def _airtime_run(tmp_path, *, schedule: bool, runtime_command: bool, steps: int = 70):
+def _airtime_run(tmp_path, *, schedule: bool, runtime_command: bool, steps: int = 60):
     """A tiny run under `congested` in one process whose access points get 600 B/s of airtime (queues of 4) from
     tick RATE_AT: by a schedule file, or by an operator's `faults set --rate … --at-tick` sent at its first tick."""
     from schemas import FaultSpec, RunKeys

@@ -254,4 +254,5 @@ class AirService:
             watcher.cancel()
         await token.close()
         return {"verdicts": self.verdicts, "parts": self.parts, "judged": self.ledger.judged,
-                "strays": self.ledger.strays, "rejected": self.intake.refused}
+                "strays": self.ledger.strays, "rejected": self.intake.refused,
+                "lost": dict(self.model.stats.lost), "ap_drops": list(self.model.ap_drops)}
