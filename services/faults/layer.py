@@ -287,14 +287,15 @@ class FaultLayer:
         delay = 0.0
         if self.network is not None and at is not None and not matches(ONBOARD, rel):  # sensing is not radio
             # the radio legs first (the robots' Wi-Fi), then the fault specs on top, as netem on a real interface
-            if radio is not None:
+            if radio is not None:  # the air's verdict, counted in this process's model as if it had judged it
                 net = radio
-                self.network.stats.seen += 1
+                stats = self.network.stats
+                stats.seen += 1
                 if radio.delivered_at is None:
-                    self.network.stats.lost[radio.cause or "loss"] = self.network.stats.lost.get(radio.cause or "loss",
-                                                                                                0) + 1
+                    cause = radio.cause or "loss"
+                    stats.lost[cause] = stats.lost.get(cause, 0) + 1
                 else:
-                    self.network.stats.delivered += 1
+                    stats.delivered += 1
             else:
                 net = self.network.fate(at, sender, receiver, (msg, rel), size=size)
             if net.delivered_at is None:
