@@ -187,10 +187,11 @@ def test_a_verdict_counts_only_from_the_air():
 
 async def test_the_air_refuses_a_stamp_beyond_the_run_and_keeps_nothing_of_it(tmp_path):
     """A robot stamping its message far in the future (its own key, its own credentials) would keep it waiting in
-    the air for a part that never comes: refused on arrival, counted."""
+    the air for a part that never comes: refused on arrival, counted. Its event claiming the sim's end of the run
+    does not stop the air."""
     import asyncio
 
-    from schemas import HelpRequest, RunKeys
+    from schemas import Event, HelpRequest, RunKeys
     from services.air.service import AirService
     from services.bus import LocalNetwork
     from services.runconfig import RunConfig
@@ -205,5 +206,8 @@ async def test_the_air_refuses_a_stamp_beyond_the_run_and_keeps_nothing_of_it(tm
     robot.put(RunKeys("r").request(2, 6), HelpRequest(t=5, agv=2, picker=6, target_x=1, target_y=1, seq=0))
     await asyncio.sleep(0.05)
     assert air.intake.refused == 1 and not air.ledger.arrived
+    robot.put(RunKeys("r").event(2), Event(kind="run.finished", source="sim"))
+    await asyncio.sleep(0.05)
+    assert not task.done()
     air.stop()
     await asyncio.wait_for(task, 5)

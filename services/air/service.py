@@ -191,12 +191,12 @@ class AirService:
 
     def _on_event(self, sample: Sample) -> None:
         msg = self.intake.decode(sample, Event)
-        if msg is None:
-            return
-        if msg.kind == "ready.probe" and msg.source == "sim":
+        if msg is None or msg.source != "sim" or self.keys.sender_of(sample.key) != "sim":
+            return  # (a robot's event naming the sim as its source is not the sim's)
+        if msg.kind == "ready.probe":
             self.bus.put(self.keys.event(AIR), Event(kind="ready.ack", source=AIR,
                                                      details={"round": msg.details.get("round", 0)}))
-        elif msg.kind == "run.finished" and msg.source == "sim":
+        elif msg.kind == "run.finished":
             self._stop.set()
 
     def _on_stop(self, sample: Sample) -> None:
