@@ -211,3 +211,36 @@ async def test_the_air_refuses_a_stamp_beyond_the_run_and_keeps_nothing_of_it(tm
     assert not task.done()
     air.stop()
     await asyncio.wait_for(task, 5)
+
+
+async def test_a_part_announced_and_never_whole_is_judged_after_a_phase_timeout(tmp_path):
+    """A robot whose ack claims a request it never sent (its own credentials) holds the air's instant open: after a
+    phase timeout the air judges the part with what arrived, and the next part gets its own clock."""
+    import asyncio
+
+    from schemas import RunKeys
+    from services.air.service import AirService
+    from services.bus import LocalNetwork
+    from services.runconfig import RunConfig
+    from services.sim.air import announcements
+
+    cfg = RunConfig(run_id="r", network="congested", output_dir=tmp_path, phase_timeout=0.4)
+    net = LocalNetwork()
+    air = AirService(cfg, net.session("air"))
+    task = asyncio.create_task(air.run())
+    sim = net.session("sim")
+    await asyncio.sleep(0.05)
+    keys = RunKeys("r")
+    for msg in announcements(0.0, ROBOTS_PART, {(2, "agent/2/request/6"): 1}):  # claimed, never sent
+        sim.put(keys.air_parts, msg)
+    for msg in announcements(0.5, ROBOTS_PART, {}):  # whole at once, behind it
+        sim.put(keys.air_parts, msg)
+    await asyncio.sleep(0.1)
+    assert air.ledger.waiting_for() == {(2, "agent/2/request/6"): 1}  # held open, for now
+    for _ in range(40):
+        await asyncio.sleep(0.05)
+        if not air.ledger.parts:
+            break
+    assert not air.ledger.parts and air.ledger.judged_through == (0.5, ROBOTS_PART)
+    air.stop()
+    await asyncio.wait_for(task, 5)

@@ -67,6 +67,7 @@ class AirService:
         self._stop = asyncio.Event()
         self._loop = asyncio.get_running_loop()
         self._waiting_since: float | None = None
+        self._head: tuple[float, int] | None = None  # the oldest announced part not judged yet
         self.verdicts = 0
         self.parts = 0
         self._announcing: dict[tuple[float, int], dict] = {}  # parts announced in several messages, until the last
@@ -175,7 +176,11 @@ class AirService:
 
     def _send(self, verdicts: list[Verdict]) -> None:
         with self.lock:
-            self._waiting_since = time.monotonic() if self.ledger.parts else None
+            # since when the oldest announced part has waited (a part that stays incomplete is forced; other
+            # traffic meanwhile does not reset its clock)
+            head = (self.ledger.parts[0].sent_at, self.ledger.parts[0].part) if self.ledger.parts else None
+            if head != self._head:
+                self._head, self._waiting_since = head, (time.monotonic() if head is not None else None)
         if not verdicts:
             return
         by_receiver: dict[int | str, list[Verdict]] = {}
@@ -220,9 +225,8 @@ class AirService:
                                 self.ledger.parts[0].sent_at, missing, limit)
                     out = self.ledger.force()
                 else:
-                    out = []
-            if out:
-                self._send(out)
+                    continue
+            self._send(out)  # (also starts the next part's clock)
 
     async def run(self) -> dict:
         k, bus = self.keys, self.bus
