@@ -142,6 +142,27 @@ def test_up_equals_run_and_the_lab_under_congested(tmp_path, scale, steps):
     assert lab.summary["deliveries"] > 0
 
 
+def test_a_run_whose_air_dies_stops_and_says_why(tmp_path, live_run):
+    """The air's queues are the run's radio so far: killed mid-run it cannot be restarted, so `up` stops the run and
+    its last line says why (exit 1), instead of a fleet waiting on verdicts that never come."""
+    import os
+    import signal
+
+    import psutil
+
+    from services.supervisor.graph import role_of
+
+    from _procs import FEW_ROBOTS
+
+    up = live_run("airdies", "--network", "congested", "--steps", "100000", *FEW_ROBOTS, output_dir=tmp_path)
+    up.wait_for_rows(5, timeout=60)
+    (air,) = [p for p in psutil.Process(up.pid).children(recursive=True) if role_of(p.cmdline()) == "air"]
+    os.kill(air.pid, signal.SIGKILL)
+    assert up.wait(timeout=60) == 1, up.stderr()[-2000:]
+    last = (up.stdout() + up.stderr()).strip().splitlines()[-1]
+    assert "the air process ended mid-run" in last and "the run was stopped" in last, last
+
+
 # -- airtime faults: `morph-sim faults set --rate`, a schedule's rate specs --------------------------------------------
 RATE_AT = 30
 

@@ -121,6 +121,9 @@ def test_what_a_childs_end_means():
     assert _verdict("monitor", code=1) is Exit.RESTART
     assert _verdict("monitor", code=1, budget_left=False) is Exit.MONITOR_FAILED
     assert exit_verdict("agent", "never", 1, running=True, planned=False, budget_left=True) is Exit.DONE
+    # the shared air is never restarted: its end mid-run stops the run; it leaves with 0 only after the run's end
+    assert exit_verdict("air", "never", -9, running=True, planned=False, budget_left=True) is Exit.AIR_FAILED
+    assert exit_verdict("air", "never", 0, running=True, planned=False, budget_left=True) is Exit.DONE
 
 
 # -- crash faults ----------------------------------------------------------------------------------------------------
