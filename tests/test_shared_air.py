@@ -132,6 +132,8 @@ def test_up_gives_the_labs_messages_per_delivery_and_view_ages_under_congested_t
     assert air["lost"] == {c.removeprefix("network_lost_"): n for c, n in lab.summary.items()
                            if c.startswith("network_lost_")}, air
     assert sum(air["ap_drops"]) == air["lost"]["ap_queue"] and air["strays"] == 0 and air["rejected"] == 0
+    # ... and it carried the lab's dispatch messages and bytes (the protocol's sizes: docs/faults.md)
+    assert (air["messages"], air["bytes"]) == (lab.summary["messages_sent"], lab.summary["bytes_sent"])
 
 
 # small at 400 ticks and medium with -m slow; by default small's first 60 ticks (robots start to deliver and roam)

@@ -259,4 +259,5 @@ class AirService:
         await token.close()
         return {"verdicts": self.verdicts, "parts": self.parts, "judged": self.ledger.judged,
                 "strays": self.ledger.strays, "rejected": self.intake.refused,
-                "lost": dict(self.model.stats.lost), "ap_drops": list(self.model.ap_drops)}
+                "lost": dict(self.model.stats.lost), "ap_drops": list(self.model.ap_drops),
+                "messages": self.ledger.medium.messages, "bytes": self.ledger.medium.bytes}

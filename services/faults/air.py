@@ -87,11 +87,18 @@ class Medium:
 
     def __init__(self, model: NetworkModel):
         self.model = model
+        # the protocol's messages (every publication but the fleet broadcast) and their bytes on the radio, counted
+        # once per publication as a bus sends it: the lab's messages_sent and bytes_sent
+        self.messages = 0
+        self.bytes = 0
 
     def judge(self, publications: Iterable[Publication]) -> list[Verdict]:
         out: list[Verdict] = []
         fate = self.model.fate
         for pub in sorted(publications, key=Publication.order):
+            if pub.key != "sim/fleet":
+                self.messages += 1
+                self.bytes += pub.size
             identity = ((pub.publisher, pub.seq), pub.key)  # as a receiver's fault layer names it
             for receiver in sorted(pub.receivers, key=receiver_rank):
                 f = fate(pub.sent_at, pub.publisher, receiver, identity, size=pub.size)
