@@ -395,6 +395,10 @@ class RunKeys:
         return self._k("alive", "*")
 
     # -- parsing -------------------------------------------------------------------------------------------------
+    def local(self, key: str) -> str:
+        """``key`` without ``morph/<run>/`` (the form the fault layer, the air and the lab name a key by)."""
+        return "/".join(self.relative(key))
+
     def relative(self, key: str) -> list[str]:
         """The chunks of ``key`` after ``morph/<run>/``; ValueError if the key is not of this run."""
         head = self.prefix + "/"

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from schemas import RunKeys
 from schemas.codec import encode
 from services.faults.air import (
     ROBOTS_PART,
@@ -143,9 +144,10 @@ def test_kinds_receivers_and_capacity():
 
 def test_the_sim_announces_what_the_acks_say_was_published():
     counts: dict = {}
-    sim_air.tick_publications(2, [6, 7, 99], [-1, 5, 1000], N, counts)  # ids outside the fleet sent nothing
-    sim_air.resolve_publications(6, 2, [2, 3], N, counts)
-    sim_air.refusal_publications([2, 6], counts)
+    keys = RunKeys("r")
+    sim_air.tick_publications(keys, 2, [6, 7, 99], [-1, 5, 1000], N, counts)  # ids outside the fleet sent nothing
+    sim_air.resolve_publications(keys, 6, 2, [2, 3], N, counts)
+    sim_air.refusal_publications(keys, [2, 6], counts)
     (msg,) = sim_air.announcements(4.0, ROBOTS_PART, counts)
     got = {(p, k): c for p, k, c in zip(msg.publishers, msg.keys, msg.counts)}
     assert got == {(2, "agent/2/request/6"): 1, (2, "agent/2/request/7"): 1, (2, "agent/2/policy/all"): 1,

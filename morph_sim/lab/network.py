@@ -28,7 +28,14 @@ from schemas.faults import FaultSpec
 from schemas.keys import FLEET, RunKeys, matches
 from schemas.messages import PolicyMessage
 from schemas.tick import TickObservation
-from services.faults.air import dispatch_size, fleet_size, has_shared_capacity, publisher_rank, receiver_rank
+from services.faults.air import (
+    dispatch_size,
+    fleet_size,
+    has_shared_capacity,
+    instant,
+    publisher_rank,
+    receiver_rank,
+)
 from services.faults.layer import FaultLayer
 from services.faults.network import NetworkModel
 from services.policies.interface import policy_choice
@@ -172,8 +179,7 @@ class EventNetwork:
                 self.stats.sent += 1
                 self.stats.bytes += size
         if self.shared_air:
-            order = (round(at, 9), publisher_rank(sender), "/".join(self.keys.relative(key)), seq,
-                     receiver_rank(receiver))
+            order = (instant(at), publisher_rank(sender), self.keys.local(key), seq, receiver_rank(receiver))
             self._unjudged.append((order, key, sender, receiver, msg, at, seq, size))
             return
         self._judge(key, sender, receiver, msg, at, seq, size)

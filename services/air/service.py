@@ -17,6 +17,7 @@ import threading
 import time
 
 from schemas import AirPart, AirStats, AirVerdicts, Event, RunKeys, Stop
+from schemas.keys import FLEET
 from schemas.messages import AIR_CHUNK
 from schemas.tick import decode_tick, observation_from_arrays
 from services.bus.base import Bus, Sample
@@ -104,7 +105,7 @@ class AirService:
             self.intake.refuse(sample.key, exc)
             return
         dt = self.config.dt
-        pub = Publication(obs.t * dt, "sim", "sim/fleet", obs.t, tuple(range(self.n)), fleet_size(obs, dt))
+        pub = Publication(obs.t * dt, "sim", FLEET, obs.t, tuple(range(self.n)), fleet_size(obs, dt))
         if self.faults is not None:
             self.faults.advance(obs.t * dt)  # scheduled airtime faults due by this tick's start, at their own times
         with self.lock:
@@ -115,7 +116,7 @@ class AirService:
 
     def _on_radio(self, sample: Sample) -> None:
         try:
-            rel = "/".join(self.keys.relative(sample.key))
+            rel = self.keys.local(sample.key)
             publisher = self.keys.sender_of(sample.key)
         except ValueError as exc:
             self.intake.refuse(sample.key, exc)
@@ -146,7 +147,7 @@ class AirService:
         msg = self.intake.decode(sample, AirPart)
         if msg is None:
             return
-        if self.keys.sender_of(sample.key) is None or sample.sender != "sim":
+        if sample.sender != "sim":  # (only the sim's own session may publish there over a secured endpoint)
             self.intake.refuse(sample.key, "an air announcement not from the sim")
             return
         with self.lock:

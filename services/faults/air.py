@@ -24,6 +24,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
+from schemas.keys import FLEET
 from services.faults.network import Fate, NetworkModel
 
 #: the sim's part of an instant (its refusals, the fleet broadcast) and the robots' part (what they sent when acting)
@@ -96,7 +97,7 @@ class Medium:
         out: list[Verdict] = []
         fate = self.model.fate
         for pub in sorted(publications, key=Publication.order):
-            if pub.key != "sim/fleet":
+            if pub.key != FLEET:
                 self.messages += 1
                 self.bytes += pub.size
             identity = ((pub.publisher, pub.seq), pub.key)  # as a receiver's fault layer names it

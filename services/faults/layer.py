@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING
 
 from schemas.faults import FaultSpec, Loss
 from schemas.keys import ONBOARD, RunKeys, matches, parse_agent_id
-from schemas.messages import FaultCommand, FaultReply
+from schemas.messages import AirVerdicts, FaultCommand, FaultReply
 from services.bus.base import Bus, Sample
 from services.faults.air import VerdictBook, kind_of
 from services.faults.distributions import latency_quantile
@@ -390,8 +390,6 @@ class FaultLayer:
     def on_verdicts(self, sample: Sample) -> None:
         """The air's verdicts on messages to this receiver (``air/verdict/<receiver>``): each releases the message
         if it came first."""
-        from schemas.messages import AirVerdicts
-
         if self.air is None or sample.sender != "air":  # (the access control lets only the air publish there)
             self.air_refused += 1
             return

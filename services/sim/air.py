@@ -12,36 +12,37 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from schemas import AirPart
+from schemas import AirPart, RunKeys
+from schemas.keys import FLEET
 from schemas.messages import AIR_CHUNK
 from services.faults.air import ROBOTS_PART, SIM_PART
 
 
-def tick_publications(agent: int, requests_sent: Iterable[int], policy_to: Iterable[int], n: int,
+def tick_publications(keys: RunKeys, agent: int, requests_sent: Iterable[int], policy_to: Iterable[int], n: int,
                       counts: dict[tuple[int | str, str], int]) -> None:
     """Count what robot ``agent``'s ack of a tick's phase says it published: a request to each picker it asked and
     each policy message (to one robot, or ``-1``: to every other)."""
     for picker in requests_sent:
         if 0 <= picker < n:
-            _add(counts, agent, f"agent/{agent}/request/{picker}")
+            _add(counts, agent, keys.local(keys.request(agent, picker)))
     for to in policy_to:
         if to == -1 or 0 <= to < n:
-            _add(counts, agent, f"agent/{agent}/policy/{'all' if to == -1 else to}")
+            _add(counts, agent, keys.local(keys.policy(agent, None if to == -1 else to)))
 
 
-def resolve_publications(picker: int, committed_to: int | None, replied_to: Iterable[int], n: int,
+def resolve_publications(keys: RunKeys, picker: int, committed_to: int | None, replied_to: Iterable[int], n: int,
                          counts: dict[tuple[int | str, str], int]) -> None:
     """Count what a picker's ack of the resolve phase says it published: its commitment and its replies."""
     if committed_to is not None:
-        _add(counts, picker, f"agent/{picker}/commit")
+        _add(counts, picker, keys.local(keys.commit(picker)))
     for agv in replied_to:
         if 0 <= agv < n:
-            _add(counts, picker, f"agent/{picker}/reply/{agv}")
+            _add(counts, picker, keys.local(keys.reply(picker, agv)))
 
 
-def refusal_publications(robots: Iterable[int], counts: dict[tuple[int | str, str], int]) -> None:
+def refusal_publications(keys: RunKeys, robots: Iterable[int], counts: dict[tuple[int | str, str], int]) -> None:
     for robot in robots:
-        _add(counts, "sim", f"sim/refusal/{robot}")
+        _add(counts, "sim", keys.local(keys.refusal(robot)))
 
 
 def _add(counts: dict[tuple[int | str, str], int], publisher: int | str, key: str) -> None:
@@ -68,14 +69,14 @@ class AirAnnouncements:
         from schemas import Phase
 
         if ph.phase == Phase.TICK:
-            tick_publications(msg.agent, msg.requests_sent, msg.policy_to, self.n, ph.air)
+            tick_publications(self.keys, msg.agent, msg.requests_sent, msg.policy_to, self.n, ph.air)
         else:
-            resolve_publications(msg.agent, msg.committed_to, msg.replied_to, self.n, ph.air)
+            resolve_publications(self.keys, msg.agent, msg.committed_to, msg.replied_to, self.n, ph.air)
 
     def _announce_sim(self, obs) -> None:
         """The sim's part of tick ``obs.t``'s instant: its fleet broadcast and the refusals of the boundary before."""
         counts, self._air_refusals = self._air_refusals, {}
-        counts[("sim", "sim/fleet")] = 1
+        counts[("sim", FLEET)] = 1
         for msg in announcements(obs.t * self.config.dt, SIM_PART, counts):
             self.bus.put(self.keys.air_parts, msg)
 

@@ -171,7 +171,7 @@ class SimService(Presence, PhaseCollection, Answers, air.AirAnnouncements):
             self._refused[r.agv] += 1
             self._refused[r.picker] += 1
             if self.shared_air:
-                air.refusal_publications((r.agv, r.picker), self._air_refusals)
+                air.refusal_publications(self.keys, (r.agv, r.picker), self._air_refusals)
 
     # -- main ----------------------------------------------------------------------------------------------------------
     async def run(self) -> SimResult:
