@@ -167,10 +167,11 @@ def _run_up(out, run_id, extra, *, scale, policy, preset, steps, seed, timeout=6
             "--output-dir", str(out), "--state-every", "10", "--snapshot-every", "50", *extra]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        _, err = proc.communicate(timeout=timeout)
+        out, err = proc.communicate(timeout=timeout)
     finally:
         kill_tree(proc)
     assert proc.returncode == 0, err
+    assert f"completed; {steps} rows" in out.strip().splitlines()[-1], out
 
 
 # MORPH's up == run under the profile with -m slow: its twin by default is the broadcast Full-Graph's below (the same

@@ -78,33 +78,14 @@ def test_run_gives_the_labs_episode_and_queue_drops_on_a_saturated_air(policy, t
     assert lab.summary["deliveries"] > 0
 
 
-def _up(tmp_path, run_id: str, scale: str, policy: str, steps: int, network: str) -> Path:
-    import subprocess
-    import sys
-
-    from _procs import kill_tree
-
-    argv = [sys.executable, "-m", "morph_sim.cli", "up", "--quiet", "--scale", scale, "--policy", policy,
-            "--preset", "reference", "--steps", str(steps), "--seed", str(SEED), "--run-id", run_id,
-            "--output-dir", str(tmp_path), "--state-every", "10", "--snapshot-every", "50", "--network", network]
-    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        out, err = proc.communicate(timeout=600)
-    finally:
-        kill_tree(proc)
-    assert proc.returncode == 0, err[-3000:]
-    assert f"completed; {steps} rows" in out.strip().splitlines()[-1], out
-    return tmp_path / run_id
-
-
 def check_up_run_and_lab(tmp_path, scale: str, policy: str, steps: int, network: str = "congested"):
-    """``up`` (one process per robot, the air its own process) writes ``run``'s metrics.csv byte for byte, and both
-    are the lab's episode; returns (lab episode, up's record directory)."""
-    up = _up(tmp_path / "up", "air", scale, policy, steps, network)
-    cfg = RunConfig(run_id="air", scale=scale, policy=policy, preset="reference", seed=SEED, steps=steps,
-                    state_every=10, snapshot_every=50, output_dir=tmp_path / "run", network=network)
-    asyncio.run(run_local(cfg))
-    assert (up / "metrics.csv").read_bytes() == (cfg.record_dir / "metrics.csv").read_bytes()
+    """``up`` (one process per robot, the air its own process) writes ``run``'s metrics.csv byte for byte (the
+    network services' check: tests/test_network_services.py), and both are the lab's episode; returns (lab episode,
+    up's record directory)."""
+    from test_network_services import check_up_equals_run
+
+    check_up_equals_run(tmp_path, scale, steps, profile=network, policy=policy)
+    up = tmp_path / "up" / "eq"
     lab = _lab(scale, policy, steps, network)
     _shared_columns(lab, read_metrics(up), steps, atol=1e-12)
     return lab, up
