@@ -82,27 +82,29 @@ def _cli(argv, capsys):
 
 
 def test_cli_honours_scales_seeds_steps_targets_and_levels(tmp_path, capsys) -> None:
-    """Every flag reaches the grid: the record holds exactly the episodes asked for, at the scale and length asked
-    for; the table, the figure and the last line say what ran."""
-    # --jobs 1: sixteen 40-tick episodes cost less than starting worker processes for them (the study's grid runs
-    # on the sweep's worker pool, tested in tests/test_sweep.py)
-    res = _cli(["--scales", "small", "--seeds", "3,4", "--steps", "40", "--jobs", "1", "--conditions", "tsg,morph",
-                "--targets", "fleet", "--loss-levels", "0,20", "--latency-levels", "2", "--out", str(tmp_path),
-                "--run-id", "f"], capsys)
+    """Every flag reaches the grid: the record holds exactly the episodes asked for, at the scales and length asked
+    for; the table (a section per scale), the figures (one per scale) and the last line say what ran."""
+    # --jobs 1: 32 40-tick episodes cost less than starting worker processes for them (the study's grid runs on the
+    # sweep's worker pool, tested in tests/test_sweep.py)
+    res = _cli(["--scales", "tiny,small", "--seeds", "3,4", "--steps", "40", "--jobs", "1", "--conditions",
+                "tsg,morph", "--targets", "fleet", "--loss-levels", "0,20", "--latency-levels", "2", "--out",
+                str(tmp_path), "--run-id", "f"], capsys)
     assert res.returncode == 0, res.stderr
     record = tmp_path / "f"
     eps = json.loads((record / "faults.json").read_text())["episodes"]
-    # fault-free + Bernoulli 20 + GE 20 + latency 2 (fleet broadcast), two policies, two seeds
-    assert len(eps) == 16 and {e["scale"] for e in eps} == {"small"} and {e["seed"] for e in eps} == {3, 4}
+    # fault-free + Bernoulli 20 + GE 20 + latency 2 (fleet broadcast), two policies, two seeds, two scales
+    assert len(eps) == 32 and {e["scale"] for e in eps} == {"tiny", "small"} and {e["seed"] for e in eps} == {3, 4}
     assert {e["target"] for e in eps} == {"none", "fleet"} and {e["condition"] for e in eps} == {"TSG",
                                                                                                "MORPH (reference)"}
     assert {(e["kind"], e["level"]) for e in eps} == {("none", 0), ("bernoulli", 20), ("bursty", 20), ("latency", 2)}
     assert all(e["view_age_mean"] > 0 for e in eps if e["target"] == "fleet")
-    assert (record / "faults_small.png").stat().st_size > 10_000 and not (record / "faults_tiny.png").exists()
-    assert "### small: faults on the fleet broadcast (each agent learns and gates from its own view) (2 seeds)" \
-        in res.stdout
-    assert res.stdout.strip().splitlines()[-1].startswith("faults experiment: 16 episodes run, 0 already in the record")
-    assert "16 episodes" in res.stderr and "T = 40" in res.stderr
+    for scale in ("tiny", "small"):
+        assert (record / f"faults_{scale}.png").stat().st_size > 10_000
+        assert (f"### {scale}: faults on the fleet broadcast (each agent learns and gates from its own view) "
+                "(2 seeds)") in res.stdout
+    assert not (record / "faults_medium.png").exists()
+    assert res.stdout.strip().splitlines()[-1].startswith("faults experiment: 32 episodes run, 0 already in the record")
+    assert "32 episodes" in res.stderr and "T = 40" in res.stderr
 
 
 def test_a_policy_from_outside_enters_the_fault_study_by_the_name_policy_takes(tmp_path, capsys) -> None:

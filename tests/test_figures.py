@@ -8,18 +8,14 @@ from __future__ import annotations
 import asyncio
 import json
 
-import matplotlib
 import numpy as np
 import pytest
-from matplotlib.figure import Figure
 from PIL import Image
 
-matplotlib.use("Agg")
-
-from morph_sim.local import run_local  # noqa: E402
-from services.monitor.report import Record, load, write_report  # noqa: E402
-from services.runconfig import RunConfig  # noqa: E402
-from services.world.render import (  # noqa: E402
+from morph_sim.local import run_local
+from services.monitor.report import Record, load, write_report
+from services.runconfig import RunConfig
+from services.world.render import (
     COLORS,
     RECORD_LEGEND,
     WAREHOUSE_LEGEND,
@@ -32,6 +28,11 @@ from services.world.render import (  # noqa: E402
 @pytest.fixture
 def checked_figures(monkeypatch):
     """Every Figure.savefig first checks the layout; the figures seen are returned for more checks."""
+    import matplotlib  # here, not at collection: every pytest worker imports this module, one runs it
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
     seen: list[Figure] = []
     original = Figure.savefig
 

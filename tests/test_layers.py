@@ -5,6 +5,7 @@ longer cycle). Read as text with ``ast``: nothing is imported or run."""
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -54,10 +55,11 @@ def _imports(path: Path) -> list[tuple[int, str]]:
     return found
 
 
-def _edges():
-    for name, path in _modules().items():
-        for line, target in _imports(path):
-            yield name, f"{path.relative_to(ROOT)}:{line}", target
+@functools.cache
+def _edges() -> tuple[tuple[str, str, str], ...]:
+    """(importing module, where, imported module) for every import of the tree: parsed once for all the checks."""
+    return tuple((name, f"{path.relative_to(ROOT)}:{line}", target)
+                 for name, path in _modules().items() for line, target in _imports(path))
 
 
 def test_every_module_of_the_tree_has_a_layer():

@@ -208,16 +208,3 @@ def test_full_shift_experiment_within_budget(tmp_path):
     assert time.perf_counter() - t0 < 300
     assert len(res.episodes) == 120
 
-
-def test_experiment_faults_cli_is_wired(tmp_path, capsys):
-    """`experiment faults --quick` runs its reduced grid at every scale asked for and writes its record, figures and
-    one table section per scale."""
-    rc = cli_main(["experiment", "faults", "--quick", "--scales", "tiny,small", "--steps", "40", "--out",
-                   str(tmp_path), "--run-id", "f", "--no-progress", "--jobs", "1"])  # 16 short episodes: no pool
-    assert rc == 0
-    assert (tmp_path / "f" / "faults.json").exists()
-    assert (tmp_path / "f" / "faults_tiny.png").exists() and (tmp_path / "f" / "faults_small.png").exists()
-    out = capsys.readouterr().out
-    for scale in ("tiny", "small"):
-        assert f"### {scale}: faults on the dispatch messages" in out
-    assert "| Full-Graph |" in out and "| MORPH (reference) |" in out

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
 
 from services.policies.conditions import AUDIT_STUDY, select
 from services.policies.presets import load_preset
@@ -126,6 +125,8 @@ def summarise_audit(episodes: dict[str, list[dict]], scales) -> list[dict]:
                 if same:
                     p = 1.0
                 elif (name, c) != ("paper", "morph") and len(base[sc]) > 1 and len(d) > 1:
+                    from scipy import stats  # here: scipy.stats costs half a CPU-second to import
+
                     with warnings.catch_warnings():  # near-constant groups: scipy warns, the p-value stands
                         warnings.simplefilter("ignore", RuntimeWarning)
                         p = float(stats.ttest_ind(d, base[sc], equal_var=False).pvalue)
