@@ -20,12 +20,14 @@ import pytest
 from schemas import Ack, RunKeys, encode
 from services.bus import LivelinessEvent, wait_for_alive
 from services.bus.zenoh_bus import (
+    RUNTIME_ENDPOINT,
     RUNTIME_SINGLE_THREAD,
     ZenohBus,
     configure_runtime_env,
     endpoint,
     free_port,
     open_endpoint_bus,
+    use_endpoint_runtime,
 )
 
 K = RunKeys("zt")
@@ -207,6 +209,12 @@ def test_runtime_environment_setting() -> None:
     assert configure_runtime_env(mine)["ZENOH_RUNTIME"] == "(app: (worker_threads: 2))"  # the user's choice wins
     with pytest.raises(ValueError, match="port"):
         endpoint(70000)
+    # the endpoint's host sends from a thread of its own (a process started as a run's sim has one: see
+    # tests/test_restore_lockstep.py); a runtime the user chose stays there too
+    use_endpoint_runtime(env)
+    assert env["ZENOH_RUNTIME"] == RUNTIME_ENDPOINT and "tx: (handover" not in RUNTIME_ENDPOINT
+    use_endpoint_runtime(mine)
+    assert mine["ZENOH_RUNTIME"] == "(app: (worker_threads: 2))"
 
 
 def test_barrier_bench_smoke() -> None:

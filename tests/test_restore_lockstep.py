@@ -41,6 +41,18 @@ def _agent_pid(up_pid: int, agent: int) -> int | None:
     return None
 
 
+def _thread_kinds(pid: int) -> set[str]:
+    """The names of a process's threads without their numbers (Zenoh's runtime threads are "app-3", "tx-0" …)."""
+    kinds = set()
+    for task in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{task}/comm") as f:
+                kinds.add(f.read().strip().rsplit("-", 1)[0])
+        except OSError:
+            pass
+    return kinds
+
+
 def _events_so_far(up) -> list[dict]:
     """The events in the record of a run still going (the monitor may be in the middle of writing a line)."""
     path = up.record / "events.jsonl"
@@ -66,6 +78,10 @@ def test_sigkilled_agent_restores_its_state_in_a_lockstep_run_and_a_cold_one_say
     # lines, which does not show in its own)
     supervisor = psutil.Process(up.pid).cmdline()
     assert supervisor[: len(up.argv)] == up.argv and not any(supervisor[len(up.argv):]), supervisor
+    # the sim hosts the endpoint and routes the agents' messages: its sends have a Zenoh runtime thread of their
+    # own (services/bus/zenoh_bus.py, RUNTIME_ENDPOINT); an agent's session runs on one thread
+    sim = next(p for p in psutil.Process(up.pid).children(recursive=True) if role_of(p.cmdline()) == "sim")
+    assert "tx" in _thread_kinds(sim.pid) and "tx" not in _thread_kinds(pid), (_thread_kinds(sim.pid), _thread_kinds(pid))
     server = psutil.Process(pid).parent()
     # (an exec'd server's command line ends with its own padding)
     assert server.cmdline()[:3] == [sys.executable, "-m", "services.supervisor.forkserver"], server.cmdline()

@@ -40,6 +40,14 @@ RUNTIME_SINGLE_THREAD = (
 )
 
 
+# The process hosting the endpoint routes every other process's messages: on a lowlatency link a message arriving
+# from one robot is sent on to the others from the receiving task itself, which waits until that send is written.
+# With the sends on the same single thread as the receiving tasks, a fleet of 128 robots under load stalled the
+# whole run for good: every receiving task (51 of them) waited on a send whose write no thread was left to drive,
+# with nothing queued on any socket. Its sends get a runtime thread of their own; the rest stays on the one thread.
+RUNTIME_ENDPOINT = "(rx: (handover: app), acc: (handover: app), net: (handover: app), app: (worker_threads: 1))"
+
+
 def configure_runtime_env(env: dict[str, str] | os._Environ = os.environ) -> dict[str, str] | os._Environ:
     """Put the one-thread runtime into ``env`` (unless one is chosen already); fix an empty ``ZENOH_RUNTIME``."""
     if env.get("ZENOH_RUNTIME", None) == "":
@@ -47,6 +55,14 @@ def configure_runtime_env(env: dict[str, str] | os._Environ = os.environ) -> dic
     env.setdefault("ZENOH_RUNTIME", RUNTIME_SINGLE_THREAD)
     env.setdefault("OPENBLAS_NUM_THREADS", "1")  # one BLAS thread per agent process is plenty
     return env
+
+
+def use_endpoint_runtime(env: dict[str, str] | os._Environ = os.environ) -> None:
+    """In the process that will host the endpoint, before its session opens (Zenoh reads the variable when its
+    runtime starts, at the first session): :data:`RUNTIME_ENDPOINT` in place of our one-thread default. A runtime
+    the user chose stays."""
+    if env.get("ZENOH_RUNTIME") == RUNTIME_SINGLE_THREAD:
+        env["ZENOH_RUNTIME"] = RUNTIME_ENDPOINT
 
 
 configure_runtime_env()
@@ -305,6 +321,8 @@ class ZenohBus(Bus):
         """
         cfg = config if config is not None else zenoh_config(
             listen=listen, connect=connect, mode=mode, lowlatency=lowlatency, connect_timeout=connect_timeout)
+        if listen is not None:
+            use_endpoint_runtime()
         loop = asyncio.get_running_loop()
         # zenoh.open blocks while it connects: keep it off the loop and off the exit path.
         finished, session, error = await _in_daemon_thread(lambda: zenoh.open(cfg), connect_timeout + 5.0)
