@@ -137,3 +137,51 @@ def test_insecure_measures_an_open_endpoint_and_is_passed_only_to_code_that_has_
     (record,) = [p for p in tmp_path.iterdir() if p.is_dir()]
     assert (record / "metrics.csv").is_file() and not (record / "credentials").exists()  # no credentials made
     assert _knows_insecure(code_env(None), code_cwd(None))
+
+
+# -- bench fleet --------------------------------------------------------------------------------------------------------
+
+def test_fleet_sizes_periods_verdicts_and_the_knee():
+    from morph_sim.bench.fleet import PERIODS, _parse_sizes, fleet_of, held, knee, schedule
+
+    assert [fleet_of(n) for n in (4, 8, 32, 64, 128)] == [(3, 1), (6, 2), (24, 8), (48, 16), (96, 32)]
+    # held at 0.1 s: shorter periods next, longest first, no shorter than the lockstep capacity allows (25 ticks/s)
+    assert schedule(0.1, 25.0, True) == [0.05]
+    assert schedule(0.1, 1000.0, True) == [0.05, 0.025]
+    # not held: longer ones, shortest first
+    assert schedule(0.1, 5.0, False) == [0.2, 0.4]
+    assert schedule(PERIODS[-1], 1.0, False) == []
+    pace = {"interval_mean": 0.104, "interval_max_settled": 0.19, "rescheduled": 0}
+    assert held(pace, 0.1)
+    assert not held({**pace, "interval_mean": 0.106}, 0.1)
+    assert not held({**pace, "interval_max_settled": 0.21}, 0.1)
+    assert not held({**pace, "rescheduled": 1}, 0.1)
+    rows = [{"robots": 8, "holds_requested": True}, {"robots": 64, "holds_requested": False},
+            {"robots": 32, "holds_requested": False}, {"robots": 128, "holds_requested": False}]
+    assert knee(rows) == 32 and knee(rows[:1]) is None
+    assert _parse_sizes("128,8,32,8") == [8, 32, 128]
+    for bad in ("", "3", "8,x", "300"):
+        with pytest.raises(ValueError, match="^sizes: "):
+            _parse_sizes(bad)
+
+
+def test_bench_fleet_measures_a_fleet_and_its_paced_runs_in_one_invocation():
+    """The reduced twin of ``bench fleet`` (8 to 128 robots): one size, a short lockstep run and paced runs from a
+    period of 25 ms; whether a period holds depends on the machine's load, so only its consistency is checked."""
+    done = subprocess.run([sys.executable, "-m", "morph_sim.cli", "bench", "fleet", "--sizes", "4", "--ticks", "100",
+                           "--period", "0.025", "--json"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    row, end = (json.loads(line) for line in done.stdout.strip().splitlines())
+    assert (row["robots"], row["agvs"], row["pickers"]) == (4, 3, 1)
+    assert row["lockstep_ticks_per_s"] > 0 and row["cpu_ms_per_tick"]["total"] > 0
+    assert {"sim", "monitor", "supervisor", "agv", "picker"} <= set(row["cpu_ms_per_tick"])
+    assert 0 < row["agent_uss_mib"] < 200
+    tries = row["tries"]
+    assert tries[0]["period"] == 0.025 and tries[0] == row["requested"] and row["holds_requested"] == tries[0]["held"]
+    # the tries go on until the verdict changes: longer periods after a miss, none shorter than 25 ms is a candidate
+    assert all(t["held"] == tries[0]["held"] for t in tries[:-1]) and len(tries) <= 3
+    assert row["shortest_period_held"] == min((t["period"] for t in tries if t["held"]), default=None)
+    assert end["knee"] == (None if row["holds_requested"] else 4)
+    bad = subprocess.run([sys.executable, "-m", "morph_sim.cli", "bench", "fleet", "--sizes", "2"],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and bad.stderr.strip().endswith("sizes: each from 4 to 256 robots, got '2'")

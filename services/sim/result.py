@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+SETTLE_TICKS = 10  # a paced run's first ticks, left out of its settled interval maximum
+
 
 @dataclass
 class Pace:
@@ -18,6 +20,9 @@ class Pace:
     early: int = 0  # intervals shorter than half a period (a tick after one that overran its period)
     rescheduled: int = 0  # times the sim was more than a period behind and started again from the present
     worst: list[tuple[int, float]] = field(default_factory=list)  # the 5 longest intervals: (tick, seconds)
+    # the longest interval once the fleet has settled: the first ticks wait for processes still warming up (their
+    # first messages, the first plans), which a real fleet's start hides too
+    interval_max_settled: float = 0.0
     _last: float | None = None
 
     def started(self, t: int, now: float) -> None:
@@ -25,6 +30,8 @@ class Pace:
             gap = now - self._last
             self.interval_sum += gap
             self.interval_max = max(self.interval_max, gap)
+            if t > SETTLE_TICKS:
+                self.interval_max_settled = max(self.interval_max_settled, gap)
             self.interval_min = min(self.interval_min, gap)
             self.late += gap > 1.5 * self.period
             self.early += gap < 0.5 * self.period
@@ -36,7 +43,8 @@ class Pace:
         n = max(1, self.ticks - 1)
         return {"period": self.period, "ticks": self.ticks, "interval_mean": round(self.interval_sum / n, 4),
                 "interval_min": round(self.interval_min, 4) if self.ticks > 1 else None,
-                "interval_max": round(self.interval_max, 4), "late": self.late, "early": self.early, "rescheduled": self.rescheduled,
+                "interval_max": round(self.interval_max, 4),
+                "interval_max_settled": round(self.interval_max_settled, 4), "late": self.late, "early": self.early, "rescheduled": self.rescheduled,
                 "worst": [[t, round(g, 4)] for t, g in self.worst]}
 
 
