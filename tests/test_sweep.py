@@ -116,11 +116,11 @@ def _check_interrupted_then_resumed(tmp_path: Path, grid: list[str], total: int,
 
 @pytest.fixture(scope="module")
 def reduced_sweep(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
-    """The reduced acceptance sweep (short episodes, two seeds) from the CLI (in this process) on local processes, run
-    to its end once: the uninterrupted sweep that the interrupted one and the Dask one must equal. (Its directory,
-    its outcome.)"""
+    """The reduced acceptance sweep (short episodes, two seeds) from the CLI in this process, its episodes run here
+    too (``--jobs 1``), to its end once: the uninterrupted sweep that the interrupted one (on two worker processes)
+    and the Dask one must equal. (Its directory, its outcome.)"""
     out = tmp_path_factory.mktemp("sweep")
-    done = _in_process(*REDUCED, *SHORT, "--out", str(out), "--run-id", "whole", "--no-progress", "--jobs", "2")
+    done = _in_process(*REDUCED, *SHORT, "--out", str(out), "--run-id", "whole", "--no-progress", "--jobs", "1")
     return out / "whole", done
 
 
