@@ -72,6 +72,28 @@ def test_unit_search_equals_the_fork_search():
             assert astar_unit(list(w), H, W, s, g, nbrs) == astar(list(w), H, W, s, g, nbrs), (H, W, s, g)
 
 
+def test_unit_search_stopping_at_the_goals_push_equals_the_fork_search():
+    """The unit search stops when the goal is pushed, the fork's search when the goal reaches the top of the heap.
+    Random pairs on open and crowded grids, goals next to the start, walled-in goals and start == goal give the
+    same answers (None included)."""
+    rng = random.Random(5)
+    unreachable = 0
+    for H, W in [(5, 6), (12, 9), (35, 22)]:
+        nbrs = neighbour_table(H, W)
+        for density in (0.0, 0.2, 0.4):
+            weights = [INF if rng.random() < density else 1.0 for _ in range(H * W)]
+            for _ in range(120):
+                s = rng.randrange(H * W)
+                near = [nb for _code, nb, _r, _c in nbrs[s]]
+                g = rng.choice(near + [s]) if rng.random() < 0.2 else rng.randrange(H * W)
+                w = list(weights)
+                w[s] = w[g] = 1.0
+                expected = astar(list(w), H, W, s, g, nbrs)
+                unreachable += expected is None
+                assert astar_unit(list(w), H, W, s, g, nbrs) == expected, (H, W, density, s, g)
+    assert unreachable > 10
+
+
 @pytest.mark.parametrize("size", ["tiny", "large"])
 def test_shifted_agv_plans_equal_searches(size):
     """AGV static plans reused from a plan with the same start-goal offset equal the search's own answer, near the

@@ -151,9 +151,18 @@ def astar_unit(weights: list[float], H: int, W: int, start: int, goal: int,
     cost(p) + h(p) <= cost(x) + h(x), and cost(n) <= cost(x) + h(x) + 2 <= cost(x) + H + W <= cost(x) + 101. With
     one push per cell a cell's cost is the one its heap entry carries and its parent the cell that pushed it, so
     this search keeps no cost array, skips obstacles and reached cells in one comparison and follows the parent
-    chain for the path; the heap, its ties and so the answer are astar()'s. ``weights`` is modified (pass a copy).
-    ``expanded``: if given, the cells taken off the heap are appended to it, in order.
+    chain for the path.
+
+    It also stops as soon as the goal is pushed, where astar() goes on until the goal reaches the top of the heap.
+    The answer is already fixed then: the goal's entry stays in the heap until it is popped, so the search can only
+    end by reaching it (never with "unreachable"), and the path is the goal's parent chain, whose cells were all
+    pushed before the goal and, pushed once, never get another parent. What astar() does between the goal's push
+    and its pop touches other cells only. ``weights`` is modified (pass a copy).
+    ``expanded``: if given, the cells whose neighbours the search read are appended to it, in order (the last one
+    is the cell that reached the goal; its neighbours after the goal were not read).
     """
+    if start == goal:  # the goal is the first top
+        return [start]
     weights[start] = 101.0  # reached
     parents = [-1] * (H * W)
     g_row, g_col = divmod(goal, W)
@@ -162,8 +171,6 @@ def astar_unit(weights: list[float], H: int, W: int, start: int, goal: int,
     while heap:
         top = heap[0]
         cur = top[1]
-        if cur == goal:  # the fork tests the top before popping
-            break
         if expanded is not None:
             expanded.append(cur)
         # --- pop: libstdc++ pop_heap, as in astar() (written out in each search rather than called: it is the
@@ -200,6 +207,13 @@ def astar_unit(weights: list[float], H: int, W: int, start: int, goal: int,
             nb = nbr[1]
             if weights[nb] >= 100.0:  # an obstacle or a reached cell
                 continue
+            if nb == goal:  # the answer is fixed (see above)
+                path = [goal, cur]
+                while cur != start:
+                    cur = parents[cur]
+                    path.append(cur)
+                path.reverse()
+                return path
             code = nbr[0]
             new_cost = base + 2.0 if (prev_dir > 0 and prev_dir != code) else base + 1.0
             ef = new_cost + (abs(nbr[2] - g_row) + abs(nbr[3] - g_col))
@@ -217,14 +231,7 @@ def astar_unit(weights: list[float], H: int, W: int, start: int, goal: int,
             heap[hole] = entry
             parents[nb] = cur
             weights[nb] = 101.0
-    else:
-        return None
-    path = [goal]
-    while goal != start:
-        goal = parents[goal]
-        path.append(goal)
-    path.reverse()
-    return path
+    return None
 
 
 class Planner:
