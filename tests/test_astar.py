@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from services.world.astar import INF, UNIT_SEARCH_MAX_H_PLUS_W, Planner, astar, astar_unit, neighbour_table
+from services.world.astar import INF, UNIT_SEARCH_MAX_H_PLUS_W, WALL, Planner, astar, astar_unit, neighbour_table
 from services.world.layout import LayoutConfig, layout_for
 
 DATA = json.loads((Path(__file__).parent / "data" / "astar_cases_sample.json").read_text())
@@ -92,6 +92,42 @@ def test_unit_search_stopping_at_the_goals_push_equals_the_fork_search():
                 unreachable += expected is None
                 assert astar_unit(list(w), H, W, s, g, nbrs) == expected, (H, W, density, s, g)
     assert unreachable > 10
+
+
+@pytest.mark.parametrize("size", ["tiny", "medium"])
+def test_reused_closed_marks_equal_fresh_weights(size):
+    """The planner's unit searches reuse one closed list per kind of agent from search to search. A random mix of
+    AGV and picker plans in one planner, with and without occupied cells (walls among them), pickers leaving a rack
+    through the highway, goals in the goal row and on the start, gives the fork's answers on fresh weights."""
+    lay = layout_for(LayoutConfig.named(size))
+    H, W = lay.H, lay.W
+    unit, fresh = Planner(lay), Planner(lay)
+    fresh._unit = False  # the reference: weights built afresh for each search, the fork's search
+    rng = random.Random(size)
+    racks = [y * W + x for x, y in lay.shelf_cells]
+    shifted = found = 0
+    for _ in range(800):
+        picker = rng.random() < 0.5
+        s = rng.choice(racks) if rng.random() < 0.4 else rng.randrange(H * W)
+        r = rng.random()
+        if r < 0.15:
+            g = s + rng.choice((-1, 1)) if 0 < s % W < W - 1 else s
+        elif r < 0.2:
+            g = s
+        elif r < 0.3:
+            g = (H - 1) * W + rng.randrange(W)
+        else:
+            g = rng.choice(racks) if rng.random() < 0.5 else rng.randrange(H * W)
+        occupied = rng.sample(range(H * W), rng.randint(1, 40)) + [s, g] if rng.random() < 0.6 else None
+        expected = fresh._plan(s, g, picker, occupied)
+        assert unit._plan(s, g, picker, occupied) == expected, (picker, s, g, occupied)
+        hw = lay.highway.reshape(-1)
+        shifted += picker and not hw[s] and abs(g - s) == 1 and g // W == s // W and (hw[s - 1] or hw[s + 1])
+        found += bool(expected)
+    assert found > 300 and shifted > 0
+    # the walls of the pickers' list are intact after all those searches
+    assert [c for c, mark in enumerate(unit._closed[True]) if mark == WALL] == [
+        c for c, wall in enumerate(unit._picker_walls) if wall]
 
 
 @pytest.mark.parametrize("size", ["tiny", "large"])

@@ -157,14 +157,29 @@ def astar_unit(weights: list[float], H: int, W: int, start: int, goal: int,
     The answer is already fixed then: the goal's entry stays in the heap until it is popped, so the search can only
     end by reaching it (never with "unreachable"), and the path is the goal's parent chain, whose cells were all
     pushed before the goal and, pushed once, never get another parent. What astar() does between the goal's push
-    and its pop touches other cells only. ``weights`` is modified (pass a copy).
+    and its pop touches other cells only.
     ``expanded``: if given, the cells whose neighbours the search read are appended to it, in order (the last one
     is the cell that reached the goal; its neighbours after the goal were not read).
     """
+    closed = [1 if w >= 100.0 else 0 for w in weights]
+    return unit_search(closed, 1, [-1] * (H * W), start, goal, W, nbr_table, expanded)
+
+
+# Larger than any stamp: the mark of the cells a kind of agent may never enter (see Planner).
+WALL = (1 << 30) - 1  # the largest int CPython keeps in one digit, so comparisons with it stay on the fast path
+
+
+def unit_search(closed: list[int], stamp: int, parents: list[int], start: int, goal: int, W: int,
+                nbr_table: list[tuple[tuple[int, int, int, int], ...]],
+                expanded: list[int] | None = None) -> list[int] | None:
+    """:func:`astar_unit`'s search on reusable lists: a cell is closed (an obstacle, or reached by this search) when
+    ``closed[c] >= stamp``, and the search marks the cells it reaches with ``stamp``, so a caller that raises the
+    stamp for each search needs no fresh weights. ``parents`` is any list of H * W ints: the search writes a
+    cell's entry when it reaches the cell, before anything reads it, so stale entries are never read.
+    """
     if start == goal:  # the goal is the first top
         return [start]
-    weights[start] = 101.0  # reached
-    parents = [-1] * (H * W)
+    closed[start] = stamp  # reached
     g_row, g_col = divmod(goal, W)
     # Heap entries: (priority, cell, direction entered from, cost). Only priority is ever compared.
     heap: list[tuple[float, int, int, float]] = [(0.0, start, -1, 0.0)]
@@ -205,7 +220,7 @@ def astar_unit(weights: list[float], H: int, W: int, start: int, goal: int,
         base = top[3]
         for nbr in nbr_table[cur]:
             nb = nbr[1]
-            if weights[nb] >= 100.0:  # an obstacle or a reached cell
+            if closed[nb] >= stamp:  # an obstacle or a reached cell
                 continue
             if nb == goal:  # the answer is fixed (see above)
                 path = [goal, cur]
@@ -230,7 +245,7 @@ def astar_unit(weights: list[float], H: int, W: int, start: int, goal: int,
                     break
             heap[hole] = entry
             parents[nb] = cur
-            weights[nb] = 101.0
+            closed[nb] = stamp
     return None
 
 
@@ -259,7 +274,14 @@ class Planner:
         self._cache = _STATIC_PLANS.setdefault(layout.config, {})
         self._shifted = _SHIFTED_PLANS.setdefault(layout.config, {})
         # the planner's weights are all 1 or inf: the unit search gives astar()'s answers where it is exact
-        self._search = astar_unit if H + W <= UNIT_SEARCH_MAX_H_PLUS_W else astar
+        self._unit = H + W <= UNIT_SEARCH_MAX_H_PLUS_W
+        self._search = astar_unit if self._unit else astar
+        # The unit search's closed marks, one list per kind of agent, reused from search to search: cells a kind
+        # may never enter hold WALL, every other cell the stamp of the last search that reached or blocked it.
+        self._picker_walls = [w == INF for w in self._picker_base]
+        self._stamp = 0
+        self._closed = {False: [0] * (H * W), True: [WALL if wall else 0 for wall in self._picker_walls]}
+        self._parents = [-1] * (H * W)
         self.searches = 0  # exact searches run (cache misses included)
 
     def find_path(self, start: tuple[int, int], goal: tuple[int, int], picker: bool,
@@ -314,6 +336,58 @@ class Planner:
     def _plan(self, s: int, g: int, picker: bool, occupied: Iterable[int] | None,
               expanded: list[int] | None = None) -> list[tuple[int, int]]:
         W = self.W
+        s_eff = s
+        hw = self._highway
+        if picker and not hw[s] and g // W == s // W and abs(g - s) == 1:
+            if hw[s - 1]:
+                s_eff = s - 1
+            if hw[s + 1]:
+                s_eff = s + 1
+        self.searches += 1
+        if self._unit:
+            raw = self._unit_plan(s, s_eff, g, picker, occupied, expanded)
+        else:
+            raw = self._weights_plan(s, s_eff, g, picker, occupied)
+        if raw is None:
+            return []
+        if s_eff == s:  # the original keeps a shifted start as the first path cell
+            raw = raw[1:]
+        cells = self.cells
+        return [cells[c] for c in raw]
+
+    def _unit_plan(self, s: int, s_eff: int, g: int, picker: bool, occupied: Iterable[int] | None,
+                   expanded: list[int] | None) -> list[int] | None:
+        """The search on the kind's closed list: the same cells are closed as in the weights
+        :meth:`_weights_plan` builds (a cell is closed where its weight is inf), and WALL cells opened for this
+        search (the start and a picker's rack goal) are walled again afterwards."""
+        stamp = self._stamp + 1
+        if stamp >= WALL:  # start the stamps afresh (after about a billion searches)
+            self._closed = {False: [0] * len(self._picker_walls),
+                            True: [WALL if wall else 0 for wall in self._picker_walls]}
+            stamp = 1
+        self._stamp = stamp
+        closed = self._closed[picker]
+        if occupied is not None:
+            for c in occupied:
+                if closed[c] < stamp:
+                    closed[c] = stamp
+        if not picker or g < (self.H - 1) * self.W:  # a picker's goal in the goal row stays walled
+            closed[g] = 0
+        if s_eff != s and closed[s] < stamp:
+            closed[s] = stamp
+        raw = unit_search(closed, stamp, self._parents, s_eff, g, self.W, self._nbrs, expanded)
+        if picker:
+            walls = self._picker_walls
+            if walls[g]:
+                closed[g] = WALL
+            if walls[s_eff]:
+                closed[s_eff] = WALL
+        return raw
+
+    def _weights_plan(self, s: int, s_eff: int, g: int, picker: bool,
+                      occupied: Iterable[int] | None) -> list[int] | None:
+        """The search on a weights grid built afresh (grids too wide for the unit search)."""
+        W = self.W
         weights = list(self._picker_base if picker else self._agv_base)
         if occupied is not None:
             for c in occupied:
@@ -323,24 +397,7 @@ class Planner:
             weights[g] = INF if g >= (self.H - 1) * W else 1.0
         else:
             weights[g] = 1.0
-        s_eff = s
-        hw = self._highway
-        if picker and not hw[s] and g // W == s // W and abs(g - s) == 1:
-            if hw[s - 1]:
-                s_eff = s - 1
-            if hw[s + 1]:
-                s_eff = s + 1
+        if s_eff != s:
             weights[s] = INF
         weights[s_eff] = 1.0
-        keep_first = weights[s] == INF  # the original keeps the shifted start as the first path cell
-        self.searches += 1
-        if expanded is None:
-            raw = self._search(weights, self.H, W, s_eff, g, self._nbrs)
-        else:
-            raw = astar_unit(weights, self.H, W, s_eff, g, self._nbrs, expanded)
-        if raw is None:
-            return []
-        if not keep_first:
-            raw = raw[1:]
-        cells = self.cells
-        return [cells[c] for c in raw]
+        return astar(weights, self.H, W, s_eff, g, self._nbrs)
