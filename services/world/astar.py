@@ -181,9 +181,11 @@ def unit_search(closed: list[int], stamp: int, parents: list[int], start: int, g
         return [start]
     closed[start] = stamp  # reached
     g_row, g_col = divmod(goal, W)
-    # Heap entries: (priority, cell, direction entered from, cost). Only priority is ever compared.
-    heap: list[tuple[float, int, int, float]] = [(0.0, start, -1, 0.0)]
-    while heap:
+    # Heap entries: (priority, cell, direction entered from, cost). Only priority is ever compared. Costs and
+    # priorities are the fork's small whole numbers, held as ints; the heap's length is kept in ``size``.
+    heap: list[tuple[int, int, int, int]] = [(0, start, -1, 0)]
+    size = 1
+    while size:
         top = heap[0]
         cur = top[1]
         if expanded is not None:
@@ -191,7 +193,7 @@ def unit_search(closed: list[int], stamp: int, parents: list[int], start: int, g
         # --- pop: libstdc++ pop_heap, as in astar() (written out in each search rather than called: it is the
         # searches' innermost loop) ---
         last = heap.pop()
-        size = len(heap)
+        size -= 1
         if size:
             hole = 0
             child = 0
@@ -230,11 +232,12 @@ def unit_search(closed: list[int], stamp: int, parents: list[int], start: int, g
                 path.reverse()
                 return path
             code = nbr[0]
-            new_cost = base + 2.0 if (prev_dir > 0 and prev_dir != code) else base + 1.0
+            new_cost = base + 2 if (prev_dir > 0 and prev_dir != code) else base + 1
             ef = new_cost + (abs(nbr[2] - g_row) + abs(nbr[3] - g_col))
             entry = (ef, nb, code, new_cost)
             # --- push: libstdc++ push_heap, as in astar() ---
-            hole = len(heap)
+            hole = size
+            size += 1
             heap.append(entry)
             while hole > 0:
                 parent = (hole - 1) // 2
