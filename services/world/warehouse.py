@@ -454,7 +454,10 @@ class Warehouse:
         * an agent asking for the cell of one that stays, both cells named by nobody else: the 1-cycle, the one
           that stays;
         * an agent asking for the cell of one that asks for a cell nobody names, all three cells named by nobody
-          else: a chain into a free cell, the longest path, both.
+          else: a chain into a free cell, the longest path, both;
+        * an AGV and a picker on a cell nobody else names, both leaving it for cells nobody else names (one cell or
+          two): no cycle, and every longest path is one move out of the shared cell, so whichever networkx takes,
+          the shared cell is committed, and with it the AGV (the other end is an empty cell).
 
         Every other component goes through :func:`commit_flat`.
         """
@@ -494,6 +497,14 @@ class Warehouse:
                 n_v = uses[v]
                 j = (agv_layer[v] or picker_layer[v]) - 1
                 if j < 0:
+                    if n_u == 2:  # maybe an AGV and a picker leaving the cell they share
+                        a, p = agv_layer[u] - 1, picker_layer[u] - 1
+                        if a >= 0 and p >= 0 and (i == a or i == p):
+                            w = targets[p if i == a else a]
+                            if w != u and ((n_v == 2 and uses[w] == 2) if w == v else (n_v == 1 and uses[w] == 1)):
+                                committed.add(a + 1)
+                                settled.add(a)
+                                settled.add(p)
                     continue
                 w = targets[j]
                 if n_u == 2 and n_v == 2:
