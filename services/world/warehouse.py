@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from schemas.fields import Heading as Direction  # TA-RWARE's name for a robot's heading, one enum on the wire and here
 from services.world.astar import Planner
-from services.world.conflicts import commit_flat
+from services.world.conflicts import commit_flat, merge_winner
 from services.world.layout import Layout, LayoutConfig, layout_for
 
 
@@ -457,7 +457,9 @@ class Warehouse:
           else: a chain into a free cell, the longest path, both;
         * an AGV and a picker on a cell nobody else names, both leaving it for cells nobody else names (one cell or
           two): no cycle, and every longest path is one move out of the shared cell, so whichever networkx takes,
-          the shared cell is committed, and with it the AGV (the other end is an empty cell).
+          the shared cell is committed, and with it the AGV (the other end is an empty cell);
+        * two agents on cells nobody else names asking for one free cell nobody else names: a tie between two
+          one-move chains, which networkx's node order decides (:func:`merge_winner`).
 
         Every other component goes through :func:`commit_flat`.
         """
@@ -505,6 +507,18 @@ class Warehouse:
                                 committed.add(a + 1)
                                 settled.add(a)
                                 settled.add(p)
+                    elif n_u == 1 and n_v == 2:  # maybe two agents asking for the same free cell
+                        k = targets.index(v)  # nobody stands on v: both namings of v are requests
+                        if k == i:
+                            k = targets.index(v, i + 1)
+                        w = starts[k]
+                        if uses[w] == 1:
+                            xy = self._cell_xy
+                            first, second = (u, w) if i < k else (w, u)
+                            win = merge_winner(xy[first], xy[second], xy[v], len(uses))
+                            committed.add((i if win == xy[u] else k) + 1)
+                            settled.add(i)
+                            settled.add(k)
                     continue
                 w = targets[j]
                 if n_u == 2 and n_v == 2:
