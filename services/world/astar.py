@@ -151,7 +151,7 @@ def astar_unit(weights: list[float], H: int, W: int, start: int, goal: int,
     cost(p) + h(p) <= cost(x) + h(x), and cost(n) <= cost(x) + h(x) + 2 <= cost(x) + H + W <= cost(x) + 101. With
     one push per cell a cell's cost is the one its heap entry carries and its parent the cell that pushed it, so
     this search keeps no cost array, skips obstacles and reached cells in one comparison and follows the parent
-    chain for the path.
+    chain for the path; the heap, its ties and so the answer are astar()'s.
 
     It also stops as soon as the goal is pushed, where astar() goes on until the goal reaches the top of the heap.
     The answer is already fixed then: the goal's entry stays in the heap until it is popped, so the search can only
