@@ -1,13 +1,23 @@
 """The fork's A* and TA-RWARE's find_path rules against answers of the ORIGINAL code (tests/data/
 astar_cases_sample.json, source named in its meta), plus properties the heuristic relies on."""
 
+import heapq
 import json
 import random
 from pathlib import Path
 
 import pytest
 
-from services.world.astar import INF, UNIT_SEARCH_MAX_H_PLUS_W, WALL, Planner, astar, astar_unit, neighbour_table
+from services.world.astar import (
+    INF,
+    UNIT_SEARCH_MAX_H_PLUS_W,
+    WALL,
+    Planner,
+    _Entry,
+    astar,
+    astar_unit,
+    neighbour_table,
+)
 from services.world.layout import LayoutConfig, layout_for
 
 DATA = json.loads((Path(__file__).parent / "data" / "astar_cases_sample.json").read_text())
@@ -153,6 +163,58 @@ def test_shifted_agv_plans_equal_searches(size):
         reused += p.searches == n and not cached
         assert got == p._plan(sy * W + sx, gy * W + gx, False, None), ((sx, sy), (gx, gy))
     assert reused > 300
+
+
+def _libstdcxx_push(heap: list, entry: tuple) -> None:
+    """std::push_heap with std::greater on the first field only: move up while the parent is strictly greater."""
+    heap.append(entry)
+    hole = len(heap) - 1
+    while hole > 0 and heap[(hole - 1) // 2][0] > entry[0]:
+        heap[hole] = heap[(hole - 1) // 2]
+        hole = (hole - 1) // 2
+    heap[hole] = entry
+
+
+def _libstdcxx_pop(heap: list) -> tuple:
+    """std::pop_heap then pop_back: the hole left by the top goes down to a leaf (the right child unless the left
+    one is strictly smaller; a last lone left child too), then the last entry moves up from there."""
+    top, last = heap[0], heap.pop()
+    n = len(heap)
+    if n:
+        hole = 0
+        while 2 * hole + 2 < n:
+            child = 2 * hole + 2
+            if heap[child][0] > heap[child - 1][0]:
+                child -= 1
+            heap[hole] = heap[child]
+            hole = child
+        if 2 * hole + 2 == n:
+            heap[hole] = heap[n - 1]
+            hole = n - 1
+        while hole > 0 and heap[(hole - 1) // 2][0] > last[0]:
+            heap[hole] = heap[(hole - 1) // 2]
+            hole = (hole - 1) // 2
+        heap[hole] = last
+    return top
+
+
+def test_heapq_on_priority_entries_moves_like_libstdcxx():
+    """The unit search's open list is heapq's on entries that compare by priority alone; with many ties, random
+    pushes and pops surface the same entries in the same order as libstdc++'s heap."""
+    rng = random.Random(9)
+    for _ in range(300):
+        ours: list = []
+        ref: list = []
+        for k in range(rng.randint(1, 120)):
+            if ours and rng.random() < 0.4:
+                assert heapq.heappop(ours).cell == _libstdcxx_pop(ref)[1]
+            else:
+                priority = float(rng.randint(0, 4))
+                entry = _Entry(priority)
+                entry.cell = k
+                heapq.heappush(ours, entry)
+                _libstdcxx_push(ref, (priority, k))
+            assert [e.cell for e in ours] == [e[1] for e in ref]
 
 
 def test_heap_ties_follow_libstdcxx_not_heapq():

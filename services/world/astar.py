@@ -4,14 +4,19 @@ The search is the fork's (raulsteleac/pyastar2d_TARWARE@ff9257d) greedy
 variant, not textbook A*: 4-connected, Manhattan heuristic, neighbours in the order up, left, right, down
 (direction codes 1, 3, 4, 6), +1 on a change of direction (never on the first move), and +100 added to a cell's
 weight once it is pushed, so a cell is in effect settled when first reached. The open list is a binary heap ordered
-only by priority, and ties are decided by how libstdc++'s ``std::priority_queue`` moves entries, which Python's
-``heapq`` does differently; :class:`_Heap` therefore mirrors libstdc++'s ``push_heap``/``pop_heap`` step by step.
+only by priority, and ties are decided by how libstdc++'s ``std::priority_queue`` moves entries: :func:`astar`
+writes libstdc++'s ``push_heap``/``pop_heap`` out step by step. Python's ``heapq`` moves entries the same way (a pop
+moves the last entry to the top, takes the hole down to a leaf through the right child unless the left one is
+strictly smaller, then moves the entry up while it is strictly smaller than its parent; a push moves the new entry
+up the same way) but compares whole entries, so ties between tuples would go by their later fields: the unit search
+gives it entries that compare by priority alone (:class:`_Entry`).
 All costs are small integers, exact in both float32 (the fork) and float64 (here).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
+from heapq import heappop, heappush
 
 from services.world.layout import Layout
 
@@ -169,6 +174,13 @@ def astar_unit(weights: list[float], H: int, W: int, start: int, goal: int,
 WALL = (1 << 30) - 1  # the largest int CPython keeps in one digit, so comparisons with it stay on the fast path
 
 
+class _Entry(float):
+    """An open-list entry of the unit search: its value is the priority, the only thing ``heapq`` compares (floats
+    compare by value alone), and it carries the cell it reaches, the direction it entered from and its cost."""
+
+    __slots__ = ("cell", "dir", "cost")
+
+
 def unit_search(closed: list[int], stamp: int, parents: list[int], start: int, goal: int, W: int,
                 nbr_table: list[tuple[tuple[int, int, int, int], ...]],
                 expanded: list[int] | None = None) -> list[int] | None:
@@ -176,55 +188,30 @@ def unit_search(closed: list[int], stamp: int, parents: list[int], start: int, g
     ``closed[c] >= stamp``, and the search marks the cells it reaches with ``stamp``, so a caller that raises the
     stamp for each search needs no fresh weights. ``parents`` is any list of H * W ints: the search writes a
     cell's entry when it reaches the cell, before anything reads it, so stale entries are never read.
+
+    The open list is ``heapq``'s, on :class:`_Entry` priorities: the same moves as libstdc++'s heap (module
+    docstring), so the same cell comes to the top at every step.
     """
     if start == goal:  # the goal is the first top
         return [start]
     closed[start] = stamp  # reached
     g_row, g_col = divmod(goal, W)
-    # Heap entries: (priority, cell, direction entered from, cost). Only priority is ever compared. Costs and
-    # priorities are the fork's small whole numbers, held as ints; the heap's length is kept in ``size``.
-    heap: list[tuple[int, int, int, int]] = [(0, start, -1, 0)]
-    size = 1
-    while size:
-        top = heap[0]
-        cur = top[1]
+    top = _Entry(0.0)
+    top.cell, top.dir, top.cost = start, -1, 0
+    heap = [top]
+    while heap:
+        top = heappop(heap)
+        cur = top.cell
         if expanded is not None:
             expanded.append(cur)
-        # --- pop: libstdc++ pop_heap, as in astar() (written out in each search rather than called: it is the
-        # searches' innermost loop) ---
-        last = heap.pop()
-        size -= 1
-        if size:
-            hole = 0
-            child = 0
-            half = (size - 1) // 2
-            while child < half:
-                child = 2 * (child + 1)
-                if heap[child][0] > heap[child - 1][0]:
-                    child -= 1
-                heap[hole] = heap[child]
-                hole = child
-            if (size & 1) == 0 and child == (size - 2) // 2:
-                child = 2 * (child + 1)
-                heap[hole] = heap[child - 1]
-                hole = child - 1
-            vf = last[0]
-            while hole > 0:
-                parent = (hole - 1) // 2
-                if heap[parent][0] > vf:
-                    heap[hole] = heap[parent]
-                    hole = parent
-                else:
-                    break
-            heap[hole] = last
         # --- expand: cells not reached yet, at cost + 1, + 1 more on a change of direction ---
-        prev_dir = top[2]
-        base = top[3]
+        prev_dir = top.dir
+        base = top.cost
         for nbr in nbr_table[cur]:
             nb = nbr[1]
             if closed[nb] >= stamp:  # an obstacle or a reached cell
                 continue
-            if nb == goal:  # the answer is fixed (see above)
+            if nb == goal:  # the answer is fixed (see astar_unit)
                 path = [goal, cur]
                 while cur != start:
                     cur = parents[cur]
@@ -232,21 +219,10 @@ def unit_search(closed: list[int], stamp: int, parents: list[int], start: int, g
                 path.reverse()
                 return path
             code = nbr[0]
-            new_cost = base + 2 if (prev_dir > 0 and prev_dir != code) else base + 1
-            ef = new_cost + (abs(nbr[2] - g_row) + abs(nbr[3] - g_col))
-            entry = (ef, nb, code, new_cost)
-            # --- push: libstdc++ push_heap, as in astar() ---
-            hole = size
-            size += 1
-            heap.append(entry)
-            while hole > 0:
-                parent = (hole - 1) // 2
-                if heap[parent][0] > ef:
-                    heap[hole] = heap[parent]
-                    hole = parent
-                else:
-                    break
-            heap[hole] = entry
+            cost = base + 2 if (prev_dir > 0 and prev_dir != code) else base + 1
+            entry = _Entry(cost + (abs(nbr[2] - g_row) + abs(nbr[3] - g_col)))
+            entry.cell, entry.dir, entry.cost = nb, code, cost
+            heappush(heap, entry)
             parents[nb] = cur
             closed[nb] = stamp
     return None
