@@ -1,13 +1,23 @@
 """The fork's A* and TA-RWARE's find_path rules against answers of the ORIGINAL code (tests/data/
 astar_cases_sample.json, source named in its meta), plus properties the heuristic relies on."""
 
+import heapq
 import json
 import random
 from pathlib import Path
 
 import pytest
 
-from services.world.astar import INF, UNIT_SEARCH_MAX_H_PLUS_W, Planner, astar, astar_unit, neighbour_table
+from services.world.astar import (
+    INF,
+    UNIT_SEARCH_MAX_H_PLUS_W,
+    WALL,
+    Planner,
+    _Entry,
+    astar,
+    astar_unit,
+    neighbour_table,
+)
 from services.world.layout import LayoutConfig, layout_for
 
 DATA = json.loads((Path(__file__).parent / "data" / "astar_cases_sample.json").read_text())
@@ -72,6 +82,64 @@ def test_unit_search_equals_the_fork_search():
             assert astar_unit(list(w), H, W, s, g, nbrs) == astar(list(w), H, W, s, g, nbrs), (H, W, s, g)
 
 
+def test_unit_search_stopping_at_the_goals_push_equals_the_fork_search():
+    """The unit search stops when the goal is pushed, the fork's search when the goal reaches the top of the heap.
+    Random pairs on open and crowded grids, goals next to the start, walled-in goals and start == goal give the
+    same answers (None included)."""
+    rng = random.Random(5)
+    unreachable = 0
+    for H, W in [(5, 6), (12, 9), (35, 22)]:
+        nbrs = neighbour_table(H, W)
+        for density in (0.0, 0.2, 0.4):
+            weights = [INF if rng.random() < density else 1.0 for _ in range(H * W)]
+            for _ in range(120):
+                s = rng.randrange(H * W)
+                near = [nb for _code, nb, _r, _c in nbrs[s]]
+                g = rng.choice(near + [s]) if rng.random() < 0.2 else rng.randrange(H * W)
+                w = list(weights)
+                w[s] = w[g] = 1.0
+                expected = astar(list(w), H, W, s, g, nbrs)
+                unreachable += expected is None
+                assert astar_unit(list(w), H, W, s, g, nbrs) == expected, (H, W, density, s, g)
+    assert unreachable > 10
+
+
+@pytest.mark.parametrize("size", ["tiny", "medium"])
+def test_reused_closed_marks_equal_fresh_weights(size):
+    """The planner's unit searches reuse one closed list per kind of agent from search to search. A random mix of
+    AGV and picker plans in one planner, with and without occupied cells (walls among them), pickers leaving a rack
+    through the highway, goals in the goal row and on the start, gives the fork's answers on fresh weights."""
+    lay = layout_for(LayoutConfig.named(size))
+    H, W = lay.H, lay.W
+    unit, fresh = Planner(lay), Planner(lay)
+    fresh._unit = False  # the reference: weights built afresh for each search, the fork's search
+    rng = random.Random(size)
+    racks = [y * W + x for x, y in lay.shelf_cells]
+    shifted = found = 0
+    for _ in range(800):
+        picker = rng.random() < 0.5
+        s = rng.choice(racks) if rng.random() < 0.4 else rng.randrange(H * W)
+        r = rng.random()
+        if r < 0.15:
+            g = s + rng.choice((-1, 1)) if 0 < s % W < W - 1 else s
+        elif r < 0.2:
+            g = s
+        elif r < 0.3:
+            g = (H - 1) * W + rng.randrange(W)
+        else:
+            g = rng.choice(racks) if rng.random() < 0.5 else rng.randrange(H * W)
+        occupied = rng.sample(range(H * W), rng.randint(1, 40)) + [s, g] if rng.random() < 0.6 else None
+        expected = fresh._plan(s, g, picker, occupied)
+        assert unit._plan(s, g, picker, occupied) == expected, (picker, s, g, occupied)
+        hw = lay.highway.reshape(-1)
+        shifted += picker and not hw[s] and abs(g - s) == 1 and g // W == s // W and (hw[s - 1] or hw[s + 1])
+        found += bool(expected)
+    assert found > 300 and shifted > 0
+    # the walls of the pickers' list are intact after all those searches
+    assert [c for c, mark in enumerate(unit._closed[True]) if mark == WALL] == [
+        c for c, wall in enumerate(unit._picker_walls) if wall]
+
+
 @pytest.mark.parametrize("size", ["tiny", "large"])
 def test_shifted_agv_plans_equal_searches(size):
     """AGV static plans reused from a plan with the same start-goal offset equal the search's own answer, near the
@@ -95,6 +163,58 @@ def test_shifted_agv_plans_equal_searches(size):
         reused += p.searches == n and not cached
         assert got == p._plan(sy * W + sx, gy * W + gx, False, None), ((sx, sy), (gx, gy))
     assert reused > 300
+
+
+def _libstdcxx_push(heap: list, entry: tuple) -> None:
+    """std::push_heap with std::greater on the first field only: move up while the parent is strictly greater."""
+    heap.append(entry)
+    hole = len(heap) - 1
+    while hole > 0 and heap[(hole - 1) // 2][0] > entry[0]:
+        heap[hole] = heap[(hole - 1) // 2]
+        hole = (hole - 1) // 2
+    heap[hole] = entry
+
+
+def _libstdcxx_pop(heap: list) -> tuple:
+    """std::pop_heap then pop_back: the hole left by the top goes down to a leaf (the right child unless the left
+    one is strictly smaller; a last lone left child too), then the last entry moves up from there."""
+    top, last = heap[0], heap.pop()
+    n = len(heap)
+    if n:
+        hole = 0
+        while 2 * hole + 2 < n:
+            child = 2 * hole + 2
+            if heap[child][0] > heap[child - 1][0]:
+                child -= 1
+            heap[hole] = heap[child]
+            hole = child
+        if 2 * hole + 2 == n:
+            heap[hole] = heap[n - 1]
+            hole = n - 1
+        while hole > 0 and heap[(hole - 1) // 2][0] > last[0]:
+            heap[hole] = heap[(hole - 1) // 2]
+            hole = (hole - 1) // 2
+        heap[hole] = last
+    return top
+
+
+def test_heapq_on_priority_entries_moves_like_libstdcxx():
+    """The unit search's open list is heapq's on entries that compare by priority alone; with many ties, random
+    pushes and pops surface the same entries in the same order as libstdc++'s heap."""
+    rng = random.Random(9)
+    for _ in range(300):
+        ours: list = []
+        ref: list = []
+        for k in range(rng.randint(1, 120)):
+            if ours and rng.random() < 0.4:
+                assert heapq.heappop(ours).cell == _libstdcxx_pop(ref)[1]
+            else:
+                priority = float(rng.randint(0, 4))
+                entry = _Entry(priority)
+                entry.cell = k
+                heapq.heappush(ours, entry)
+                _libstdcxx_push(ref, (priority, k))
+            assert [e.cell for e in ours] == [e[1] for e in ref]
 
 
 def test_heap_ties_follow_libstdcxx_not_heapq():

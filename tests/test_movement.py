@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from services.world.conflicts import commit_cells, commit_flat, networkx_commit_cells
+from services.world.conflicts import commit_cells, commit_flat, merge_winner, networkx_commit_cells
 from services.world.warehouse import FORWARD, NOOP, TOGGLE, Warehouse, WarehouseConfig
 
 DATA = Path(__file__).parent / "data"
@@ -217,3 +217,22 @@ def test_warehouse_stage_a_equals_emulation():
                 expected.add(aid)
         assert committed == expected, (starts, targets)
 
+
+
+def test_merge_winner_equals_emulation():
+    """Two one-move chains into one free cell, alone in their component among other agents: merge_winner names the
+    start cell the emulated networkx graph commits (small graphs iterate a set, larger ones insertion order)."""
+    rng = random.Random(3)
+    grid = [(x, y) for x in range(40) for y in range(40)]
+    won_second = 0
+    for _ in range(3000):
+        cells = rng.sample(grid, 3 + rng.randint(0, 6))
+        first, second, sink = cells[:3]
+        others = cells[3:]  # agents staying on their own cells: components of their own
+        starts, targets = [first, second, *others], [sink, sink, *others]
+        committed = set(networkx_commit_cells(starts, targets)) & {first, second}
+        assert len(committed) == 1
+        winner = merge_winner(first, second, sink, len(set(starts + targets)))
+        assert {winner} == committed, (first, second, sink, others)
+        won_second += winner == second
+    assert 300 < won_second < 2700

@@ -4,14 +4,19 @@ The search is the fork's (raulsteleac/pyastar2d_TARWARE@ff9257d) greedy
 variant, not textbook A*: 4-connected, Manhattan heuristic, neighbours in the order up, left, right, down
 (direction codes 1, 3, 4, 6), +1 on a change of direction (never on the first move), and +100 added to a cell's
 weight once it is pushed, so a cell is in effect settled when first reached. The open list is a binary heap ordered
-only by priority, and ties are decided by how libstdc++'s ``std::priority_queue`` moves entries, which Python's
-``heapq`` does differently; :class:`_Heap` therefore mirrors libstdc++'s ``push_heap``/``pop_heap`` step by step.
+only by priority, and ties are decided by how libstdc++'s ``std::priority_queue`` moves entries: :func:`astar`
+writes libstdc++'s ``push_heap``/``pop_heap`` out step by step. Python's ``heapq`` moves entries the same way (a pop
+moves the last entry to the top, takes the hole down to a leaf through the right child unless the left one is
+strictly smaller, then moves the entry up while it is strictly smaller than its parent; a push moves the new entry
+up the same way) but compares whole entries, so ties between tuples would go by their later fields: the unit search
+gives it entries that compare by priority alone (:class:`_Entry`).
 All costs are small integers, exact in both float32 (the fork) and float64 (here).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
+from heapq import heappop, heappush
 
 from services.world.layout import Layout
 
@@ -151,80 +156,76 @@ def astar_unit(weights: list[float], H: int, W: int, start: int, goal: int,
     cost(p) + h(p) <= cost(x) + h(x), and cost(n) <= cost(x) + h(x) + 2 <= cost(x) + H + W <= cost(x) + 101. With
     one push per cell a cell's cost is the one its heap entry carries and its parent the cell that pushed it, so
     this search keeps no cost array, skips obstacles and reached cells in one comparison and follows the parent
-    chain for the path; the heap, its ties and so the answer are astar()'s. ``weights`` is modified (pass a copy).
-    ``expanded``: if given, the cells taken off the heap are appended to it, in order.
+    chain for the path; the heap, its ties and so the answer are astar()'s.
+
+    It also stops as soon as the goal is pushed, where astar() goes on until the goal reaches the top of the heap.
+    The answer is already fixed then: the goal's entry stays in the heap until it is popped, so the search can only
+    end by reaching it (never with "unreachable"), and the path is the goal's parent chain, whose cells were all
+    pushed before the goal and, pushed once, never get another parent. What astar() does between the goal's push
+    and its pop touches other cells only.
+    ``expanded``: if given, the cells whose neighbours the search read are appended to it, in order (the last one
+    is the cell that reached the goal; its neighbours after the goal were not read).
     """
-    weights[start] = 101.0  # reached
-    parents = [-1] * (H * W)
+    closed = [1 if w >= 100.0 else 0 for w in weights]
+    return unit_search(closed, 1, [-1] * (H * W), start, goal, W, nbr_table, expanded)
+
+
+# Larger than any stamp: the mark of the cells a kind of agent may never enter (see Planner).
+WALL = (1 << 30) - 1  # the largest int CPython keeps in one digit, so comparisons with it stay on the fast path
+
+
+class _Entry(float):
+    """An open-list entry of the unit search: its value is the priority, the only thing ``heapq`` compares (floats
+    compare by value alone), and it carries the cell it reaches, the direction it entered from and its cost."""
+
+    __slots__ = ("cell", "dir", "cost")
+
+
+def unit_search(closed: list[int], stamp: int, parents: list[int], start: int, goal: int, W: int,
+                nbr_table: list[tuple[tuple[int, int, int, int], ...]],
+                expanded: list[int] | None = None) -> list[int] | None:
+    """:func:`astar_unit`'s search on reusable lists: a cell is closed (an obstacle, or reached by this search) when
+    ``closed[c] >= stamp``, and the search marks the cells it reaches with ``stamp``, so a caller that raises the
+    stamp for each search needs no fresh weights. ``parents`` is any list of H * W ints: the search writes a
+    cell's entry when it reaches the cell, before anything reads it, so stale entries are never read.
+
+    The open list is ``heapq``'s, on :class:`_Entry` priorities: the same moves as libstdc++'s heap (module
+    docstring), so the same cell comes to the top at every step.
+    """
+    if start == goal:  # the goal is the first top
+        return [start]
+    closed[start] = stamp  # reached
     g_row, g_col = divmod(goal, W)
-    # Heap entries: (priority, cell, direction entered from, cost). Only priority is ever compared.
-    heap: list[tuple[float, int, int, float]] = [(0.0, start, -1, 0.0)]
+    top = _Entry(0.0)
+    top.cell, top.dir, top.cost = start, -1, 0
+    heap = [top]
     while heap:
-        top = heap[0]
-        cur = top[1]
-        if cur == goal:  # the fork tests the top before popping
-            break
+        top = heappop(heap)
+        cur = top.cell
         if expanded is not None:
             expanded.append(cur)
-        # --- pop: libstdc++ pop_heap, as in astar() (written out in each search rather than called: it is the
-        # searches' innermost loop) ---
-        last = heap.pop()
-        size = len(heap)
-        if size:
-            hole = 0
-            child = 0
-            half = (size - 1) // 2
-            while child < half:
-                child = 2 * (child + 1)
-                if heap[child][0] > heap[child - 1][0]:
-                    child -= 1
-                heap[hole] = heap[child]
-                hole = child
-            if (size & 1) == 0 and child == (size - 2) // 2:
-                child = 2 * (child + 1)
-                heap[hole] = heap[child - 1]
-                hole = child - 1
-            vf = last[0]
-            while hole > 0:
-                parent = (hole - 1) // 2
-                if heap[parent][0] > vf:
-                    heap[hole] = heap[parent]
-                    hole = parent
-                else:
-                    break
-            heap[hole] = last
         # --- expand: cells not reached yet, at cost + 1, + 1 more on a change of direction ---
-        prev_dir = top[2]
-        base = top[3]
+        prev_dir = top.dir
+        base = top.cost
         for nbr in nbr_table[cur]:
             nb = nbr[1]
-            if weights[nb] >= 100.0:  # an obstacle or a reached cell
+            if closed[nb] >= stamp:  # an obstacle or a reached cell
                 continue
+            if nb == goal:  # the answer is fixed (see astar_unit)
+                path = [goal, cur]
+                while cur != start:
+                    cur = parents[cur]
+                    path.append(cur)
+                path.reverse()
+                return path
             code = nbr[0]
-            new_cost = base + 2.0 if (prev_dir > 0 and prev_dir != code) else base + 1.0
-            ef = new_cost + (abs(nbr[2] - g_row) + abs(nbr[3] - g_col))
-            entry = (ef, nb, code, new_cost)
-            # --- push: libstdc++ push_heap, as in astar() ---
-            hole = len(heap)
-            heap.append(entry)
-            while hole > 0:
-                parent = (hole - 1) // 2
-                if heap[parent][0] > ef:
-                    heap[hole] = heap[parent]
-                    hole = parent
-                else:
-                    break
-            heap[hole] = entry
+            cost = base + 2 if (prev_dir > 0 and prev_dir != code) else base + 1
+            entry = _Entry(cost + (abs(nbr[2] - g_row) + abs(nbr[3] - g_col)))
+            entry.cell, entry.dir, entry.cost = nb, code, cost
+            heappush(heap, entry)
             parents[nb] = cur
-            weights[nb] = 101.0
-    else:
-        return None
-    path = [goal]
-    while goal != start:
-        goal = parents[goal]
-        path.append(goal)
-    path.reverse()
-    return path
+            closed[nb] = stamp
+    return None
 
 
 class Planner:
@@ -252,7 +253,14 @@ class Planner:
         self._cache = _STATIC_PLANS.setdefault(layout.config, {})
         self._shifted = _SHIFTED_PLANS.setdefault(layout.config, {})
         # the planner's weights are all 1 or inf: the unit search gives astar()'s answers where it is exact
-        self._search = astar_unit if H + W <= UNIT_SEARCH_MAX_H_PLUS_W else astar
+        self._unit = H + W <= UNIT_SEARCH_MAX_H_PLUS_W
+        self._search = astar_unit if self._unit else astar
+        # The unit search's closed marks, one list per kind of agent, reused from search to search: cells a kind
+        # may never enter hold WALL, every other cell the stamp of the last search that reached or blocked it.
+        self._picker_walls = [w == INF for w in self._picker_base]
+        self._stamp = 0
+        self._closed = {False: [0] * (H * W), True: [WALL if wall else 0 for wall in self._picker_walls]}
+        self._parents = [-1] * (H * W)
         self.searches = 0  # exact searches run (cache misses included)
 
     def find_path(self, start: tuple[int, int], goal: tuple[int, int], picker: bool,
@@ -307,6 +315,58 @@ class Planner:
     def _plan(self, s: int, g: int, picker: bool, occupied: Iterable[int] | None,
               expanded: list[int] | None = None) -> list[tuple[int, int]]:
         W = self.W
+        s_eff = s
+        hw = self._highway
+        if picker and not hw[s] and g // W == s // W and abs(g - s) == 1:
+            if hw[s - 1]:
+                s_eff = s - 1
+            if hw[s + 1]:
+                s_eff = s + 1
+        self.searches += 1
+        if self._unit:
+            raw = self._unit_plan(s, s_eff, g, picker, occupied, expanded)
+        else:
+            raw = self._weights_plan(s, s_eff, g, picker, occupied)
+        if raw is None:
+            return []
+        if s_eff == s:  # the original keeps a shifted start as the first path cell
+            raw = raw[1:]
+        cells = self.cells
+        return [cells[c] for c in raw]
+
+    def _unit_plan(self, s: int, s_eff: int, g: int, picker: bool, occupied: Iterable[int] | None,
+                   expanded: list[int] | None) -> list[int] | None:
+        """The search on the kind's closed list: the same cells are closed as in the weights
+        :meth:`_weights_plan` builds (a cell is closed where its weight is inf), and WALL cells opened for this
+        search (the start and a picker's rack goal) are walled again afterwards."""
+        stamp = self._stamp + 1
+        if stamp >= WALL:  # start the stamps afresh (after about a billion searches)
+            self._closed = {False: [0] * len(self._picker_walls),
+                            True: [WALL if wall else 0 for wall in self._picker_walls]}
+            stamp = 1
+        self._stamp = stamp
+        closed = self._closed[picker]
+        if occupied is not None:
+            for c in occupied:
+                if closed[c] < stamp:
+                    closed[c] = stamp
+        if not picker or g < (self.H - 1) * self.W:  # a picker's goal in the goal row stays walled
+            closed[g] = 0
+        if s_eff != s and closed[s] < stamp:
+            closed[s] = stamp
+        raw = unit_search(closed, stamp, self._parents, s_eff, g, self.W, self._nbrs, expanded)
+        if picker:
+            walls = self._picker_walls
+            if walls[g]:
+                closed[g] = WALL
+            if walls[s_eff]:
+                closed[s_eff] = WALL
+        return raw
+
+    def _weights_plan(self, s: int, s_eff: int, g: int, picker: bool,
+                      occupied: Iterable[int] | None) -> list[int] | None:
+        """The search on a weights grid built afresh (grids too wide for the unit search)."""
+        W = self.W
         weights = list(self._picker_base if picker else self._agv_base)
         if occupied is not None:
             for c in occupied:
@@ -316,24 +376,7 @@ class Planner:
             weights[g] = INF if g >= (self.H - 1) * W else 1.0
         else:
             weights[g] = 1.0
-        s_eff = s
-        hw = self._highway
-        if picker and not hw[s] and g // W == s // W and abs(g - s) == 1:
-            if hw[s - 1]:
-                s_eff = s - 1
-            if hw[s + 1]:
-                s_eff = s + 1
+        if s_eff != s:
             weights[s] = INF
         weights[s_eff] = 1.0
-        keep_first = weights[s] == INF  # the original keeps the shifted start as the first path cell
-        self.searches += 1
-        if expanded is None:
-            raw = self._search(weights, self.H, W, s_eff, g, self._nbrs)
-        else:
-            raw = astar_unit(weights, self.H, W, s_eff, g, self._nbrs, expanded)
-        if raw is None:
-            return []
-        if not keep_first:
-            raw = raw[1:]
-        cells = self.cells
-        return [cells[c] for c in raw]
+        return astar(weights, self.H, W, s_eff, g, self._nbrs)

@@ -272,6 +272,20 @@ def commit_flat(starts: list[int], targets: list[int], nodes: int, cell_of: list
     return out
 
 
+def merge_winner(first: Cell, second: Cell, sink: Cell, size: int) -> Cell:
+    """The start cell networkx commits when two moves, ``first`` -> ``sink`` then ``second`` -> ``sink``, make a
+    component on their own in a move graph of ``size`` cells.
+
+    Both chains are one move long, so the tie goes to the start cell that comes first in the component copy's node
+    order (see :func:`_commit_component`). The component's BFS order is first, sink, second: the first move's cells
+    enter the graph first, and the second start is the sink's second predecessor.
+    """
+    for cell in MoveGraph([first, second], [sink, sink], size).subgraph_order([first, sink, second]):
+        if cell == first or cell == second:
+            return cell
+    raise AssertionError("unreachable: both start cells are in the component")
+
+
 def _commit_component(graph: MoveGraph, comp: list, on_cells) -> list:
     """The committed cells of one component (BFS order ``comp``), computing order-free cases directly.
 

@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from schemas.fields import Heading as Direction  # TA-RWARE's name for a robot's heading, one enum on the wire and here
 from services.world.astar import Planner
-from services.world.conflicts import commit_flat
+from services.world.conflicts import commit_flat, merge_winner
 from services.world.layout import Layout, LayoutConfig, layout_for
 
 
@@ -119,6 +119,20 @@ class StepResult:
     delivered_by: list[int] = field(default_factory=list)  # AGV ids whose delivery was counted, goal x order
 
 
+# The cell a FORWARD reaches from each flat cell, by heading (index = heading value), clipped to the grid like the
+# original's move; built once per layout.
+_AHEAD: dict[object, list[tuple[int, int, int, int]]] = {}
+
+
+def _ahead_table(H: int, W: int) -> list[tuple[int, int, int, int]]:
+    table = []
+    for c in range(H * W):
+        y, x = divmod(c, W)
+        table.append((c - W if y > 0 else c, c + W if y < H - 1 else c,  # UP, DOWN
+                      c - 1 if x > 0 else c, c + 1 if x < W - 1 else c))  # LEFT, RIGHT
+    return table
+
+
 def micro_action_towards(x: int, y: int, heading: int, nxt: tuple[int, int]) -> int:
     """Turn or move towards the adjacent cell ``nxt``: a 180° turn is two RIGHT turns."""
     try:
@@ -144,9 +158,16 @@ class Warehouse:
         else:
             self.types = [AGENT] * self.num_agents
         self._highway = lay.highway.reshape(-1).tolist()
-        self._goal_set = set(lay.goals)
         self._goal_idx = [gy * self.W + gx for gx, gy in lay.goals]
         self._cell_xy = self.planner.cells
+        ahead = _AHEAD.get(config.layout)
+        if ahead is None:
+            ahead = _AHEAD[config.layout] = _ahead_table(self.H, self.W)
+        self._ahead = ahead
+        self._goal_cells = set(self._goal_idx)
+        # agents of each layer, in id order: AGVs (or agents without a kind) first, then pickers
+        self._agv_range = range(self.num_agents if config.pickers == 0 else config.agvs)
+        self._picker_range = range(len(self._agv_range), self.num_agents)
         self._rack_action_cells = [(a, lay.action_cells[a][1] * self.W + lay.action_cells[a][0])  # type: ignore[index]
                                    for a in lay.rack_action_ids]
         self._unstick_limit = STUCK_THRESHOLD + config.layout.column_height + 2
@@ -180,7 +201,7 @@ class Warehouse:
         self.fixing = [0] * N
         self.target = [0] * N
         self.has_delivered = [False] * N
-        self.stuck_pos = [(self.x[i], self.y[i]) for i in range(N)]
+        self.stuck_cell = [self.y[i] * W + self.x[i] for i in range(N)]  # flat cell where the stuck count began
         self.stuck_count = [0] * N
         self.shelf_x = [c[0] for c in lay.shelf_cells]
         self.shelf_y = [c[1] for c in lay.shelf_cells]
@@ -194,21 +215,25 @@ class Warehouse:
         self._write_agent_layers()
         self.queue: list[int] = [int(k) + 1 for k in rng.permutation(lay.num_shelves)[: lay.config.request_queue_size]]
 
-    def _write_agent_layers(self) -> None:
+    def _write_agent_layers(self, cells: list[int] | None = None) -> None:
         """Write the agents and their carried shelves into the layers; the cells written are remembered, both to
-        clear them at the next step's end and as the agents' cells (the obstacles of re-plans) until then."""
-        W = self.W
-        agv_layer, picker_layer, carried_layer = self.agv_layer, self.picker_layer, self.carried_layer
-        types, carrying = self.types, self.carrying
-        cells = [y * W + x for x, y in zip(self.x, self.y)]
-        for i, c in enumerate(cells):
-            if types[i] == PICKER:
-                picker_layer[c] = i + 1
-            else:
-                agv_layer[c] = i + 1
-            sid = carrying[i]
+        clear them at the next step's end and as the agents' cells (the obstacles of re-plans) until then.
+
+        ``cells``: the agents' flat cells if the caller has them, else they are computed from x and y. Each layer is
+        written in id order, as a single loop over all agents would (the layers are separate lists)."""
+        if cells is None:
+            W = self.W
+            cells = [y * W + x for x, y in zip(self.x, self.y)]
+        agv_layer = self.agv_layer
+        for i in self._agv_range:
+            agv_layer[cells[i]] = i + 1
+        picker_layer = self.picker_layer
+        for i in self._picker_range:
+            picker_layer[cells[i]] = i + 1
+        carried_layer = self.carried_layer
+        for i, sid in enumerate(self.carrying):
             if sid:
-                carried_layer[c] = sid
+                carried_layer[cells[i]] = sid
         self._layer_cells = cells
 
     def set_demand_side(self, side: str | None) -> None:
@@ -252,7 +277,7 @@ class Warehouse:
         self.carrying[i] = carrying
         if carrying:
             self.shelf_x[carrying - 1], self.shelf_y[carrying - 1] = x, y
-        self.stuck_pos[i] = (x, y)
+        self.stuck_cell[i] = y * self.W + x
         self.stuck_count[i] = 0
         self.rebuild_layers()
 
@@ -294,7 +319,7 @@ class Warehouse:
 
     def _reset_stuck(self, i: int) -> None:
         self.stuck_count[i] = 0
-        self.stuck_pos[i] = (self.x[i], self.y[i])
+        self.stuck_cell[i] = self.y[i] * self.W + self.x[i]
 
     # ------------------------------------------------------------------ step
     def step(self, actions, hold=()) -> StepResult:
@@ -358,7 +383,7 @@ class Warehouse:
                         target[i] = a
                         req[i] = micro_action_towards(x, y, dirs[i], p[0])
                         self.stuck_count[i] = 0
-                        self.stuck_pos[i] = (x, y)
+                        self.stuck_cell[i] = y * W + x
                 continue
             p = path[i]
             t = types[i]
@@ -396,27 +421,12 @@ class Warehouse:
     def _resolve_conflicts(self) -> int:
         """Phase 2: move graph (Stage A), then the pairwise clash loop (Stage B), then the final veto, on flat cell
         indices."""
-        N, W = self.num_agents, self.W
         req, dirs = self.req, self.dir
         # the agents' cells at the start of the step, where the layers were last written (phase 5 moves them)
         starts = self._layer_cells
-        targets = starts[:]  # req_location() of every agent, on flat cells
-        last_row = len(self.agv_layer) - W
-        for i in range(N):
-            if req[i] == FORWARD:
-                c = starts[i]
-                d = dirs[i]
-                if d == 0:
-                    if c >= W:
-                        targets[i] = c - W
-                elif d == 1:
-                    if c < last_row:
-                        targets[i] = c + W
-                elif d == 2:
-                    if c % W:
-                        targets[i] = c - 1
-                elif c % W != W - 1:
-                    targets[i] = c + 1
+        ahead = self._ahead
+        # req_location() of every agent, on flat cells
+        targets = [ahead[c][d] if r == FORWARD else c for c, d, r in zip(starts, dirs, req)]
         # how many starts and requests name each cell (each key is a node of the move graph)
         uses = Counter(starts + targets)
         committed, rest = self._stage_a(starts, targets, uses)
@@ -444,7 +454,12 @@ class Warehouse:
         * an agent asking for the cell of one that stays, both cells named by nobody else: the 1-cycle, the one
           that stays;
         * an agent asking for the cell of one that asks for a cell nobody names, all three cells named by nobody
-          else: a chain into a free cell, the longest path, both.
+          else: a chain into a free cell, the longest path, both;
+        * an AGV and a picker on a cell nobody else names, both leaving it for cells nobody else names (one cell or
+          two): no cycle, and every longest path is one move out of the shared cell, so whichever networkx takes,
+          the shared cell is committed, and with it the AGV (the other end is an empty cell);
+        * two agents on cells nobody else names asking for one free cell nobody else names: a tie between two
+          one-move chains, which networkx's node order decides (:func:`merge_winner`).
 
         Every other component goes through :func:`commit_flat`.
         """
@@ -484,6 +499,26 @@ class Warehouse:
                 n_v = uses[v]
                 j = (agv_layer[v] or picker_layer[v]) - 1
                 if j < 0:
+                    if n_u == 2:  # maybe an AGV and a picker leaving the cell they share
+                        a, p = agv_layer[u] - 1, picker_layer[u] - 1
+                        if a >= 0 and p >= 0 and (i == a or i == p):
+                            w = targets[p if i == a else a]
+                            if w != u and ((n_v == 2 and uses[w] == 2) if w == v else (n_v == 1 and uses[w] == 1)):
+                                committed.add(a + 1)
+                                settled.add(a)
+                                settled.add(p)
+                    elif n_u == 1 and n_v == 2:  # maybe two agents asking for the same free cell
+                        k = targets.index(v)  # nobody stands on v: both namings of v are requests
+                        if k == i:
+                            k = targets.index(v, i + 1)
+                        w = starts[k]
+                        if uses[w] == 1:
+                            xy = self._cell_xy
+                            first, second = (u, w) if i < k else (w, u)
+                            win = merge_winner(xy[first], xy[second], xy[v], len(uses))
+                            committed.add((i if win == xy[u] else k) + 1)
+                            settled.add(i)
+                            settled.add(k)
                     continue
                 w = targets[j]
                 if n_u == 2 and n_v == 2:
@@ -569,9 +604,11 @@ class Warehouse:
 
     def _resolve_stuck(self) -> int:
         """Phase 3: re-plan or release agents that have not left their cell for too long."""
-        goals = self._goal_set
-        req, busy, path, xs, ys = self.req, self.busy, self.path, self.x, self.y
-        stuck_pos, stuck_count = self.stuck_pos, self.stuck_count
+        goals = self._goal_cells
+        req, busy, path = self.req, self.busy, self.path
+        stuck_cell, stuck_count = self.stuck_cell, self.stuck_count
+        # agents stand where the layers were last written until phase 5 moves them
+        cells = self._layer_cells
         stucks = 0
         limit = self._unstick_limit
         # each agent's turn reads and writes only its own state, so the filter of moving agents is applied in turn
@@ -581,20 +618,19 @@ class Warehouse:
             r = req[i]
             if r == TURN_LEFT or r == TURN_RIGHT:
                 continue
-            pos = (xs[i], ys[i])
-            if r == TOGGLE and pos not in goals:
+            c = cells[i]
+            if r == TOGGLE and c not in goals:
                 continue
-            if pos == stuck_pos[i]:
+            if c == stuck_cell[i]:
                 stuck_count[i] += 1
             else:
                 stuck_count[i] = 0
-                stuck_pos[i] = pos
+                stuck_cell[i] = c
             count = stuck_count[i]
             if STUCK_THRESHOLD < count < limit:
                 req[i] = NOOP
                 if path[i]:
-                    # agents stand where the layers were last written until phase 5 moves them
-                    new_path = self.planner.find_path(pos, path[i][-1], self.types[i] == PICKER, self._layer_cells)
+                    new_path = self.planner.find_path(self._cell_xy[c], path[i][-1], self.types[i] == PICKER, cells)
                     if new_path:
                         path[i] = new_path
                         if len(new_path) == 1:  # keeps counting: a picker waiting next to its AGV
@@ -613,26 +649,21 @@ class Warehouse:
         return stucks
 
     def _execute(self, rewards: list[float]) -> tuple[int, int]:
-        """Phase 5: moves, turns, loads and unloads in id order, on start-of-step agent layers."""
-        W, H = self.W, self.H
+        """Phase 5: moves, turns, loads and unloads in id order, on start-of-step agent layers. The agents' cells
+        after the moves are left in ``self._moved_cells`` for phase 7."""
         loads = unloads = 0
         req, xs, ys, dirs, path, carrying = self.req, self.x, self.y, self.dir, self.path, self.carrying
+        cells = self._layer_cells  # each agent's cell until it moves, and it moves at most once
+        moved = cells[:]
+        ahead, xy = self._ahead, self._cell_xy
         for i in range(self.num_agents):
             r = req[i]
             if r == NOOP:
                 continue
             if r == FORWARD:
-                x, y = xs[i], ys[i]
-                d = dirs[i]
-                if d == 0:
-                    y = y - 1 if y > 0 else 0
-                elif d == 1:
-                    y = y + 1 if y < H - 1 else H - 1
-                elif d == 2:
-                    x = x - 1 if x > 0 else 0
-                else:
-                    x = x + 1 if x < W - 1 else W - 1
-                xs[i], ys[i] = x, y
+                c = ahead[cells[i]][dirs[i]]
+                moved[i] = c
+                xs[i], ys[i] = x, y = xy[c]
                 del path[i][0]
                 sid = carrying[i]
                 if sid:
@@ -640,7 +671,7 @@ class Warehouse:
             elif r == TURN_LEFT or r == TURN_RIGHT:
                 dirs[i] = _TURNED[r][dirs[i]]
             elif r == TOGGLE:
-                c = ys[i] * W + xs[i]
+                c = cells[i]
                 t = self.types[i]
                 if not carrying[i]:
                     sid = self.shelf_layer[c]
@@ -656,7 +687,7 @@ class Warehouse:
                     else:
                         self.busy[i] = False
                 else:
-                    if (xs[i], ys[i]) in self._goal_set or self.shelf_layer[c] != 0:
+                    if c in self._goal_cells or self.shelf_layer[c] != 0:
                         self.busy[i] = False
                         continue
                     pid = self.picker_layer[c]
@@ -668,6 +699,7 @@ class Warehouse:
                         self.has_delivered[i] = False
                         unloads += 1
                         self._pay_handling(rewards, i, pid)
+        self._moved_cells = moved
         return loads, unloads
 
     def _pay_handling(self, rewards: list[float], i: int, picker_id: int) -> None:
@@ -722,7 +754,7 @@ class Warehouse:
         agv_layer, picker_layer, carried_layer = self.agv_layer, self.picker_layer, self.carried_layer
         for c in self._layer_cells:
             agv_layer[c] = picker_layer[c] = carried_layer[c] = 0
-        self._write_agent_layers()
+        self._write_agent_layers(self._moved_cells)
 
     # ------------------------------------------------------------------ read access
     @property
