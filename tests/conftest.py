@@ -193,23 +193,23 @@ def pytest_collection_modifyitems(config, items):
     # Workers take groups in this order: the runs that have the machine alone first (every worker starts on one, so
     # they follow each other instead of waiting for a long test another worker is in the middle of); then the live
     # groups, which spend much of their time waiting on wall-clock (paced runs, a process starting, a timeout they
-    # provoke) and the services wired in this process (some of them paced: they wait on wall-clock too), spread among
-    # the lab's CPU-bound fidelity groups, so that while one worker waits the others compute; and the many short pure
-    # tests last, where they fill in while the other workers end their last long group.
-    spread: dict[str, list[str]] = {"e2e": [], "services": [], "fidelity": []}
+    # provoke), spread among the lab's CPU-bound fidelity groups, so that while one worker waits the others compute;
+    # then the services wired in this process (spread among the live groups, they made every live run dearer: 321
+    # against 267 CPU-s for the suite); and the many short pure tests last, where they fill in while the other
+    # workers end their last long group.
+    spread: dict[str, list[str]] = {"e2e": [], "fidelity": []}
     for item in items:
         groups = spread.get(_kind(item))
         if groups is not None and _group(item) not in groups:
             groups.append(_group(item))
-    offset = {"e2e": 0.0, "services": 0.25, "fidelity": 0.5}
-    place = {g: (i + offset[k]) / len(gs) for k, gs in spread.items() for i, g in enumerate(gs)}
+    place = {g: (i + 0.5 * (k == "fidelity")) / len(gs) for k, gs in spread.items() for i, g in enumerate(gs)}
 
     def order(item) -> tuple[int, float]:
         if item.get_closest_marker("alone") or any(f in item.fixturenames for f in ALONE_RUNS):
             return (0, 0.0)
         if _kind(item) in spread:
             return (1, place[_group(item)])
-        return (2, 0.0)
+        return (2 + ("services", "unit").index(_kind(item)), 0.0)
 
     items.sort(key=order)
 
