@@ -70,9 +70,10 @@ class CpuMeter:
     and unlike the tick rate it barely depends on what else runs on the cores.
     """
 
-    def __init__(self, supervisor, n_agvs: int):
+    def __init__(self, supervisor, n_agvs: int, sample_s: float = CPU_SAMPLE_S):
         self.sup = supervisor
         self.n_agvs = n_agvs
+        self.sample_s = sample_s
         self.first: tuple[int, dict[str, float]] | None = None
         self.last: tuple[int, dict[str, float]] | None = None
 
@@ -104,7 +105,7 @@ class CpuMeter:
                     self.first = sample
                 else:
                     self.last = sample
-            await asyncio.sleep(CPU_SAMPLE_S)
+            await asyncio.sleep(self.sample_s)
 
     def per_tick_ms(self) -> dict[str, float]:
         """Milliseconds of CPU per tick: per process role (agents: the mean over that role's processes) and total."""
