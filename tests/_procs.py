@@ -37,6 +37,22 @@ def descendants(pid: int) -> set[int]:
         return set()
 
 
+def run_processes(root: int, *roles: str) -> list[tuple[str, psutil.Process]]:
+    """(role, process) of the descendants of ``root`` (a run's ``up``) whose role is one of ``roles``: a process
+    that ends between the listing and the reading of its command line (a run's processes start and stop around
+    the test) is left out, not an error."""
+    out = []
+    for pid in descendants(root):
+        try:
+            process = psutil.Process(pid)
+            role = role_of(process.cmdline())
+        except psutil.Error:
+            continue
+        if role in roles:
+            out.append((role, process))
+    return out
+
+
 def agent_pids(root: int, agent: int) -> list[int]:
     """The pids of robot ``agent``'s agent processes among the descendants of ``root`` (a run's ``up``)."""
     out = []

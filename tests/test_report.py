@@ -9,7 +9,6 @@ import signal
 import time
 
 import numpy as np
-import psutil
 import pytest
 from PIL import Image
 
@@ -17,9 +16,8 @@ from morph_sim.local import run_local
 from services.monitor.recorder import Recorder, read_metrics
 from services.monitor.report import load, numbers, write_report
 from services.runconfig import RunConfig
-from services.supervisor.graph import role_of
 
-from _procs import FEW_ROBOTS
+from _procs import FEW_ROBOTS, run_processes
 
 
 def test_the_report_renders_every_figure_and_the_gif(tmp_path):
@@ -105,8 +103,7 @@ def test_a_monitor_killed_and_restarted_mid_run_leaves_a_record_equal_apart_from
     procs: dict = {}
     deadline = time.monotonic() + 30
     while len(procs) < 2 and time.monotonic() < deadline:  # the sim and the monitor, before the rows are waited for
-        procs = {role_of(p.cmdline()): p for p in psutil.Process(up.pid).children(recursive=True)
-                 if role_of(p.cmdline()) in ("sim", "monitor")}
+        procs = dict(run_processes(up.pid, "sim", "monitor"))
         time.sleep(0.02)
     assert set(procs) == {"sim", "monitor"}, procs
     up.wait_for_rows(KILL_AT)

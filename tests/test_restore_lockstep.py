@@ -16,6 +16,8 @@ import pytest
 
 from services.supervisor.graph import role_of
 
+from _procs import run_processes
+
 # the monitor must answer the restarted agent within its RESTORE_TIMEOUT (services/agent/restore.py) under the run's
 # own full-speed load, not under the other pytest workers' too: they wait meanwhile
 pytestmark = pytest.mark.alone
@@ -80,7 +82,7 @@ def test_sigkilled_agent_restores_its_state_in_a_lockstep_run_and_a_cold_one_say
     assert supervisor[: len(up.argv)] == up.argv and not any(supervisor[len(up.argv):]), supervisor
     # the sim hosts the endpoint and routes the agents' messages: its sends have a Zenoh runtime thread of their
     # own (services/bus/zenoh_bus.py, RUNTIME_ENDPOINT); an agent's session runs on one thread
-    sim = next(p for p in psutil.Process(up.pid).children(recursive=True) if role_of(p.cmdline()) == "sim")
+    ((_, sim),) = run_processes(up.pid, "sim")
     assert "tx" in _thread_kinds(sim.pid) and "tx" not in _thread_kinds(pid), (_thread_kinds(sim.pid), _thread_kinds(pid))
     server = psutil.Process(pid).parent()
     # (an exec'd server's command line ends with its own padding)

@@ -131,15 +131,11 @@ def test_a_run_whose_air_dies_stops_and_says_why(tmp_path, live_run):
     import os
     import signal
 
-    import psutil
-
-    from services.supervisor.graph import role_of
-
-    from _procs import FEW_ROBOTS
+    from _procs import FEW_ROBOTS, run_processes
 
     up = live_run("airdies", "--network", "congested", "--steps", "100000", *FEW_ROBOTS, output_dir=tmp_path)
     up.wait_for_rows(5, timeout=60)
-    (air,) = [p for p in psutil.Process(up.pid).children(recursive=True) if role_of(p.cmdline()) == "air"]
+    ((_, air),) = run_processes(up.pid, "air")
     os.kill(air.pid, signal.SIGKILL)
     assert up.wait(timeout=60) == 1, up.stderr()[-2000:]
     last = (up.stdout() + up.stderr()).strip().splitlines()[-1]
