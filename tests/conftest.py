@@ -291,7 +291,10 @@ with zenoh.open(conf) as session:
 print(json.dumps({"seconds": {k: sorted(v) for k, v in seconds.items()}, "ticks": ticks, "last": last}))
 '''
 
-SHARED_STEPS = 800  # a default run long enough (4-5 s at full speed, 165-200 ticks/s here) to judge its streams second by second
+# A default run long enough to judge its streams second by second and for a watcher started once it has rows to
+# join it: 1,000 ticks, 4-6 s at full speed (165-235 ticks/s here). At 800 a run of 235 ticks/s ended 2.2 s after
+# the late watcher started, before it could connect.
+SHARED_STEPS = 1000
 LATE_JOIN_ROWS = 20  # the late watcher joins once the record has this many rows
 
 

@@ -52,8 +52,8 @@ def test_streams_flow_every_second_and_live_views_end_on_the_record(shared_defau
     ticks = {int(k): v for k, v in got["ticks"].items()}
     seconds = {int(k): set(v) for k, v in got["seconds"].items()}
     first, end = min(ticks), got["last"]["finished_at"]
-    # A lockstep run lasts as long as its ticks take: 800 tiny ticks took 4-5 s alone on two cores (165-200
-    # ticks/s), so the default twin asks for 3 whole seconds, which holds up to ~260 ticks/s.
+    # A lockstep run lasts as long as its ticks take: 1,000 tiny ticks take 4-6 s alone on two cores (165-235
+    # ticks/s), so the default twin asks for 3 whole seconds, which holds up to ~330 ticks/s.
     need = 10 if steps > SHARED_STEPS else 3
     assert end - first >= need, f"the run lasted {end - first} s; the check needs {need}"
     # Judged second by second: at full speed a second holds far more than WINDOW_TICKS ticks. A second with fewer
