@@ -107,6 +107,9 @@ def test_a_monitor_killed_and_restarted_mid_run_leaves_a_record_equal_apart_from
         time.sleep(0.02)
     assert set(procs) == {"sim", "monitor"}, procs
     up.wait_for_rows(KILL_AT)
+    # looked up again now that the run has rows: at its start a process may show a role's command line for a moment
+    # and be gone (the monitor seen first was once no longer there to be killed); a listing takes milliseconds
+    procs = dict(run_processes(up.pid, "sim", "monitor"))
     # The run is paused while its monitor is killed, so that it is killed mid-run: this small lockstep run makes
     # ~450 ticks/s and may run up to MONITOR_WINDOW ticks ahead of the rows on disk, so by the time a test had read
     # KILL_AT rows and looked for the monitor the sim was seen to have finished (and closed its endpoint on the
