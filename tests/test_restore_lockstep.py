@@ -14,9 +14,7 @@ import sys
 import psutil
 import pytest
 
-from services.supervisor.graph import role_of
-
-from _procs import run_processes
+from _procs import agent_pids, run_processes
 
 # the monitor must answer the restarted agent within its RESTORE_TIMEOUT (services/agent/restore.py) under the run's
 # own full-speed load, not under the other pytest workers' too: they wait meanwhile
@@ -30,17 +28,6 @@ KILL_AFTER_ROWS = 110  # mid-run at full speed, after agent 1's cold restart at 
 # once the record holds both restarts' events, however long they took.
 STEPS = 100_000
 EVENTS_TIMEOUT = 120  # seconds from the kill to both events in the record
-
-
-def _agent_pid(up_pid: int, agent: int) -> int | None:
-    for p in psutil.Process(up_pid).children(recursive=True):
-        try:
-            cmd = p.cmdline()
-        except psutil.Error:
-            continue
-        if role_of(cmd) == "agent" and "--id" in cmd and cmd[cmd.index("--id") + 1] == str(agent):
-            return p.pid
-    return None
 
 
 def _thread_kinds(pid: int) -> set[str]:
@@ -74,8 +61,9 @@ def test_sigkilled_agent_restores_its_state_in_a_lockstep_run_and_a_cold_one_say
     up = live_run("lockkill", "--policy", "morph", "--steps", str(STEPS), "--fault-schedule", str(schedule))
     up.wait_for_endpoint()
     up.wait_for_rows(KILL_AFTER_ROWS, timeout=120)
-    pid = _agent_pid(up.pid, VICTIM)
-    assert pid is not None
+    pids = agent_pids(up.pid, VICTIM)
+    assert pids
+    pid = pids[0]
     # the run's processes come from a fork server forked from `up` itself (after it made room for their command
     # lines, which does not show in its own)
     supervisor = psutil.Process(up.pid).cmdline()

@@ -147,6 +147,7 @@ def _run(config) -> tuple[dict, dict[str, float], float | None]:
 
 
 def measure_size(robots: int, args: argparse.Namespace, out: Path) -> dict:
+    from morph_sim.bench.distributed import load_average
     from services.runconfig import RunConfig
 
     agvs, pickers = fleet_of(robots)
@@ -179,13 +180,7 @@ def measure_size(robots: int, args: argparse.Namespace, out: Path) -> dict:
             "cpu_ms_per_robot_tick": round(cpu["total"] / robots, 3) if cpu.get("total") else None,
             "agent_uss_mib": round(uss, 1) if uss is not None else None,
             "shortest_period_held": shortest, "holds_requested": at_requested["held"], "requested": at_requested,
-            "tries": tries, "loadavg": _load()}
-
-
-def _load() -> str:
-    from morph_sim.bench.distributed import load_average
-
-    return load_average()
+            "tries": tries, "loadavg": load_average()}
 
 
 def run(args: argparse.Namespace) -> int:
