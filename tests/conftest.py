@@ -291,9 +291,10 @@ with zenoh.open(conf) as session:
 print(json.dumps({"seconds": {k: sorted(v) for k, v in seconds.items()}, "ticks": ticks, "last": last}))
 '''
 
-# A default run long enough to judge its streams second by second and for a watcher started once it has rows to
-# join it: 1,000 ticks, 4-6 s at full speed (165-235 ticks/s here). At 800 a run of 235 ticks/s ended 2.2 s after
-# the late watcher started, before it could connect.
+# A default run long enough to judge its streams second by second and for a watcher to join it once it has rows:
+# 1,000 ticks, 3.5-6 s at full speed (165-270 ticks/s here). The late watcher is started with the run and has done its
+# imports when it is let go (``Observer(warm_cli=True)``): started cold once the rows were in, it needed about 2.5 s
+# before it tried to connect, and a run of 270 ticks/s had ended by then.
 SHARED_STEPS = 1000
 LATE_JOIN_ROWS = 20  # the late watcher joins once the record has this many rows
 
@@ -317,8 +318,9 @@ def shared_default_up(request, tmp_path_factory):
                              str(run.record / "credentials" / "operator.json5")], env=user_env),
         Observer("watch", [*cli, "watch", "--run", run.run_id, "--endpoint", run.endpoint, "--duration", "240",
                            "--output-dir", str(run.output_dir)]),
-        Observer("late-watch", [*cli, "watch", "--endpoint", run.endpoint, "--duration", "3", "--output-dir",
-                                str(run.output_dir)], after_rows=LATE_JOIN_ROWS, env={**os.environ, "COLUMNS": "120"}),
+        Observer("late-watch", ["watch", "--endpoint", run.endpoint, "--duration", "3", "--output-dir",
+                                str(run.output_dir)], after_rows=LATE_JOIN_ROWS, env={**os.environ, "COLUMNS": "120"},
+                 warm_cli=True),
     ], timeout=240)
     with machine_share(alone=True):  # its streams are judged second by second
         shared.start()

@@ -64,18 +64,22 @@ CPU_WARMUP_TICKS = 20  # the CPU window opens at this tick (start-up and the fir
 class CpuMeter:
     """CPU seconds per tick of every process of a distributed run, by role (sim, monitor, agv, picker, supervisor).
 
-    Samples each process's CPU time (user + system, from ``psutil``) while the run ticks; the window runs from the
-    first sample at tick ≥ ``CPU_WARMUP_TICKS`` to the last sample before the run's end, and the tick count of the
-    window comes from the supervisor's progress (every Tick it receives). CPU time is what a tick costs the machine,
-    and unlike the tick rate it barely depends on what else runs on the cores.
+    Samples each process's CPU time (user + system, from ``psutil``) while the run ticks. Each process has its own
+    window: from the first sample at tick ≥ ``CPU_WARMUP_TICKS`` that saw it to the last sample before the run's end
+    that saw it, with the tick count of the window from the supervisor's progress (every Tick it receives). A window
+    of its own keeps a process's figure when the run's processes exit before the supervisor has seen the last Ticks
+    (the last samples then find only some of them). CPU time is what a tick costs the machine, and unlike the tick
+    rate it barely depends on what else runs on the cores.
     """
 
     def __init__(self, supervisor, n_agvs: int, sample_s: float = CPU_SAMPLE_S):
         self.sup = supervisor
         self.n_agvs = n_agvs
         self.sample_s = sample_s
-        self.first: tuple[int, dict[str, float]] | None = None
-        self.last: tuple[int, dict[str, float]] | None = None
+        # "name:pid" -> (tick, CPU seconds) at the first and at the latest sample that saw that process
+        self.first: dict[str, tuple[int, float]] = {}
+        self.last: dict[str, tuple[int, float]] = {}
+        self.first_tick: int | None = None
 
     def _role(self, name: str) -> str:
         if name.startswith("agent-"):
@@ -86,37 +90,49 @@ class CpuMeter:
         import psutil
 
         cpu: dict[str, float] = {}
-        pids = [(self._role(name), child.pid) for name, child in self.sup.children.items() if child.alive()]
-        for role, pid in [*pids, ("supervisor", os.getpid())]:
+        pids = [(name, child.pid) for name, child in self.sup.children.items() if child.alive()]
+        for name, pid in [*pids, ("supervisor", os.getpid())]:
             try:
                 times = psutil.Process(pid).cpu_times()
             except psutil.Error:
                 continue
-            cpu[f"{role}:{pid}"] = times.user + times.system
+            cpu[f"{name}:{pid}"] = times.user + times.system
         return cpu
+
+    def record(self, t: int, sample: dict[str, float]) -> None:
+        """Take one sample at tick ``t`` into the processes' windows."""
+        if self.first_tick is None:
+            self.first_tick = t
+        for key, seconds in sample.items():
+            self.first.setdefault(key, (t, seconds))
+            self.last[key] = (t, seconds)
 
     async def watch(self) -> None:
         steps = self.sup.config.steps
         while True:
             t = self.sup.progress.t
             if CPU_WARMUP_TICKS <= t < steps - 1:
-                sample = (t, self._sample())
-                if self.first is None:
-                    self.first = sample
-                else:
-                    self.last = sample
+                self.record(t, self._sample())
             await asyncio.sleep(self.sample_s)
 
     def per_tick_ms(self) -> dict[str, float]:
-        """Milliseconds of CPU per tick: per process role (agents: the mean over that role's processes) and total."""
-        if self.first is None or self.last is None or self.last[0] <= self.first[0]:
-            return {}
-        ticks = self.last[0] - self.first[0]
+        """Milliseconds of CPU per tick: per process role (agents: the mean over that role's processes) and total.
+
+        Only processes present from the window's first sample count, and a process restarted inside the window
+        (its name seen with two pids) is left out: neither of its lives spans what the others' windows span."""
+        pids: dict[str, int] = {}
+        for key in self.first:
+            name = key.rsplit(":", 1)[0]
+            pids[name] = pids.get(name, 0) + 1
         sums: dict[str, list[float]] = {}
-        for key, end in self.last[1].items():
-            start = self.first[1].get(key)
-            if start is not None:  # a process restarted inside the window is left out
-                sums.setdefault(key.split(":", 1)[0], []).append(1e3 * (end - start) / ticks)
+        for key, (t0, start) in self.first.items():
+            name = key.rsplit(":", 1)[0]
+            t1, end = self.last[key]
+            if t0 != self.first_tick or pids[name] > 1 or t1 <= t0:
+                continue
+            sums.setdefault(self._role(name), []).append(1e3 * (end - start) / (t1 - t0))
+        if not sums:
+            return {}
         out = {role: sum(v) / len(v) for role, v in sorted(sums.items())}
         out["total"] = sum(sum(v) for v in sums.values())
         return out
