@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Annotated, Any, ClassVar
 
 import msgpack
@@ -482,12 +483,26 @@ class TickObservation:
         (the sequential dispatch removes pickers taken earlier in the same tick).
         """
         free = self.free_picker if free is None else free
-        pickers = np.flatnonzero(free)
-        if pickers.size == 0:
-            return -1
-        tx, ty = self.target[agv]
-        d = np.abs(self.cells[pickers, 0] - tx) + np.abs(self.cells[pickers, 1] - ty)
-        return int(pickers[int(np.argmin(d))])
+        # a scan in plain Python: a fleet's few pickers cost less than numpy's calls on arrays this small
+        tx, ty = self._target_list[agv]
+        cells = self._cell_list
+        best, best_d = -1, 0
+        for i in np.flatnonzero(free).tolist():
+            x, y = cells[i]
+            d = abs(x - tx) + abs(y - ty)
+            if best < 0 or d < best_d:  # strictly nearer: ties keep the lowest index
+                best, best_d = i, d
+        return best
+
+    # The arrays as lists, read by the per-AGV scans of a tick (the observation's arrays are never written after it
+    # is made; dataclasses.replace makes another observation, without these)
+    @cached_property
+    def _cell_list(self) -> list[list[int]]:
+        return self.cells.tolist()
+
+    @cached_property
+    def _target_list(self) -> list[list[int]]:
+        return self.target.tolist()
 
 
 # ------------------------------------------------------------------------------------------------------------------

@@ -35,6 +35,27 @@ def _full_sequential(obs):
     return commits
 
 
+def test_nearest_free_picker_is_the_first_minimum_over_free_pickers():
+    """The scan gives numpy's answer (argmin over the free pickers' Manhattan distances, ties to the lowest index)
+    on crowded fleets with ties, a free mask that overrides the observation's, and none free."""
+    import dataclasses
+
+    rng = np.random.default_rng(3)
+    obs = _controller("small").begin_tick()
+    n = obs.n
+    for _ in range(300):
+        cells = rng.integers(0, 4, (n, 2))  # a 4 × 4 corner: many equal distances
+        target = rng.integers(0, 4, (n, 2))
+        view = dataclasses.replace(obs, cells=cells, target=target)
+        free = rng.random(n) < 0.3
+        for agv in range(obs.n_agvs):
+            pickers = np.flatnonzero(free)
+            d = np.abs(cells[pickers, 0] - target[agv, 0]) + np.abs(cells[pickers, 1] - target[agv, 1])
+            expected = int(pickers[int(np.argmin(d))]) if pickers.size else -1
+            assert view.nearest_free_picker(agv, free) == expected
+    assert view.nearest_free_picker(0, np.zeros(n, dtype=bool)) == -1
+
+
 @pytest.mark.parametrize("scale,expected", [("tiny", [57, 48, 57]), ("medium", [69, 88, 90])])
 def test_full_graph_reproduces_reference_deliveries(scale, expected):
     got = []

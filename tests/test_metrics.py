@@ -120,6 +120,29 @@ def test_link_tracker_open_events_equal_current_links(rows):
     assert tr.formations - tr.prunings == int(cens.sum()) == m.undirected_link_count(A + A.T)
 
 
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(st.lists(st.booleans(), min_size=6, max_size=6), st.integers(1, 4)), min_size=1,
+                max_size=10))
+def test_link_tracker_on_repeated_matrices_equals_it_fed_each_afresh(runs):
+    """A matrix fed again unchanged (most ticks of a converged run) takes a shortcut; the events, lifetimes and
+    counts equal those of a tracker that reads every matrix afresh (each repeat as another dtype, which the shortcut
+    does not take)."""
+    iu = np.triu_indices(4, k=1)
+    repeated, afresh = m.LinkTracker(4), m.LinkTracker(4)
+    for bits, times in runs:
+        A = np.zeros((4, 4), dtype=int)
+        A[iu] = bits
+        A = A + A.T
+        for k in range(times):
+            repeated.update(A)
+            afresh.update(A.astype(np.int64 if k % 2 == 0 else np.int32))
+    assert repeated.n_ticks == afresh.n_ticks and repeated.end == afresh.end
+    assert (repeated.formations, repeated.prunings) == (afresh.formations, afresh.prunings)
+    for a, b in zip(repeated.lifetimes(), afresh.lifetimes()):
+        assert np.array_equal(a, b)
+    assert repeated.core_periphery() == afresh.core_periphery()
+
+
 # ---------------------------------------------------------------------------------------------------- W by block
 
 

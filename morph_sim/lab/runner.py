@@ -245,7 +245,19 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=(), policy: C
         cols[name][:] = np.nan
     if driver is not None:  # the dispatch outcomes by the end of each step, as the monitor's rows have them
         cols.update((name, np.zeros(T)) for name in catalogue.outcome_values({}))
-    dist_sum = np.zeros((n, n))
+    # Σ_t of each pair's Manhattan distance: integers, so summed exactly in blocks of ticks (one numpy pass per block
+    # instead of one per tick; the episode's whole stack would be T·n² integers)
+    dist_sum = np.zeros((n, n), dtype=np.int64)
+    cells_block: list[np.ndarray] = []
+
+    def fold_distances() -> None:
+        nonlocal dist_sum
+        if cells_block:
+            c = np.stack(cells_block)
+            dist_sum = dist_sum + (np.abs(c[:, :, None, 0] - c[:, None, :, 0])
+                                   + np.abs(c[:, :, None, 1] - c[:, None, :, 1])).sum(axis=0)
+            cells_block.clear()
+    graph: list = [None, 0.0, 0.0]  # the last link matrix measured (its bytes), its reference Fiedler value and λ₂
 
     def record(step: int) -> None:
         A = brains.team_links()
@@ -254,13 +266,16 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=(), policy: C
         cols["links_directed"][step] = np.count_nonzero(on)  # = measures.directed_link_count(A)
         if not brains.memoryless:
             W = brains.team_weights()
-            cols["mean_w_links"][step] = float(W[on].mean()) if on.any() else 0.0
+            linked = W[on]  # (its mean as ndarray.mean takes it, without the wrapper)
+            cols["mean_w_links"][step] = float(np.add.reduce(linked) / linked.size) if linked.size else 0.0
             tracker.update(A, step)
         else:
             cols["mean_w_links"][step] = 1.0 if policy.name in ("full", "full-broadcast") else 0.0
         if step % spec.fiedler_every == 0:
-            cols["fiedler_ref"][step] = measures.reference_normalized_fiedler(A)
-            cols["lambda2"][step] = measures.algebraic_connectivity(A)
+            key = A.tobytes()  # links change on a third of MORPH's ticks: the spectra are those of the last change
+            if key != graph[0]:
+                graph[:] = [key, measures.reference_normalized_fiedler(A), measures.algebraic_connectivity(A)]
+            cols["fiedler_ref"][step], cols["lambda2"][step] = graph[1], graph[2]
         for k, v in brains.extra_metrics().items():
             if k in cols:
                 cols[k][step] = v
@@ -283,8 +298,9 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=(), policy: C
             record(t)
         if trace_hook is not None:
             trace_hook(obs, brains)
-        c = obs.cells
-        dist_sum += np.abs(c[:, None, 0] - c[None, :, 0]) + np.abs(c[:, None, 1] - c[None, :, 1])
+        cells_block.append(obs.cells)
+        if len(cells_block) == 64:
+            fold_distances()
         if driver is not None:
             driver.dispatch(obs, step.settle, stats, draw)
             sent = driver.sent_commits
@@ -337,7 +353,8 @@ def run_episode(spec: EpisodeSpec, trace_hook=None, snapshot_ticks=(), policy: C
     W = brains.team_weights()
     A = brains.team_links()
     blocks = measures.mean_w_by_block(W, is_agv)
-    mean_dist = dist_sum / T
+    fold_distances()
+    mean_dist = dist_sum.astype(float) / T
     summary = {
         "scale": spec.scale,
         "condition": spec.condition,

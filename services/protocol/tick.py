@@ -133,11 +133,13 @@ def sequential_commits(obs, coordinator, draw: Callable[[int], float], count=Non
     """The reference's sequential dispatch: AGVs in mission order, each asking the nearest picker still free after
     those taken earlier in the step; one picker per cell. ``count(ask, p)`` sees every gate decision."""
     free = obs.free_picker.copy()
+    free_left = int(np.count_nonzero(free))
+    targets = obs.target.tolist()
     cells: set[tuple[int, int]] = set()
     commits = []
     for agv in obs.requesters().tolist():
-        cell = (int(obs.target[agv, 0]), int(obs.target[agv, 1]))
-        if cell in cells or not free.any():
+        cell = tuple(targets[agv])
+        if cell in cells or not free_left:
             continue
         g = gate(coordinator, agv, obs, lambda agv=agv: draw(agv), free)
         if g.picker < 0:
@@ -146,6 +148,7 @@ def sequential_commits(obs, coordinator, draw: Callable[[int], float], count=Non
             count(g.ask, g.p)
         if g.ask:
             commits.append((g.picker, agv))
+            free_left -= bool(free[g.picker])
             free[g.picker] = False
             cells.add(cell)
     return commits

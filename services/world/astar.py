@@ -176,39 +176,38 @@ WALL = (1 << 30) - 1  # the largest int CPython keeps in one digit, so compariso
 
 class _Entry(float):
     """An open-list entry of the unit search: its value is the priority, the only thing ``heapq`` compares (floats
-    compare by value alone), and it carries the cell it reaches, the direction it entered from and its cost."""
+    compare by value alone), and it carries the cell it reaches. A cell is pushed once, so the direction it was
+    entered from and its cost are kept by cell, beside its parent."""
 
-    __slots__ = ("cell", "dir", "cost")
+    __slots__ = ("cell",)
 
 
 def unit_search(closed: list[int], stamp: int, parents: list[int], start: int, goal: int, W: int,
                 nbr_table: list[tuple[tuple[int, int, int, int], ...]],
-                expanded: list[int] | None = None) -> list[int] | None:
+                expanded: list[int] | None = None, dirs: list[int] | None = None,
+                costs: list[int] | None = None) -> list[int] | None:
     """:func:`astar_unit`'s search on reusable lists: a cell is closed (an obstacle, or reached by this search) when
     ``closed[c] >= stamp``, and the search marks the cells it reaches with ``stamp``, so a caller that raises the
-    stamp for each search needs no fresh weights. ``parents`` is any list of H * W ints: the search writes a
-    cell's entry when it reaches the cell, before anything reads it, so stale entries are never read.
+    stamp for each search needs no fresh weights. ``parents``, ``dirs`` and ``costs`` are any lists of H * W ints
+    (fresh ones when not given): the search writes a cell's entries when it reaches the cell, before anything reads
+    them, so stale entries are never read.
 
     The open list is ``heapq``'s, on :class:`_Entry` priorities: the same moves as libstdc++'s heap (module
     docstring), so the same cell comes to the top at every step.
     """
     if start == goal:  # the goal is the first top
         return [start]
+    if dirs is None or costs is None:
+        dirs, costs = [0] * len(parents), [0] * len(parents)
     closed[start] = stamp  # reached
     g_row, g_col = divmod(goal, W)
-    top = _Entry(0.0)
-    top.cell, top.dir, top.cost = start, -1, 0
-    heap = [top]
-    while heap:
-        top = heappop(heap)
-        cur = top.cell
+    heap: list[_Entry] = []
+    cur, prev_dir, base = start, -1, 0  # the start: entered from nowhere, so no move from it pays for a turn
+    while True:
         if expanded is not None:
             expanded.append(cur)
         # --- expand: cells not reached yet, at cost + 1, + 1 more on a change of direction ---
-        prev_dir = top.dir
-        base = top.cost
-        for nbr in nbr_table[cur]:
-            nb = nbr[1]
+        for code, nb, row, col in nbr_table[cur]:
             if closed[nb] >= stamp:  # an obstacle or a reached cell
                 continue
             if nb == goal:  # the answer is fixed (see astar_unit)
@@ -218,14 +217,19 @@ def unit_search(closed: list[int], stamp: int, parents: list[int], start: int, g
                     path.append(cur)
                 path.reverse()
                 return path
-            code = nbr[0]
-            cost = base + 2 if (prev_dir > 0 and prev_dir != code) else base + 1
-            entry = _Entry(cost + (abs(nbr[2] - g_row) + abs(nbr[3] - g_col)))
-            entry.cell, entry.dir, entry.cost = nb, code, cost
+            cost = base + 1 if (code == prev_dir or prev_dir < 0) else base + 2
+            entry = _Entry(cost + (abs(row - g_row) + abs(col - g_col)))
+            entry.cell = nb
             heappush(heap, entry)
             parents[nb] = cur
+            dirs[nb] = code
+            costs[nb] = cost
             closed[nb] = stamp
-    return None
+        if not heap:
+            return None
+        cur = heappop(heap).cell
+        prev_dir = dirs[cur]
+        base = costs[cur]
 
 
 class Planner:
@@ -261,6 +265,8 @@ class Planner:
         self._stamp = 0
         self._closed = {False: [0] * (H * W), True: [WALL if wall else 0 for wall in self._picker_walls]}
         self._parents = [-1] * (H * W)
+        self._dirs = [0] * (H * W)
+        self._costs = [0] * (H * W)
         self.searches = 0  # exact searches run (cache misses included)
 
     def find_path(self, start: tuple[int, int], goal: tuple[int, int], picker: bool,
@@ -354,7 +360,8 @@ class Planner:
             closed[g] = 0
         if s_eff != s and closed[s] < stamp:
             closed[s] = stamp
-        raw = unit_search(closed, stamp, self._parents, s_eff, g, self.W, self._nbrs, expanded)
+        raw = unit_search(closed, stamp, self._parents, s_eff, g, self.W, self._nbrs, expanded, self._dirs,
+                          self._costs)
         if picker:
             walls = self._picker_walls
             if walls[g]:

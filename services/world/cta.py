@@ -179,22 +179,26 @@ class CTAController:
     # ------------------------------------------------------------------ observation
     def _targets(self):
         n = self.n
-        mission = np.zeros(n, dtype=np.int8)
-        target = np.full((n, 2), NO_CELL, dtype=np.int64)
-        task = np.zeros(n, dtype=np.int64)
+        # filled as lists and made arrays once: item writes into small numpy arrays cost more than the lists
+        # (plain ints: numpy converts enum members and tuples one by one)
+        mission = [0] * n
+        target = [NO_CELL] * (2 * n)  # x0, y0, x1, y1, ...
+        task = [0] * n
         serving: dict[tuple[int, int], int] = {}
+        items = self.items
         for a, m in self.agv_missions.items():
-            mission[a] = m.kind
-            target[a] = m.cell
-            task[a] = self.items.get(a, 0)
+            mission[a] = m.kind.value
+            target[2 * a], target[2 * a + 1] = m.cell
+            task[a] = items.get(a, 0)
             if m.kind in NEEDS_PICKER and m.cell not in serving:
                 serving[m.cell] = a
         for p, m in self.picker_missions.items():
-            mission[p] = m.kind
-            target[p] = m.cell
+            mission[p] = m.kind.value
+            target[2 * p], target[2 * p + 1] = m.cell
             a = serving.get(m.cell)
             task[p] = task[a] if a is not None else 0
-        return mission, target, task
+        return (np.array(mission, dtype=np.int8), np.array(target, dtype=np.int64).reshape(n, 2),
+                np.array(task, dtype=np.int64))
 
     def begin_tick(self) -> TickObservation:
         """Steps 1-2 for tick ``t``; the returned observation is what the agents see."""
@@ -202,12 +206,10 @@ class CTAController:
         self._advance_missions()
         mission, target, task = self._targets()
         picker_cells = {m.cell for m in self.picker_missions.values()}
-        needs = np.zeros(self.n, dtype=bool)
+        needs = [False] * self.n
         for a, m in self.agv_missions.items():
             needs[a] = m.kind in NEEDS_PICKER and m.cell not in picker_cells
-        free = np.zeros(self.n, dtype=bool)
-        for p in range(self.n_agvs, self.n):
-            free[p] = p not in self.picker_missions
+        free = [False] * self.n_agvs + [p not in self.picker_missions for p in range(self.n_agvs, self.n)]
         prev = self._prev
         return TickObservation(
             t=self.t,
@@ -218,8 +220,8 @@ class CTAController:
             mission=mission,
             target=target,
             task=task,
-            needs_picker=needs,
-            free_picker=free,
+            needs_picker=np.array(needs, dtype=bool),
+            free_picker=np.array(free, dtype=bool),
             request_order=np.fromiter(self.agv_missions.keys(), dtype=np.int64, count=len(self.agv_missions)),
             has_previous=self._has_prev,
             prev_mission=prev["mission"],
@@ -275,20 +277,20 @@ class CTAController:
         carried_before = list(self.wh.carrying[: self.n_agvs])
         result = self.wh.step(acts, hold=sorted(self.held))
         rewards = np.asarray(result.rewards, dtype=float)
-        delivered = np.zeros(self.n, dtype=bool)
-        delivered[: self.n_agvs] = rewards[: self.n_agvs] > 0.5  # the reference's delivery count
-        loader = np.full(self.n, -1, dtype=np.int64)
-        for a in np.flatnonzero(delivered):
-            loader[a] = self.loader.get(int(a), -1)
-        handled = np.zeros(self.n, dtype=bool)
-        for a in range(self.n_agvs):
-            if self.wh.carrying[a] != carried_before[a]:  # a load or an unload, always with a picker here
-                handled[a] = True
-        handled[self.n_agvs:] = rewards[self.n_agvs:] > 0.05  # the picker's +0.1 per load/unload
+        na = self.n_agvs
+        # per robot in plain Python, made arrays once (a fleet is too small for numpy's calls to pay)
+        reward_list = result.rewards
+        delivered_list = [r > 0.5 for r in reward_list[:na]] + [False] * (self.n - na)  # the reference's count
+        loader = [self.loader.get(a, -1) if d else -1 for a, d in enumerate(delivered_list)]
+        carrying = self.wh.carrying
+        # an AGV's load or unload, always with a picker here; the picker's +0.1 per load/unload
+        handled = [carrying[a] != carried_before[a] for a in range(na)] + [r > 0.05 for r in reward_list[na:]]
+        delivered = np.array(delivered_list, dtype=bool)
         self._prev = dict(mission=mission, target=target, task=task, delivered=delivered,
-                          reward=rewards, loader=loader, handled=handled)
+                          reward=rewards, loader=np.array(loader, dtype=np.int64),
+                          handled=np.array(handled, dtype=bool))
         self._has_prev = True
-        self.deliveries += int(delivered.sum())
+        self.deliveries += sum(delivered_list)
         self.last_result = result
         self.t += 1
         return result

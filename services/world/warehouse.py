@@ -13,7 +13,6 @@ positions from the start of the step.
 from __future__ import annotations
 
 import hashlib
-from collections import Counter
 from dataclasses import dataclass, field
 from enum import IntEnum
 from itertools import filterfalse
@@ -427,8 +426,14 @@ class Warehouse:
         ahead = self._ahead
         # req_location() of every agent, on flat cells
         targets = [ahead[c][d] if r == FORWARD else c for c, d, r in zip(starts, dirs, req)]
-        # how many starts and requests name each cell (each key is a node of the move graph)
-        uses = Counter(starts + targets)
+        # how many starts and requests name each cell (each key is a node of the move graph); a plain dict, as
+        # every cell looked up is a start or a request (a Counter costs twice as much to build)
+        uses: dict[int, int] = {}
+        count = uses.get
+        for c in starts:
+            uses[c] = count(c, 0) + 1
+        for c in targets:
+            uses[c] = count(c, 0) + 1
         committed, rest = self._stage_a(starts, targets, uses)
         if not rest:
             return 0
@@ -438,7 +443,7 @@ class Warehouse:
                 req[i] = NOOP
         return clashes
 
-    def _stage_a(self, starts: list[int], targets: list[int], uses: Counter) -> tuple[set[int], list[int]]:
+    def _stage_a(self, starts: list[int], targets: list[int], uses: dict[int, int]) -> tuple[set[int], list[int]]:
         """Stage A on flat cells: the ids of the agents the move graph commits, and the indices of the agents that
         are not alone in their component (the only ones Stage B and the veto can concern).
 
@@ -548,7 +553,7 @@ class Warehouse:
                     committed.add(pid)
         return committed, rest
 
-    def _clash_loop(self, starts: list[int], targets: list[int], uses: Counter, committed: set[int]) -> int:
+    def _clash_loop(self, starts: list[int], targets: list[int], uses: dict[int, int], committed: set[int]) -> int:
         """Stage B, literally in id order, on flat cells. Requests change inside the loop, so requested cells are
         kept current in ``targets`` and their counts in ``uses``. A pair can only act when the agent's requested
         cell is another agent's cell or request, so an agent whose requested cell nobody else stands on or asks for
@@ -723,13 +728,22 @@ class Warehouse:
                 continue
             excluded = set(queue)
             excluded.update(s for s in self.carrying if s)
-            candidates = list(filterfalse(excluded.__contains__, range(1, self.layout.num_shelves + 1)))
-            if self.demand_side is not None:
+            if self.demand_side is None:
+                # the draw's pick among the free shelves in id order, found without listing them: step the drawn
+                # rank over every excluded id at or below it
+                shelf = int(self._rng.randint(0, self.layout.num_shelves - len(excluded))) + 1  # type: ignore[union-attr]
+                for s in sorted(excluded):
+                    if s > shelf:
+                        break
+                    shelf += 1
+                new = shelf
+            else:
+                candidates = list(filterfalse(excluded.__contains__, range(1, self.layout.num_shelves + 1)))
                 # Same single draw per counted delivery, over the active half only; if that half has no free
                 # shelf left (never at the named sizes) the draw falls back to every free shelf.
                 active = [s for s in candidates if self.on_side(s, self.demand_side)]
                 candidates = active or candidates
-            new = candidates[int(self._rng.randint(0, len(candidates)))]  # type: ignore[union-attr]
+                new = candidates[int(self._rng.randint(0, len(candidates)))]  # type: ignore[union-attr]
             queue[queue.index(sid)] = new
             aid = self.agv_layer[c]
             i = aid - 1
