@@ -219,9 +219,13 @@ def live_run(tmp_path):
     """Start ``morph-sim up`` runs (:class:`_procs.LiveRun`); whatever is still running at the end is killed."""
     runs: list[LiveRun] = []
 
-    def start(run_id: str, *flags: str, **options) -> LiveRun:
+    def start(run_id: str, *flags: str, before=None, **options) -> LiveRun:
+        """``before(run)``: called once the run's port and record are known, before ``up`` starts (a client that
+        must be there from the first tick)."""
         run = LiveRun(tmp_path, run_id, *flags, **options)
         runs.append(run)
+        if before is not None:
+            before(run)
         return run.start()
 
     yield start

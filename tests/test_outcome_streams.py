@@ -55,12 +55,21 @@ def test_a_live_up_streams_every_outcome_every_tick_and_ends_on_the_record(tmp_p
     AGVs asking one picker): the streams and the record are the monitor's whatever the fleet."""
     steps = 300
     (tmp_path / "faults.toml").write_text(schedule_toml((*dispatch_faults(LATE), *dispatch_faults(BURSTY))))
-    up = live_run("live-oc", "--policy", "full", "--seed", "5", "--steps", str(steps), "--max-rate", "0",
-                  "--phase-timeout", "20", "--fault-schedule", str(tmp_path / "faults.toml"), *FEW_ROBOTS)
     env = {k: v for k, v in os.environ.items() if not k.startswith("ZENOH_")}
-    sub = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, str(up.port), "live-oc",
-                            str(up.record / "credentials" / "operator.json5"), "120", str(steps - 1)],
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    subscriber: list[subprocess.Popen] = []
+
+    def start_subscriber(run) -> None:
+        # started before the run (it waits for the credentials and the endpoint): a client started after it was
+        # once still importing while a 300-tick run went by
+        subscriber.append(subprocess.Popen([sys.executable, "-c", SUBSCRIBER, str(run.port), "live-oc",
+                                            str(run.record / "credentials" / "operator.json5"), "120",
+                                            str(steps - 1)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                           text=True, env=env))
+
+    up = live_run("live-oc", "--policy", "full", "--seed", "5", "--steps", str(steps), "--max-rate", "0",
+                  "--phase-timeout", "20", "--fault-schedule", str(tmp_path / "faults.toml"), *FEW_ROBOTS,
+                  before=start_subscriber)
+    sub = subscriber[0]
     try:
         assert up.wait(timeout=150) == 0, up.stderr()[-3000:]
         out, err = sub.communicate(timeout=30)
@@ -78,8 +87,9 @@ def test_a_live_up_streams_every_outcome_every_tick_and_ends_on_the_record(tmp_p
         samples = got[name]
         # continuity: a sample per row as the monitor writes it (--max-rate 0), in tick order, from the moment the
         # client joined (the run may start before it has subscribed). Metric samples are telemetry, published with
-        # Zenoh's DROP congestion control: on a loaded machine a client may lose some (measured: 0-17 % of the rows
-        # before the monitor published one batch at a time); the record has every row
+        # Zenoh's DROP congestion control while the run goes on: on a loaded machine a client may lose some
+        # (measured: 0-17 % of the rows before the monitor published one batch at a time); the rows the monitor
+        # publishes after the run's end come whole; the record has every row
         ticks = [t for t, _, _ in samples]
         gaps = [b - a for a, b in zip(ticks, ticks[1:])]
         assert ticks == sorted(ticks) and ticks[0] <= steps // 3, (name, ticks[0])

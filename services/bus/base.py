@@ -344,6 +344,12 @@ def unpack_bundle(carrier: Sample) -> list[Sample]:
 class Bus(ABC):
     """One participant's session on the run's bus. Use ``async with`` or call :meth:`close`."""
 
+    #: this session hosts the endpoint others connect to: closing it drops what it still queues for them
+    hosts_endpoint: bool = False
+    #: what this session publishes leaves from a send queue after the call returns (a network transport): closing
+    #: the session right after a publication can lose it
+    flushes_late: bool = False
+
     def __init__(self, identity: str):
         self.identity = str(identity)
         self.counters = BusCounters()

@@ -291,6 +291,8 @@ class _ZenohQuery(Query):
 class ZenohBus(Bus):
     """A Bus over one Zenoh session. Open with :meth:`open` (listen or connect)."""
 
+    flushes_late = True
+
     def __init__(self, identity: str, session: Any, loop: asyncio.AbstractEventLoop, *, express: bool = False):
         super().__init__(identity)
         self.session = session
@@ -335,7 +337,9 @@ class ZenohBus(Bus):
                                       f"answered within {connect_timeout:.0f} s (is the run up?)") from None
             raise ConnectionError(f"cannot open zenoh session ({where}): {error}") from None
         lowlatency_on = json.loads(cfg.get_json("transport/unicast/lowlatency")) is True
-        return cls(identity, session, loop, express=not lowlatency_on)
+        bus = cls(identity, session, loop, express=not lowlatency_on)
+        bus.hosts_endpoint = bool(_as_list(listen))
+        return bus
 
     # -- bridge: Zenoh threads -> the asyncio loop -------------------------------------------------------------------
     def _post(self, fn: Callable[..., None], *args: Any) -> None:

@@ -54,6 +54,7 @@ STOP_GRACE = 3.0  # seconds the monitor waits for the sim's end of run after som
 #: every this many rows the monitor says how far its record is (event ``record.progress``, t = rows written): the
 #: lockstep sim keeps at most its window of ticks ahead of it (services/sim/service.py, MONITOR_WINDOW)
 PROGRESS_EVERY = 50
+END_FLUSH_TIMEOUT = 5.0  # seconds the monitor waits for its last samples to be past the endpoint
 # what the dispatch protocol sends, by the monitor's message kind (the sim's Ticks and Resolves are kind "sim")
 PROTOCOL_KINDS = ("sim", "ack", "request", "reply", "commit", "policy")  # what the monitor's own network model can see
 
@@ -181,7 +182,12 @@ class MonitorService:
                 self.finish()
             except OSError as exc:
                 self._record_failed(exc)
-        await self.streams.publish_pending(force=True)
+        await self.streams.publish_pending(force=True, lossless=True)  # the run is over: see there
+        if self.streams.published_lossless and self.bus.flushes_late:
+            # Closing a Zenoh session discards what it has not sent yet, and leaving (the token) can overtake the
+            # samples still queued. A query the sim answers comes back only once the endpoint has taken everything
+            # this session sent before it (one link, in order), the samples among them: then leaving loses nothing.
+            await self.bus.get(k.registry_policy, timeout=END_FLUSH_TIMEOUT)
         await token.close()
         return self.result
 

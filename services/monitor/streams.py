@@ -187,6 +187,7 @@ class StreamPublisher:
         self.last_values: dict = {}  # the newest row's values
         self._last_publish = 0.0
         self._pending: list[MetricSample] = []
+        self.published_lossless = 0  # samples published without loss (the run's end)
         self._publishing = False  # a publication of metric samples is under way
         self._fresh: dict[str, tuple[int, float, float]] = {}  # stream -> newest (t, sim time, value) unpublished
         self._unbuilt = False  # rows noted since the metric samples were last built
@@ -247,9 +248,13 @@ class StreamPublisher:
         self._air_due = True
 
     def finish(self) -> None:
-        """The last rows' samples: ``latest_metric`` ends on the run's final values."""
+        """The last rows' samples: ``latest_metric`` ends on the run's final values. Each stream's final sample goes
+        out (again, if it went out during the run): the run's end publishes without loss, and a subscriber that lost
+        the run's last rows to congestion still ends on the run's totals, never on a stale value."""
         if self._unbuilt:
             self._build(self.last_values)
+        queued = {(_stream(x), x.t) for x in self._pending}
+        self._pending += [x for x in self.latest_metric.values() if (_stream(x), x.t) not in queued]
 
     def _build(self, values: dict) -> None:
         """The pending MetricSamples of the rows noted since the last build; ``values`` is the newest row."""
@@ -292,9 +297,15 @@ class StreamPublisher:
             self._last_publish = now
             await self.publish_pending()
 
-    async def publish_pending(self, force: bool = False) -> None:
+    async def publish_pending(self, force: bool = False, *, lossless: bool = False) -> None:
         """Publish the pending samples. One publication at a time, which takes whatever is queued meanwhile too, so
-        each stream's samples go out in tick order; ``force`` (the end of the run) waits for the one under way."""
+        each stream's samples go out in tick order; ``force`` (the end of the run) waits for the one under way.
+
+        ``lossless`` (the end of the run): blocking congestion control instead of dropping. While the run goes on, a
+        slow subscriber must never hold up the monitor (and through its window the fleet), so samples are dropped
+        rather than queued. Once the run has ended its last rows come out at once, often a backlog of a hundred
+        rows or more: a subscriber that is not scheduled for that tenth of a second lost every one of them, the
+        run's final values among them (seen on a loaded machine). Now it only makes the monitor's exit wait."""
         while self._publishing:
             if not force:
                 return  # the publication under way takes these too
@@ -303,8 +314,9 @@ class StreamPublisher:
         try:
             while self._pending:
                 samples, self._pending = self._pending, []
+                self.published_lossless += len(samples) if lossless else 0
                 for i, s in enumerate(samples, 1):
-                    await self.bus.publish(self.keys.metric(s.name), s, droppable=True)
+                    await self.bus.publish(self.keys.metric(s.name), s, droppable=not lossless)
                     if i % PUBLISH_BURST == 0 and i < len(samples):
                         # a backlog (every row of a monitor that fell behind, --max-rate 0) goes out in bursts the
                         # transport can queue: droppable samples beyond its queue would be lost for every subscriber

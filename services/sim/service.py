@@ -62,6 +62,7 @@ LEAVE_TIMEOUT = 2.0  # seconds the sim waits, after its stop, for the other part
 # on a loaded machine: several seconds). The sim hosts the endpoint: closing it earlier loses what is still on the way
 # to the monitor, and the record would end before the run did (seen: 51 of 60 rows).
 MONITOR_LEAVE_TIMEOUT = 20.0
+STREAM_DRAIN_SECONDS = 2.0  # the endpoint stays open this long after the others left while a client follows streams
 
 
 class SimService(Presence, PhaseCollection, Answers, air.AirAnnouncements):
@@ -192,6 +193,7 @@ class SimService(Presence, PhaseCollection, Answers, air.AirAnnouncements):
         self.registry = await mount_registry(bus, k, self.config.n_agvs, self.config.n_pickers,
                                              policy=self.config.policy_announcement())
         prober = asyncio.get_running_loop().create_task(self._probe_loop())
+        await self._streams_followed()  # declares the probe now: its matching status is current by the run's end
         try:
             await self._wait_ready()
             if self._stop is None:
@@ -229,9 +231,25 @@ class SimService(Presence, PhaseCollection, Answers, air.AirAnnouncements):
                 await asyncio.wait_for(self._ready_changed.wait(), 0.1)
             except asyncio.TimeoutError:
                 pass
+        if self.bus.hosts_endpoint and await self._streams_followed():
+            log.info("a client follows the metric streams: the endpoint stays open %.1f s more", STREAM_DRAIN_SECONDS)
+            # A client following the metric streams (watch, a user's script) still has in the endpoint's queue what
+            # the monitor published last, often a backlog of rows it sent out as it left; closing now would discard
+            # what that client has not read yet (seen on a busy machine: the last 60-250 rows of a run)
+            await asyncio.sleep(STREAM_DRAIN_SECONDS)
         await self.registry.close()
         await token.close()
         return r
+
+    async def _streams_followed(self) -> bool:
+        """Whether a subscriber outside the run's own processes follows the run's metric streams. ``morph-sim up``'s
+        progress line follows only ``deliveries_total`` and ``links`` and the monitor has left by the run's end, so
+        a subscriber of another stream is a client's."""
+        try:
+            await self.bus.wait_for_subscribers(self.keys.metric("lambda2"), timeout=0.0)
+        except TimeoutError:
+            return False
+        return True
 
     def _publish_tick(self, obs: TickObservation) -> None:
         """Tick start: the fleet broadcast (a network message: faults act on it), the world record (the monitor's,
