@@ -142,6 +142,7 @@ class Coordinator(ABC):
         if self.owners.size and (self.owners.min() < 0 or self.owners.max() >= fleet.n):
             raise ValueError(f"owners: agent indices must lie in 0..{fleet.n - 1}")
         self._slot = {int(a): k for k, a in enumerate(self.owners)}
+        self._owners_in_order = bool(np.array_equal(self.owners, np.arange(fleet.n)))  # row k is agent k
         self._rngs = [agent_rng(seed, int(a)) for a in self.owners]
 
     def slot(self, agent: int) -> int:
@@ -244,6 +245,8 @@ class Coordinator(ABC):
         n = self.fleet.n
         if len(self.owners) != n:
             raise ValueError("owners: the team view needs every agent of the fleet")
+        if getattr(self, "_owners_in_order", False):  # (a subclass may set owners itself)
+            return np.array(rows, dtype=float)  # the rows in agent order already (a team brain): as they are
         out = np.zeros((n, n))
         out[self.owners] = rows
         return out

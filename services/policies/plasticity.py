@@ -274,6 +274,8 @@ class ReferenceState:
     def structural_due(self, rows=None) -> bool:
         """Whether the next :meth:`step` of the replicas ``rows`` (default all) runs the structural update of one of
         them (every k-th step), the only reader of the positions and the hint: an agent builds them only then."""
+        if rows is None and self.replicas == 1:  # one brain (every tick of a team brain): a plain int
+            return (int(self.t[0]) + 1) % self.params.k == 0
         t = self.t if (rows := self._some(rows)) is None else self.t[rows]
         return bool(((t + 1) % self.params.k == 0).any())
 

@@ -36,9 +36,14 @@ class Mission:
     y: int
     t: int  # step at which it was assigned
     cell: tuple[int, int] = (0, 0)  # (x, y), filled in from x and y
+    # what every tick's observation reads of it, as plain values (a mission never changes once made)
+    code: int = 0  # kind's value
+    needs_picker: bool = False  # kind in NEEDS_PICKER
 
     def __post_init__(self) -> None:
         self.cell = (self.x, self.y)
+        self.code = self.kind.value
+        self.needs_picker = self.kind in NEEDS_PICKER
 
 
 class CTAController:
@@ -187,13 +192,13 @@ class CTAController:
         serving: dict[tuple[int, int], int] = {}
         items = self.items
         for a, m in self.agv_missions.items():
-            mission[a] = m.kind.value
+            mission[a] = m.code
             target[2 * a], target[2 * a + 1] = m.cell
             task[a] = items.get(a, 0)
-            if m.kind in NEEDS_PICKER and m.cell not in serving:
+            if m.needs_picker and m.cell not in serving:
                 serving[m.cell] = a
         for p, m in self.picker_missions.items():
-            mission[p] = m.kind.value
+            mission[p] = m.code
             target[2 * p], target[2 * p + 1] = m.cell
             a = serving.get(m.cell)
             task[p] = task[a] if a is not None else 0
@@ -208,7 +213,7 @@ class CTAController:
         picker_cells = {m.cell for m in self.picker_missions.values()}
         needs = [False] * self.n
         for a, m in self.agv_missions.items():
-            needs[a] = m.kind in NEEDS_PICKER and m.cell not in picker_cells
+            needs[a] = m.needs_picker and m.cell not in picker_cells
         free = [False] * self.n_agvs + [p not in self.picker_missions for p in range(self.n_agvs, self.n)]
         prev = self._prev
         return TickObservation(
