@@ -50,8 +50,11 @@ with session:
     while time.monotonic() < deadline and not (len(got) == 7 and all(v[-1][0] == last for v in got.values())):
         if "at" in end and time.monotonic() > end["at"] + 20:
             break
+        # when the session last had its endpoint (the run's endpoint is a peer), for a failure's message
+        if list(session.info.peers_zid()) or list(session.info.routers_zid()):
+            seen["endpoint_seen_at"] = round(time.monotonic() - t0, 3)
         time.sleep(0.05)
-    seen["routers"] = len(list(session.info.routers_zid()))
+    seen["run_finished_at"] = round(end["at"] - t0, 3) if "at" in end else None
 print(json.dumps(got))
 print("client saw:", json.dumps(seen)[-1200:], file=sys.stderr)  # for a failure's message
 '''

@@ -62,7 +62,7 @@ LEAVE_TIMEOUT = 2.0  # seconds the sim waits, after its stop, for the other part
 # on a loaded machine: several seconds). The sim hosts the endpoint: closing it earlier loses what is still on the way
 # to the monitor, and the record would end before the run did (seen: 51 of 60 rows).
 MONITOR_LEAVE_TIMEOUT = 20.0
-STREAM_DRAIN_SECONDS = 2.0  # the endpoint stays open this long after the others left while a client follows streams
+STREAM_DRAIN_SECONDS = 5.0  # the endpoint stays open, after the others left, while a client follows streams
 
 
 class SimService(Presence, PhaseCollection, Answers, air.AirAnnouncements):
@@ -232,11 +232,15 @@ class SimService(Presence, PhaseCollection, Answers, air.AirAnnouncements):
             except asyncio.TimeoutError:
                 pass
         if self.bus.hosts_endpoint and await self._streams_followed():
-            log.info("a client follows the metric streams: the endpoint stays open %.1f s more", STREAM_DRAIN_SECONDS)
-            # A client following the metric streams (watch, a user's script) still has in the endpoint's queue what
-            # the monitor published last, often a backlog of rows it sent out as it left; closing now would discard
-            # what that client has not read yet (seen on a busy machine: the last 60-250 rows of a run)
-            await asyncio.sleep(STREAM_DRAIN_SECONDS)
+            log.info("a client follows the metric streams: the endpoint stays open while it does, up to %.0f s",
+                     STREAM_DRAIN_SECONDS)
+            # A client following the metric streams (watch, a user's script) may still be reading what the monitor
+            # published last, often a backlog of rows it sent out as it left; closing the endpoint now would cut it
+            # off (seen on a busy machine: a client still reading rows 200-300 seconds after the run's end). A
+            # client that has what it wanted leaves, and then the endpoint closes at once.
+            drain_until = time.monotonic() + STREAM_DRAIN_SECONDS
+            while time.monotonic() < drain_until and await self._streams_followed():
+                await asyncio.sleep(0.1)
         await self.registry.close()
         await token.close()
         return r
