@@ -250,7 +250,7 @@ class CTAController:
         cells = {m.cell for m in self.picker_missions.values()}
         for picker, agv in commits:
             m = self.agv_missions.get(agv)
-            if picker in self.picker_missions or m is None or m.kind not in NEEDS_PICKER or m.cell in cells:
+            if picker in self.picker_missions or m is None or not m.needs_picker or m.cell in cells:
                 continue
             self.picker_missions[picker] = Mission(PICKING, m.action, m.x, m.y, self.t)
             cells.add(m.cell)
@@ -259,7 +259,7 @@ class CTAController:
 
     # ------------------------------------------------------------------ steps 5-7
     def _release(self) -> None:
-        needed = {m.cell for m in self.agv_missions.values() if m.kind in NEEDS_PICKER}
+        needed = {m.cell for m in self.agv_missions.values() if m.needs_picker}
         for p in [p for p, m in self.picker_missions.items() if m.cell not in needed]:
             del self.picker_missions[p]
 
