@@ -79,7 +79,6 @@ class CpuMeter:
         # "name:pid" -> (tick, CPU seconds) at the first and at the latest sample that saw that process
         self.first: dict[str, tuple[int, float]] = {}
         self.last: dict[str, tuple[int, float]] = {}
-        self.first_tick: int | None = None
 
     def _role(self, name: str) -> str:
         if name.startswith("agent-"):
@@ -101,8 +100,6 @@ class CpuMeter:
 
     def record(self, t: int, sample: dict[str, float]) -> None:
         """Take one sample at tick ``t`` into the processes' windows."""
-        if self.first_tick is None:
-            self.first_tick = t
         for key, seconds in sample.items():
             self.first.setdefault(key, (t, seconds))
             self.last[key] = (t, seconds)
@@ -120,6 +117,9 @@ class CpuMeter:
 
         Only processes present from the window's first sample count, and a process restarted inside the window
         (its name seen with two pids) is left out: neither of its lives spans what the others' windows span."""
+        if not self.first:
+            return {}
+        first_tick = min(t for t, _ in self.first.values())  # the window's first sample
         pids: dict[str, int] = {}
         for key in self.first:
             name = key.rsplit(":", 1)[0]
@@ -128,7 +128,7 @@ class CpuMeter:
         for key, (t0, start) in self.first.items():
             name = key.rsplit(":", 1)[0]
             t1, end = self.last[key]
-            if t0 != self.first_tick or pids[name] > 1 or t1 <= t0:
+            if t0 != first_tick or pids[name] > 1 or t1 <= t0:
                 continue
             sums.setdefault(self._role(name), []).append(1e3 * (end - start) / (t1 - t0))
         if not sums:
