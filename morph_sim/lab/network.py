@@ -315,8 +315,9 @@ class LabDispatch:
             self._hand_mail(obs.t, s)
             return
         size = self._tick_size(obs)
+        broadcast, send, key = FleetBroadcast(obs, s), self.net.send, self.keys.fleet
         for agent in range(self.n):  # one publication: one sequence number (its t), a copy per receiver
-            self.net.send(self.keys.fleet, "sim", agent, FleetBroadcast(obs, s), s, seq=obs.t, size=size)
+            send(key, "sim", agent, broadcast, s, seq=obs.t, size=size)
         self._deliver(s)
         ages = []
         # the robots that take a new view now, by view: every copy of one broadcast is the same observation, so

@@ -153,6 +153,7 @@ class FaultLayer:
         self.stats = FaultStats()
         self._faults: dict[str, ActiveFault] = {}
         self._links: dict[tuple, _Link] = {}
+        self._kinds: dict[str, tuple[str | None, bool | None]] = {}  # see _kind_of
         self._auto_ids = itertools.count(1)
         # the run's network profile (services/faults/network.py), judged before the fault specs in virtual time; it
         # learns where the robots are from every Tick of the sim this layer sees (sent or received)
@@ -257,6 +258,34 @@ class FaultLayer:
             link = self._links[key] = _Link(random.Random(name))
         return link
 
+    def _kind_of(self, key: str) -> tuple[str | None, bool | None]:
+        """What the layer does with messages on ``key``, kept per key (a few dozen keys carry every message of a
+        run): (its key relative to the run, or None when it is never faulted; whether it is radio traffic, or None
+        when it is faulted only in wall time)."""
+        kinds = self._kinds
+        if len(kinds) >= 4096:  # keys nobody planned (a fuzzer's): the table stays bounded
+            kinds.clear()
+        try:
+            chunks = self.keys.relative(key)
+        except ValueError:
+            kind = None, None  # not this run's traffic: untouched
+        else:
+            rel = "/".join(chunks)
+            if chunks[0] in ("ctl", "air"):
+                # control traffic (fault reset, stop) is never faulted: `reset` always works; the air's verdicts and
+                # announcements are the radio's own bookkeeping, not radio traffic
+                kind = None, None
+            elif chunks[0] == "events":
+                kind = rel, None  # virtual time: the presence handshake runs before any boundary could release it
+            elif len(chunks) == 3 and chunks[0] == "agent" and chunks[2] in ("skip", "ack"):
+                kind = None, None  # acks and skips let the sim advance time (synchronisation): never faulted
+            elif chunks[0] == "sim" and chunks[1:] == ["resolve"]:
+                kind = None, None  # the picker's decision point is synchronisation too
+            else:
+                kind = rel, not matches(ONBOARD, rel)  # sensing is not radio
+        kinds[key] = kind
+        return kind
+
     def fate(self, key: str, sender: object, receiver: object, at: float | None = None, *,
              msg: object = None, size: int = 0, radio: Fate | None = None) -> list[float]:
         """Delivery delays for one message on link sender → receiver: [] dropped, [d] once, [d1, d2] duplicated.
@@ -269,23 +298,14 @@ class FaultLayer:
         self.stats.seen += 1
         if not self._faults and (at is None or not self._history) and self.network is None:
             return [0.0]
-        try:
-            chunks = self.keys.relative(key)
-        except ValueError:
-            return [0.0]  # not this run's traffic: untouched
-        if chunks[0] in ("ctl", "air"):
-            # control traffic (fault reset, stop) is never faulted: `reset` always works; the air's verdicts and
-            # announcements are the radio's own bookkeeping, not radio traffic
+        kind = self._kinds.get(key)
+        if kind is None:
+            kind = self._kind_of(key)
+        rel, radio_traffic = kind
+        if rel is None or (at is not None and radio_traffic is None):
             return [0.0]
-        if at is not None and chunks[0] == "events":
-            return [0.0]  # virtual time: the presence handshake runs before any boundary could release it
-        if len(chunks) == 3 and chunks[0] == "agent" and chunks[2] in ("skip", "ack"):
-            return [0.0]  # acks and skips let the sim advance time (synchronisation): never faulted
-        if chunks[0] == "sim" and chunks[1:] == ["resolve"]:
-            return [0.0]  # the picker's decision point is synchronisation too
-        rel = "/".join(chunks)
         delay = 0.0
-        if self.network is not None and at is not None and not matches(ONBOARD, rel):  # sensing is not radio
+        if self.network is not None and at is not None and radio_traffic:
             # the radio legs first (the robots' Wi-Fi), then the fault specs on top, as netem on a real interface
             if radio is not None:  # the air's verdict, counted in this process's model as if it had judged it
                 net = radio
@@ -304,6 +324,8 @@ class FaultLayer:
             delay = net.delivered_at - at if self.network_latency else 0.0
         if at is None:
             faults: list[ActiveFault] = list(self._faults.values())
+        elif not self._history and not self._faults:
+            faults = []
         else:
             faults = sorted((f for f in (*self._history, *self._faults.values()) if f.window_has(at)),
                             key=lambda f: f.serial)

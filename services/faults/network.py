@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -49,8 +50,13 @@ CAUSES = ("handover", "link_queue", "ap_queue", "loss", "dead_zone")
 
 def uniform(*parts: object) -> float:
     """A uniform draw in [0, 1) that is a pure function of ``parts`` (a counter-based stream)."""
-    digest = hashlib.blake2b("|".join(map(str, parts)).encode(), digest_size=8).digest()
-    return (int.from_bytes(digest, "big") >> 11) * (1.0 / (1 << 53))
+    return _uniform_of("|".join(map(str, parts)).encode())
+
+
+def _uniform_of(data: bytes, _hash=hashlib.blake2b, _int=int.from_bytes) -> float:
+    """:func:`uniform` of the parts whose joined text is ``data``: a message's draws share all but their head, so the
+    model joins them once (see :meth:`NetworkModel._draw`)."""
+    return (_int(_hash(data, digest_size=8).digest(), "big") >> 11) * (1.0 / (1 << 53))
 
 
 def draw_for(lat: Latency, *parts: object) -> float:
@@ -140,9 +146,9 @@ class _Radio:
         return (self.cells[i], self.aps[i]) if i >= 0 else (None, -1)
 
 
-@dataclass(frozen=True)
-class Fate:
-    """What happens to one message: delivered at ``delivered_at`` (sim seconds), or lost with a ``cause``."""
+class Fate(NamedTuple):
+    """What happens to one message: delivered at ``delivered_at`` (sim seconds), or lost with a ``cause``. (A tuple:
+    the model makes one for every copy of every message.)"""
 
     delivered_at: float | None
     cause: str | None = None
@@ -199,6 +205,8 @@ class NetworkModel:
             self.zone_keep[mask] *= 1.0 - zone.loss / 100.0
             self.zone_delay[mask] += zone.delay
         self.dead = self.zone_keep < 1.0
+        # the same per cell as plain floats, row by row: read for every radio leg of every message
+        self._zones = [list(zip(keep, delay)) for keep, delay in zip(self.zone_keep.tolist(), self.zone_delay.tolist())]
         # each access point's airtime: one queue for both directions (ap_rate), or one per direction
         # (ap_uplink_rate / ap_downlink_rate: a direction without a budget is not limited)
         self._ap_queues = [Queue(profile.ap_rate) if profile.ap_rate else None for _ in range(len(aps))]
@@ -213,13 +221,22 @@ class NetworkModel:
         self.ap_bytes = [0] * len(aps)
         self.ap_drops = [0] * len(aps)
         self._radios: dict[int, _Radio] = {}
+        self._nearest: dict[tuple[int, int], tuple[int, np.ndarray]] = {}
+        # the heads of the per-message draws, "<seed>|<purpose>|<robot>|<leg>|", as bytes: one per robot and leg
+        self._heads: dict[tuple[str, int, str], bytes] = {}
         self.events: list[HandoverEvent] = []  # every hand-over, in the order they happened
         self.stats = NetworkStats()
 
     # -- positions and roaming ------------------------------------------------------------------------------------
     def nearest(self, cell: tuple[int, int]) -> tuple[int, np.ndarray]:
-        d = np.hypot(self.access_points[:, 0] - cell[0], self.access_points[:, 1] - cell[1])
-        return int(np.argmin(d)), d
+        """(the nearest access point, every access point's distance) from ``cell``; kept per cell, as robots come
+        back to the same cells all run long (read-only arrays: they are shared)."""
+        hit = self._nearest.get(cell)
+        if hit is None:
+            d = np.hypot(self.access_points[:, 0] - cell[0], self.access_points[:, 1] - cell[1])
+            d.flags.writeable = False
+            hit = self._nearest[cell] = (int(np.argmin(d)), d)
+        return hit
 
     def _radio(self, robot: int) -> _Radio:
         radio = self._radios.get(robot)
@@ -305,13 +322,21 @@ class NetworkModel:
         return self._radio(robot).outage_end(at) is not None
 
     # -- one message ------------------------------------------------------------------------------------------------
-    def _leg(self, robot: int, direction: str, at: float, msg: object, size: int) -> tuple[float | None, str | None]:
+    def _draw(self, purpose: str, robot: int, direction: str, msg: bytes) -> float:
+        """``uniform(seed, purpose, robot, direction, msg)``, with the message's text already encoded."""
+        head = self._heads.get((purpose, robot, direction))
+        if head is None:
+            head = self._heads[(purpose, robot, direction)] = f"{self.seed}|{purpose}|{robot}|{direction}|".encode()
+        return _uniform_of(head + msg)
+
+    def _leg(self, robot: int, direction: str, at: float, msg: bytes, size: int) -> tuple[float | None, str | None]:
         radio = self._radio(robot)
-        end = radio.outage_end(at)
-        if end is not None:
-            if self.profile.handover.during == "lost":
-                return None, "handover"
-            at = end
+        if radio.starts:  # (no window to be in before the robot's first outage)
+            end = radio.outage_end(at)
+            if end is not None:
+                if self.profile.handover.during == "lost":
+                    return None, "handover"
+                at = end
         queue = radio.up if direction == "up" else radio.down
         if queue is not None:
             out = queue.admit(at, size)
@@ -330,15 +355,19 @@ class NetworkModel:
             self.ap_bytes[ap] += size
             at = out
         p = self.profile
-        if p.loss > 0.0 and uniform(self.seed, "loss", robot, direction, msg) < p.loss / 100.0:
+        if p.loss > 0.0 and self._draw("loss", robot, direction, msg) < p.loss / 100.0:
             return None, "loss"
         keep, extra = 1.0, 0.0
         if cell is not None:
             x, y = cell
-            keep, extra = float(self.zone_keep[y, x]), float(self.zone_delay[y, x])
-        if keep < 1.0 and uniform(self.seed, "zone", robot, direction, msg) >= keep:
+            keep, extra = self._zones[y][x]
+        if keep < 1.0 and self._draw("zone", robot, direction, msg) >= keep:
             return None, "dead_zone"
-        return at + draw_for(p.latency, self.seed, "latency", robot, direction, msg) + extra, None
+        lat = p.latency
+        delay = 0.0
+        if lat.delay > 0.0 or lat.jitter > 0.0:  # (draw_for's rule: a latency without spread draws nothing)
+            delay = latency_quantile(lat, self._draw("latency", robot, direction, msg))
+        return at + delay + extra, None
 
     def fate(self, sent_at: float, sender: object, receiver: object, msg: object, *, size: int = 0,
              sender_cell: tuple[int, int] | None = None,
@@ -346,17 +375,18 @@ class NetworkModel:
         """Decide one message sent at ``sent_at`` (sim seconds) from ``sender`` to ``receiver``. ``msg`` identifies
         it (e.g. ``(publisher, key, seq)``): the draws are a function of it. ``size``: bytes, for the rate limits."""
         self.stats.seen += 1
-        msg = str(msg)  # its identity as each draw hashes it (str(str(m)) == str(m)): once, not once a draw
+        # its identity as each draw hashes it (str(str(m)) == str(m)): once, not once a draw
+        text = str(msg).encode()
         if sender_cell is not None and isinstance(sender, int):
             self.move(sender, sent_at, sender_cell)
         at: float | None = sent_at
         cause = None
         if isinstance(sender, int):
-            at, cause = self._leg(sender, "up", sent_at, msg, size)
+            at, cause = self._leg(sender, "up", sent_at, text, size)
         if at is not None and isinstance(receiver, int):
             if receiver_cell is not None:
                 self.move(receiver, at, receiver_cell)
-            at, cause = self._leg(receiver, "down", at, msg, size)
+            at, cause = self._leg(receiver, "down", at, text, size)
         if at is None:
             self.stats.lost[cause or "loss"] += 1
             return Fate(None, cause)
