@@ -10,6 +10,7 @@ from services.policies.plasticity import (
     entropy_columns,
     history_nmi,
     neuromodulation,
+    neuromodulation_rows,
     position_mi,
     theta_form,
 )
@@ -51,6 +52,24 @@ def test_theta_form_anneals_and_neuromodulation_floor(ref):
     assert theta_adj == pytest.approx(0.36)  # floor 0.8 * theta_end
     _, eta, alpha_eff, _ = neuromodulation(p, 10.0, 10, 0.12, 1)
     assert eta == 1.0 and alpha_eff == pytest.approx(0.18 * 1.4)
+
+
+@pytest.mark.parametrize("preset", ["reference", "paper"])
+def test_neuromodulation_of_many_replicas_has_the_scalar_bits(preset):
+    # replicas that missed views have their own d̂, t (and, in the paper's rules, baseline): stepped together, each must
+    # take exactly the values it would take alone, or a fleet brain drifts from a brain per robot
+    p = load_preset(preset).params
+    rng = np.random.default_rng(7)
+    for delivery in (0, 1, 3):
+        dhat = np.concatenate([rng.random(40) * 0.5, [0.0, p.d_exp("large"), 1e-300, 7.0]])
+        t = rng.integers(0, 3 * int(p.theta_form_anneal) + 5, size=dhat.size)
+        d_exp = rng.random(dhat.size) * 0.4  # per replica, as the paper rules' baselines are
+        for exp in (0.12, d_exp):
+            got = neuromodulation_rows(p, dhat, delivery, exp, t)
+            for r in range(dhat.size):
+                e = exp if np.isscalar(exp) else float(exp[r])
+                want = neuromodulation(p, float(dhat[r]), delivery, e, int(t[r]))
+                assert [float(g[r]) for g in got] == list(want), (r, delivery)
 
 
 def test_reference_forms_max_new_and_prunes_unused_links_after_21_steps(ref):

@@ -46,6 +46,19 @@ def neuromodulation(params: MorphParams, dhat: float, delivery: float, d_exp: fl
     return dhat, eta, alpha_eff, theta_adj
 
 
+def neuromodulation_rows(params: MorphParams, dhat: np.ndarray, delivery: float, d_exp, t: np.ndarray):
+    """:func:`neuromodulation` of many replicas at once (``dhat``, ``t`` and optionally ``d_exp``: one per replica):
+    the same operations in the same order on arrays, so every value has the bits the scalar function gives it."""
+    dhat = params.neuromod_ema * delivery + (1.0 - params.neuromod_ema) * dhat
+    eta = np.minimum(np.maximum((dhat - d_exp) / (d_exp + _EPS), -1.0), 1.0)
+    alpha_eff = params.alpha * (1.0 + params.neuromod_gain * np.maximum(eta, 0.0))
+    annealed = params.theta_form_start - (params.theta_form_start - params.theta_form_end) * np.minimum(
+        t / params.theta_form_anneal, 1.0)
+    theta_adj = annealed - params.neuromod_explore * np.maximum(-eta, 0.0)
+    theta_adj = np.maximum(theta_adj, params.theta_adj_floor * params.theta_form_end)
+    return dhat, eta, alpha_eff, theta_adj
+
+
 def position_mi(positions: np.ndarray) -> np.ndarray:
     """The reference's "MI": |Pearson correlation| of the agents' normalised position rows.
 
@@ -167,14 +180,7 @@ class ReferenceState:
             self.dhat[:] = d
             self.eta[:] = eta
             return alpha_eff, theta_adj
-        alpha = np.empty(self.replicas)
-        theta = np.empty(self.replicas)
-        done: dict[tuple[int, float], tuple] = {}  # replicas with the same (t, d̂) take the same values
-        for r, key in enumerate(zip(t.tolist(), dhat.tolist())):
-            out = done.get(key)
-            if out is None:
-                out = done[key] = neuromodulation(p, key[1], delivery, self.d_exp, key[0])
-            self.dhat[r], self.eta[r], alpha[r], theta[r] = out
+        self.dhat[:], self.eta[:], alpha, theta = neuromodulation_rows(p, dhat, delivery, self.d_exp, t)
         return alpha[:, None, None], theta
 
     def step(
@@ -597,8 +603,7 @@ class PaperState:
         self._step(x)
 
     def _neuromodulation(self, deliveries: int):
-        """Advance d̂, η and the baseline of every replica; returns θ_adj: a float with one replica, else (B,).
-        Replicas with the same (d̂, baseline, t) take the same values."""
+        """Advance d̂, η and the baseline of every replica; returns θ_adj: a float with one replica, else (B,)."""
         p = self.params
         if self.replicas == 1:  # plain floats: this runs every tick in every agent
             baseline = float(self.baseline[0])
@@ -606,13 +611,7 @@ class PaperState:
             self.dhat[0], self.eta[0] = d, eta
             self.baseline[0] = baseline + p.baseline_ema * (deliveries - baseline)
             return theta_adj
-        theta_adj = np.empty(self.replicas)
-        done: dict[tuple, tuple] = {}
-        for r, key in enumerate(zip(self.dhat.tolist(), self.baseline.tolist(), self.t.tolist())):
-            out = done.get(key)
-            if out is None:
-                out = done[key] = neuromodulation(p, key[0], deliveries, key[1], key[2])
-            self.dhat[r], self.eta[r], _, theta_adj[r] = out
+        self.dhat[:], self.eta[:], _, theta_adj = neuromodulation_rows(p, self.dhat, deliveries, self.baseline, self.t)
         self.baseline += p.baseline_ema * (deliveries - self.baseline)
         return theta_adj
 
