@@ -287,3 +287,32 @@ def test_lab_episode_takes_a_profile_and_names_the_field_when_bad():
     again = run_episode(EpisodeSpec(scale="tiny", condition="full", seed=3, steps=120,
                                     network="wifi-legacy-roaming")).summary
     assert {k: v for k, v in s.items() if k != "wall_s"} == {k: v for k, v in again.items() if k != "wall_s"}
+
+
+@pytest.mark.parametrize("name", ["congested", "wifi-fast-roaming", "lossy-mesh"])
+def test_one_publications_copies_judged_together_equal_one_call_per_copy(name):
+    # a fleet broadcast has a copy per robot: judged together (the key and identity read once) every copy must have
+    # the verdict, and leave the queues and counters, that judging the copies one by one gives
+    from services.faults.layer import FaultLayer
+
+    def run(together: bool):
+        model = NetworkModel(load_profile(name), TINY, seed=5)
+        layer = FaultLayer("r", base_seed=5, clock=lambda: 0.0, per_key=True)
+        layer.network = model
+        robots = list(range(8))
+        verdicts = []
+        for t in range(60):
+            for robot in robots:  # the robots wander, roaming between access points
+                model.move(robot, t * 0.5, ((robot * 3 + t) % TINY.W, (robot + t // 4) % TINY.H))
+            for key, sender in (("morph/r/sim/fleet", "sim"), (f"morph/r/agent/{t % 8}/policy", t % 8)):
+                msg = (sender, t)
+                if together:
+                    verdicts.append(layer.fate_copies(key, sender, robots, t * 0.5, msg=msg, size=900))
+                else:
+                    verdicts.append([layer.fate(key, sender, r, t * 0.5, msg=msg, size=900) for r in robots])
+        return verdicts, layer.stats, model.stats, model.ap_drops, model.ap_bytes
+
+    one_by_one, together = run(False), run(True)
+    assert together == one_by_one
+    verdicts = [v for copies in one_by_one[0] for v in copies]
+    assert [] in verdicts and any(v and v[0] > 0 for v in verdicts)  # some copies lost, some late: not vacuous

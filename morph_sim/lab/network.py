@@ -184,6 +184,31 @@ class EventNetwork:
             return
         self._judge(key, sender, receiver, msg, at, seq, size)
 
+    def broadcast(self, key: str, sender, receivers: Sequence, msg: FleetBroadcast, at: float, *, seq: int,
+                  size: int = 0) -> None:
+        """:meth:`send` of one fleet broadcast to each of ``receivers``: one publication (``seq``), a copy each,
+        judged copy by copy in that order."""
+        self.stats.broadcasts += len(receivers)
+        if self.shared_air:
+            head = (instant(at), publisher_rank(sender), self.keys.local(key), seq)
+            self._unjudged.extend(((*head, receiver_rank(receiver)), key, sender, receiver, msg, at, seq, size)
+                                  for receiver in receivers)
+            return
+        self._judge_copies(key, sender, receivers, msg, at, seq, size)
+
+    def _judge_copies(self, key: str, sender, receivers: Sequence, msg, at: float, seq: int, size: int) -> None:
+        """:meth:`_judge` of one publication's copies, in the order of ``receivers``."""
+        if self.layer is None:
+            fates: list[list[float]] = [[0.0]] * len(receivers)
+        else:
+            fates = self.layer.fate_copies(key, sender, receivers, at, msg=(sender, seq), size=size)
+        heap, order = self._heap, self._order
+        for receiver, fate in zip(receivers, fates):
+            if not fate:
+                self.stats.dropped += 1
+            for delay in fate:
+                heapq.heappush(heap, (at + delay, next(order), receiver, msg))
+
     def _judge(self, key: str, sender, receiver, msg, at: float, seq: int, size: int) -> None:
         fate = (self.layer.fate(key, sender, receiver, at, msg=(sender, seq), size=size)
                 if self.layer is not None else [0.0])
@@ -197,8 +222,19 @@ class EventNetwork:
         if self._unjudged:
             unjudged, self._unjudged = self._unjudged, []
             unjudged.sort(key=lambda u: u[0])
-            for _, key, sender, receiver, msg, at, seq, size in unjudged:
-                self._judge(key, sender, receiver, msg, at, seq, size)
+            # in the medium's order, the copies of one publication come together (same instant, publisher, key and
+            # sequence number): they are judged together, in that order
+            i, end = 0, len(unjudged)
+            while i < end:
+                _, key, sender, receiver, msg, at, seq, size = unjudged[i]
+                j = i + 1
+                while j < end and unjudged[j][4] is msg and unjudged[j][6] == seq and unjudged[j][1] == key:
+                    j += 1
+                if j == i + 1:
+                    self._judge(key, sender, receiver, msg, at, seq, size)
+                else:
+                    self._judge_copies(key, sender, [u[3] for u in unjudged[i:j]], msg, at, seq, size)
+                i = j
         self.now = max(self.now, t)
         out = []
         heap = self._heap
@@ -257,6 +293,7 @@ class LabDispatch:
         self._one = team_brain if team_brain is not None else fleet_brain  # the fleet's one brain, if it has one
         own_views = agent_brains is not None or fleet_brain is not None
         self.views = [FleetView() for _ in range(self.n)] if own_views else None
+        self._everyone = list(range(self.n))
         self.mail = [Mailbox() for _ in range(self.n)]  # each robot's policy messages delivered, not yet taken
         # per tick: mean and max view age over the agents that hold a view, sim seconds (per-agent views only;
         # nan before any agent holds one) -- the monitor's view_age_mean / view_age_max columns
@@ -315,9 +352,8 @@ class LabDispatch:
             self._hand_mail(obs.t, s)
             return
         size = self._tick_size(obs)
-        broadcast, send, key = FleetBroadcast(obs, s), self.net.send, self.keys.fleet
-        for agent in range(self.n):  # one publication: one sequence number (its t), a copy per receiver
-            send(key, "sim", agent, broadcast, s, seq=obs.t, size=size)
+        # one publication: one sequence number (its t), a copy per receiver
+        self.net.broadcast(self.keys.fleet, "sim", self._everyone, FleetBroadcast(obs, s), s, seq=obs.t, size=size)
         self._deliver(s)
         ages = []
         # the robots that take a new view now, by view: every copy of one broadcast is the same observation, so

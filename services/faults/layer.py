@@ -29,7 +29,7 @@ import itertools
 import random
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -358,6 +358,30 @@ class FaultLayer:
         if copies == 2:
             self.stats.duplicated += 1
         return [delay] * copies
+
+    def fate_copies(self, key: str, sender: object, receivers: Sequence[object], at: float, *, msg: object = None,
+                    size: int = 0) -> list[list[float]]:
+        """:meth:`fate` of one publication's copy to each of ``receivers`` (virtual time ``at``), in that order: the
+        same verdicts and counts as one call per copy. Without fault specs, a radio message is judged by the network
+        model alone, and its key and identity are read once for every copy (a fleet broadcast has a copy per
+        robot)."""
+        kind = self._kinds.get(key) or self._kind_of(key)
+        rel, radio_traffic = kind
+        if self._faults or self._history or self.network is None or not radio_traffic:
+            return [self.fate(key, sender, receiver, at, msg=msg, size=size) for receiver in receivers]
+        stats, latency = self.stats, self.network_latency
+        out: list[list[float]] = []
+        for net in self.network.fate_copies(at, sender, receivers, (msg, rel), size=size):
+            stats.seen += 1
+            if net.delivered_at is None:
+                stats.dropped += 1
+                out.append([])
+                continue
+            delay = net.delivered_at - at if latency else 0.0
+            if delay > 0.0:
+                stats.delayed += 1
+            out.append([delay])
+        return out
 
     # -- the bus seam ------------------------------------------------------------------------------------------
     def on_publish(self, sample: Sample, send: Callable[[Sample], None]) -> None:

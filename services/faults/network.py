@@ -31,6 +31,7 @@ import hashlib
 import math
 import tomllib
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 from importlib import resources
@@ -394,6 +395,28 @@ class NetworkModel:
         if at > sent_at:
             self.stats.delayed += 1
         return Fate(at, None)
+
+    def fate_copies(self, sent_at: float, sender: object, receivers: Sequence[object], msg: object, *,
+                    size: int = 0) -> list[Fate]:
+        """:meth:`fate` of one publication's copy to each of ``receivers``, judged in that order (the same verdicts,
+        counts and queue states as one call per copy), the message's identity encoded once for them all."""
+        if isinstance(sender, int):  # every copy crosses the sender's uplink on its own
+            return [self.fate(sent_at, sender, receiver, msg, size=size) for receiver in receivers]
+        text = str(msg).encode()
+        stats, leg = self.stats, self._leg
+        out = []
+        for receiver in receivers:
+            stats.seen += 1
+            at, cause = leg(receiver, "down", sent_at, text, size) if isinstance(receiver, int) else (sent_at, None)
+            if at is None:
+                stats.lost[cause or "loss"] += 1
+                out.append(Fate(None, cause))
+                continue
+            stats.delivered += 1
+            if at > sent_at:
+                stats.delayed += 1
+            out.append(Fate(at, None))
+        return out
 
     @property
     def has_ap_budget(self) -> bool:
