@@ -596,9 +596,18 @@ class PaperState:
             if len(rows) != self.replicas or (rows != np.arange(self.replicas)).any():
                 if self.replicas != len(self.owners):
                     raise ValueError("step: rows need a replica per row")
-                part = self._take(rows)
-                part._step(x)
-                self._put(rows, part)
+                if 2 * len(rows) <= self.replicas:
+                    part = self._take(rows)
+                    part._step(x)
+                    self._put(rows, part)
+                else:  # most rows (each row's update reads only its own row and replica): step them all in place
+                    # and put the few others back as they were
+                    stepped = np.zeros(self.replicas, dtype=bool)
+                    stepped[rows] = True
+                    others = np.flatnonzero(~stepped)
+                    kept = self._take(others)
+                    self._step(x)
+                    self._put(others, kept)
                 return
         self._step(x)
 
@@ -641,7 +650,7 @@ class PaperState:
         if one:
             alpha_eff = p.alpha * (1.0 + p.neuromod_gain * max(float(self.eta[0]), 0.0))
         else:
-            alpha_eff = np.array([p.alpha * (1.0 + p.neuromod_gain * max(e, 0.0)) for e in self.eta.tolist()])[:, None]
+            alpha_eff = (p.alpha * (1.0 + p.neuromod_gain * np.maximum(self.eta, 0.0)))[:, None]
 
         # R1, Eq. 2: W ← γW + α J r A with J the Jaccard of recent task sets and r the agent's own step
         # reward (TA-RWARE's individual reward: +1 to the delivering AGV, +0.1 to the picker per load/unload,
