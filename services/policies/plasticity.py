@@ -320,6 +320,7 @@ class ReferenceState:
         flat = score.reshape(len(sel), n * n)
         rows = np.arange(len(sel))
         active = np.ones(len(sel), dtype=bool)
+        picks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (replicas, i, j) of each round
         for _ in range(p.max_new(n)):
             idx = flat.argmax(axis=1)
             ok = active & (flat[rows, idx] >= theta_adj)
@@ -331,12 +332,14 @@ class ReferenceState:
             for x in (i, j):  # each agent gains at most one new link per structural step
                 score[b, x, :] = -1.0
                 score[b, :, x] = -1.0
-            r = sel[b]
+            picks.append((sel[b], i, j))
+        if picks:  # the rounds read only the scores: the links they picked are set at once
+            r, i, j = (np.concatenate(part) for part in zip(*picks))
             self.A[r, i, j] = 1.0
             self.A[r, j, i] = 1.0
             self.age[r, i, j] = 0.0
             self.age[r, j, i] = 0.0
-            self.formed[r] += 1
+            self.formed += np.bincount(r, minlength=self.replicas)  # a replica picks once a round
 
     def _form_one(self, score: np.ndarray, max_new: int, theta_adj: float) -> None:
         """The greedy formation above for a single replica (an agent process): the same picks with scalar indices."""
