@@ -49,7 +49,7 @@ Agent index convention: ``0 .. n_agvs-1`` are AGVs, ``n_agvs .. n-1`` are picker
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from functools import cached_property
 from typing import Annotated, Any, ClassVar
 
@@ -503,6 +503,24 @@ class TickObservation:
     @cached_property
     def _target_list(self) -> list[list[int]]:
         return self.target.tolist()
+
+
+_OBSERVATION_FIELDS = tuple(f.name for f in fields(TickObservation))
+
+
+def replace_fields(obs: TickObservation, **changes) -> TickObservation:
+    """``dataclasses.replace(obs, **changes)`` without its pass through ``__init__``: an observation derives nothing
+    from its fields when made, so they are all it holds (its cached lists stay behind, as with ``replace``). An agent
+    makes one for its own view whenever it has moved since the fleet's broadcast: several a tick."""
+    unknown = changes.keys() - set(_OBSERVATION_FIELDS)
+    if unknown:
+        raise TypeError(f"replace_fields: {sorted(unknown)[0]!r} is not a field of TickObservation")
+    out = object.__new__(TickObservation)
+    state, src = out.__dict__, obs.__dict__
+    for name in _OBSERVATION_FIELDS:
+        state[name] = src[name]
+    state.update(changes)
+    return out
 
 
 # ------------------------------------------------------------------------------------------------------------------

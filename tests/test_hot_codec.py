@@ -24,6 +24,7 @@ from schemas.tick import (
     encode_tick_body,
     observation_from_arrays,
     observation_from_tick,
+    replace_fields,
     tick_fields,
     tick_from_observation,
     tick_number,
@@ -238,3 +239,20 @@ def test_each_robots_on_board_state_decodes_to_the_model_and_is_its_own_row_of_t
             assert (msg.target_x, msg.target_y) == tuple(obs.target[robot].tolist())
             assert msg.needs_picker == bool(obs.needs_picker[robot]) and msg.free == bool(obs.free_picker[robot])
             assert msg.mission == int(obs.mission[robot]) and msg.final == bool(obs.final)
+
+
+def test_replace_fields_is_dataclasses_replace_without_the_cached_lists():
+    # an agent's own view (its cell and target from on board) is made this way several times a tick
+    from dataclasses import fields, replace
+
+    obs = TICKS[5][0]
+    _ = obs._cell_list, obs._target_list  # cached on the original
+    cells, target = obs.cells.copy(), obs.target.copy()
+    cells[0], target[0] = (99, 98), (97, 96)
+    fast, slow = replace_fields(obs, cells=cells, target=target), replace(obs, cells=cells, target=target)
+    for f in fields(obs):
+        assert getattr(fast, f.name) is getattr(slow, f.name), f.name
+    assert fast.__dict__.keys() == slow.__dict__.keys()  # no cached list carried over
+    assert fast._cell_list[0] == [99, 98] and obs._cell_list[0] != [99, 98]
+    with pytest.raises(TypeError, match="'cell' is not a field"):
+        replace_fields(obs, cell=cells)

@@ -27,9 +27,10 @@ from __future__ import annotations
 
 import operator
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 
 from schemas.fields import DISPATCH_OUTCOMES
+from schemas.tick import replace_fields
 
 # Timestamps are sums of floats (t·Δ + Δ/2 + L): compare them with a tolerance, so that a message due exactly at a
 # decision point is delivered by it.
@@ -556,7 +557,7 @@ def with_own_state(view, agent: int, cell, target):
         return view
     cells, own_target = view.cells.copy(), view.target.copy()
     cells[agent], own_target[agent] = cell, target
-    return replace(view, cells=cells, target=own_target)
+    return replace_fields(view, cells=cells, target=own_target)
 
 
 def view_age_stats(ages: Iterable[float | None]) -> tuple[float | None, float | None]:
