@@ -347,11 +347,13 @@ def _lowest_two(sym: np.ndarray) -> np.ndarray | None:
     n = sym.shape[0]
     solver = _SYEVR.get(n)
     if solver is None:
-        from scipy.linalg.lapack import _compute_lwork, get_lapack_funcs
+        from scipy.linalg.lapack import get_lapack_funcs
 
         syevr, syevr_lwork = get_lapack_funcs(("syevr", "syevr_lwork"), (sym,))
-        lwork, liwork = _compute_lwork(syevr_lwork, n=n, lower=True)
-        solver = _SYEVR[n] = (syevr, lwork, liwork)
+        work, iwork, info = syevr_lwork(n=n, lower=True)  # the workspace query scipy's eigvalsh makes
+        if info != 0:
+            return None
+        solver = _SYEVR[n] = (syevr, int(work), int(iwork))
     syevr, lwork, liwork = solver
     w, _, found, _, info = syevr(a=sym, compute_v=0, range="I", il=1, iu=2, lower=True, overwrite_a=False,
                                  lwork=lwork, liwork=liwork)
