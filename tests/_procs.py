@@ -56,13 +56,13 @@ def run_processes(root: int, *roles: str) -> list[tuple[str, psutil.Process]]:
 def agent_pids(root: int, agent: int) -> list[int]:
     """The pids of robot ``agent``'s agent processes among the descendants of ``root`` (a run's ``up``)."""
     out = []
-    for pid in descendants(root):
+    for _, process in run_processes(root, "agent"):
         try:
-            cmd = psutil.Process(pid).cmdline()
-        except psutil.NoSuchProcess:
+            cmd = process.cmdline()
+        except psutil.Error:  # ended since it was listed
             continue
-        if role_of(cmd) == "agent" and cmd[cmd.index("--id") + 1] == str(agent):
-            out.append(pid)
+        if "--id" in cmd and cmd[cmd.index("--id") + 1] == str(agent):
+            out.append(process.pid)
     return out
 
 

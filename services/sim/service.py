@@ -193,7 +193,7 @@ class SimService(Presence, PhaseCollection, Answers, air.AirAnnouncements):
         self.registry = await mount_registry(bus, k, self.config.n_agvs, self.config.n_pickers,
                                              policy=self.config.policy_announcement())
         prober = asyncio.get_running_loop().create_task(self._probe_loop())
-        await self._streams_followed()  # declares the probe now: its matching status is current by the run's end
+        await self._declare_streams_probe()
         try:
             await self._wait_ready()
             if self._stop is None:
@@ -244,6 +244,11 @@ class SimService(Presence, PhaseCollection, Answers, air.AirAnnouncements):
         await self.registry.close()
         await token.close()
         return r
+
+    async def _declare_streams_probe(self) -> None:
+        """Ask :meth:`_streams_followed` once at startup: the bus declares its probe on the first ask, and a probe
+        declared only at the run's end would not yet know of a subscriber that has followed the streams all along."""
+        await self._streams_followed()
 
     async def _streams_followed(self) -> bool:
         """Whether a subscriber outside the run's own processes follows the run's metric streams. ``morph-sim up``'s
