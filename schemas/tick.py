@@ -484,8 +484,8 @@ class TickObservation:
         """
         free = self.free_picker if free is None else free
         # a scan in plain Python: a fleet's few pickers cost less than numpy's calls on arrays this small
-        tx, ty = self._target_list[agv]
-        cells = self._cell_list
+        tx, ty = self.target_list[agv]
+        cells = self.cell_list
         best, best_d = -1, 0
         for i in np.flatnonzero(free).tolist():
             x, y = cells[i]
@@ -495,13 +495,15 @@ class TickObservation:
         return best
 
     # The arrays as lists, read by the per-AGV scans of a tick (the observation's arrays are never written after it
-    # is made; dataclasses.replace makes another observation, without these)
+    # is made; dataclasses.replace and replace_fields make another observation, without these)
     @cached_property
-    def _cell_list(self) -> list[list[int]]:
+    def cell_list(self) -> list[list[int]]:
+        """``cells.tolist()``, made once: [x, y] of each robot (read it, do not change it)."""
         return self.cells.tolist()
 
     @cached_property
-    def _target_list(self) -> list[list[int]]:
+    def target_list(self) -> list[list[int]]:
+        """``target.tolist()``, made once: [x, y] of each robot's mission target (read it, do not change it)."""
         return self.target.tolist()
 
 

@@ -246,13 +246,13 @@ def test_replace_fields_is_dataclasses_replace_without_the_cached_lists():
     from dataclasses import fields, replace
 
     obs = TICKS[5][0]
-    _ = obs._cell_list, obs._target_list  # cached on the original
+    _ = obs.cell_list, obs.target_list  # cached on the original
     cells, target = obs.cells.copy(), obs.target.copy()
     cells[0], target[0] = (99, 98), (97, 96)
     fast, slow = replace_fields(obs, cells=cells, target=target), replace(obs, cells=cells, target=target)
     for f in fields(obs):
         assert getattr(fast, f.name) is getattr(slow, f.name), f.name
     assert fast.__dict__.keys() == slow.__dict__.keys()  # no cached list carried over
-    assert fast._cell_list[0] == [99, 98] and obs._cell_list[0] != [99, 98]
+    assert fast.cell_list[0] == [99, 98] and obs.cell_list[0] != [99, 98]
     with pytest.raises(TypeError, match="'cell' is not a field"):
         replace_fields(obs, cell=cells)

@@ -134,7 +134,7 @@ def sequential_commits(obs, coordinator, draw: Callable[[int], float], count=Non
     those taken earlier in the step; one picker per cell. ``count(ask, p)`` sees every gate decision."""
     free = obs.free_picker.copy()
     free_left = int(np.count_nonzero(free))
-    targets = obs.target.tolist()
+    targets = obs.target_list
     cells: set[tuple[int, int]] = set()
     commits = []
     for agv in obs.requesters().tolist():
