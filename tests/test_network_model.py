@@ -289,20 +289,28 @@ def test_lab_episode_takes_a_profile_and_names_the_field_when_bad():
     assert {k: v for k, v in s.items() if k != "wall_s"} == {k: v for k, v in again.items() if k != "wall_s"}
 
 
-@pytest.mark.parametrize("name", ["congested", "wifi-fast-roaming", "lossy-mesh"])
-def test_one_publications_copies_judged_together_equal_one_call_per_copy(name):
-    # a fleet broadcast has a copy per robot: judged together (the key and identity read once) every copy must have
-    # the verdict, and leave the queues and counters, that judging the copies one by one gives
+@pytest.mark.parametrize("name, faulted", [("congested", False), ("wifi-fast-roaming", False), ("lossy-mesh", False),
+                                           ("wifi-fast-roaming", True), (None, True)])
+def test_one_publications_copies_judged_together_equal_one_call_per_copy(name, faulted):
+    # a fleet broadcast has a copy per robot: judged together (the key, identity and faults in force read once)
+    # every copy must have the verdict, and leave the queues, streams and counters, that judging them one by one gives
+    from schemas.faults import Duplicate, FaultSpec, Latency, Loss, Reorder
     from services.faults.layer import FaultLayer
 
+    specs = [FaultSpec(id="lossy", loss=Loss(model="gilbert_elliott", percent=20, burst_length=3), seed=2),
+             FaultSpec(id="late", latency=Latency(delay=0.4, jitter=0.2, correlation=30), duplicate=Duplicate(percent=10),
+                       reorder=Reorder(percent=25, gap=2), duration=20.0)]
+
     def run(together: bool):
-        model = NetworkModel(load_profile(name), TINY, seed=5)
+        model = NetworkModel(load_profile(name), TINY, seed=5) if name else None
         layer = FaultLayer("r", base_seed=5, clock=lambda: 0.0, per_key=True)
         layer.network = model
+        for spec in specs if faulted else ():
+            layer.set(spec, at=0.0)
         robots = list(range(8))
         verdicts = []
         for t in range(60):
-            for robot in robots:  # the robots wander, roaming between access points
+            for robot in robots if model is not None else ():  # the robots wander, roaming between access points
                 model.move(robot, t * 0.5, ((robot * 3 + t) % TINY.W, (robot + t // 4) % TINY.H))
             for key, sender in (("morph/r/sim/fleet", "sim"), (f"morph/r/agent/{t % 8}/policy", t % 8)):
                 msg = (sender, t)
@@ -310,9 +318,12 @@ def test_one_publications_copies_judged_together_equal_one_call_per_copy(name):
                     verdicts.append(layer.fate_copies(key, sender, robots, t * 0.5, msg=msg, size=900))
                 else:
                     verdicts.append([layer.fate(key, sender, r, t * 0.5, msg=msg, size=900) for r in robots])
-        return verdicts, layer.stats, model.stats, model.ap_drops, model.ap_bytes
+        radio = (model.stats, model.ap_drops, model.ap_bytes) if model is not None else None
+        return verdicts, layer.stats, radio, {k: (v.count, v.rng.getstate()) for k, v in layer._links.items()}
 
     one_by_one, together = run(False), run(True)
     assert together == one_by_one
     verdicts = [v for copies in one_by_one[0] for v in copies]
     assert [] in verdicts and any(v and v[0] > 0 for v in verdicts)  # some copies lost, some late: not vacuous
+    if faulted:
+        assert any(len(v) == 2 for v in verdicts)  # duplicated

@@ -322,13 +322,21 @@ class FaultLayer:
                 self.stats.dropped += 1
                 return []
             delay = net.delivered_at - at if self.network_latency else 0.0
+        return self._apply(self._active_at(at), rel, sender, receiver, delay)
+
+    def _active_at(self, at: float | None) -> list[ActiveFault]:
+        """The faults that judge a message sent at ``at`` (None: the active ones, now), in the order they were set."""
         if at is None:
-            faults: list[ActiveFault] = list(self._faults.values())
-        elif not self._history and not self._faults:
-            faults = []
-        else:
-            faults = sorted((f for f in (*self._history, *self._faults.values()) if f.window_has(at)),
-                            key=lambda f: f.serial)
+            return list(self._faults.values())
+        if not self._history and not self._faults:
+            return []
+        return sorted((f for f in (*self._history, *self._faults.values()) if f.window_has(at)),
+                      key=lambda f: f.serial)
+
+    def _apply(self, faults: list[ActiveFault], rel: str, sender: object, receiver: object,
+               delay: float) -> list[float]:
+        """The fault specs' verdict on one message the radio let through with ``delay``: [] dropped, else one delay
+        per copy."""
         copies = 1
         for fault in faults:
             if not fault.applies(rel, sender, receiver):
@@ -362,26 +370,39 @@ class FaultLayer:
     def fate_copies(self, key: str, sender: object, receivers: Sequence[object], at: float, *, msg: object = None,
                     size: int = 0) -> list[list[float]]:
         """:meth:`fate` of one publication's copy to each of ``receivers`` (virtual time ``at``), in that order: the
-        same verdicts and counts as one call per copy. Without fault specs, a radio message is judged by the network
-        model alone, and its key and identity are read once for every copy (a fleet broadcast has a copy per
-        robot)."""
+        same verdicts and counts as one call per copy, with the key, the message's identity and the faults in force
+        read once for every copy (a fleet broadcast has a copy per robot)."""
+        if self._faults:
+            self._expire()  # (the clock stands still while one publication is judged: once for every copy)
         kind = self._kinds.get(key) or self._kind_of(key)
         rel, radio_traffic = kind
-        if self._faults or self._history or self.network is None or not radio_traffic:
+        if (at is None or rel is None or radio_traffic is None
+                or (self.network is None and not self._faults and not self._history)):
             return [self.fate(key, sender, receiver, at, msg=msg, size=size) for receiver in receivers]
+        # the radio's verdicts first, then the fault specs' on top, as fate() judges each copy: the network model
+        # and the faults' link streams are apart, so judging every copy's radio legs first changes neither
+        nets = (self.network.fate_copies(at, sender, receivers, (msg, rel), size=size)
+                if self.network is not None and radio_traffic else None)
+        faults = self._active_at(at)
         stats, latency = self.stats, self.network_latency
         out: list[list[float]] = []
-        for net in self.network.fate_copies(at, sender, receivers, (msg, rel), size=size):
+        for i, receiver in enumerate(receivers):
             stats.seen += 1
-            if net.delivered_at is None:
-                stats.dropped += 1
-                out.append([])
-                continue
-            delay = net.delivered_at - at if latency else 0.0
-            if delay > 0.0:
-                stats.delayed += 1
-            out.append([delay])
+            delay = 0.0
+            if nets is not None:
+                net = nets[i]
+                if net.delivered_at is None:
+                    stats.dropped += 1
+                    out.append([])
+                    continue
+                delay = net.delivered_at - at if latency else 0.0
+            out.append(self._apply(faults, rel, sender, receiver, delay) if faults else self._no_faults(delay))
         return out
+
+    def _no_faults(self, delay: float) -> list[float]:
+        if delay > 0.0:
+            self.stats.delayed += 1
+        return [delay]
 
     # -- the bus seam ------------------------------------------------------------------------------------------
     def on_publish(self, sample: Sample, send: Callable[[Sample], None]) -> None:
