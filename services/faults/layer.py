@@ -396,13 +396,8 @@ class FaultLayer:
                     out.append([])
                     continue
                 delay = net.delivered_at - at if latency else 0.0
-            out.append(self._apply(faults, rel, sender, receiver, delay) if faults else self._no_faults(delay))
+            out.append(self._apply(faults, rel, sender, receiver, delay))
         return out
-
-    def _no_faults(self, delay: float) -> list[float]:
-        if delay > 0.0:
-            self.stats.delayed += 1
-        return [delay]
 
     # -- the bus seam ------------------------------------------------------------------------------------------
     def on_publish(self, sample: Sample, send: Callable[[Sample], None]) -> None:
