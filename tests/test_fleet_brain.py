@@ -157,21 +157,3 @@ def test_bench_brains_refuses_bad_seeds_in_one_line(capsys):
     assert main(["bench", "brains", "--steps", "0"]) == 2
     assert capsys.readouterr().err.strip() == (
         "morph-sim bench brains: error: policies, profiles, seeds: at least one each, and steps >= 1")
-
-
-def test_views_of_different_ticks_are_stepped_together_in_the_tests_above(monkeypatch):
-    """Under the fleet faults robots take views of different ticks in one tick: the reference preset steps those
-    groups in one update (ReferenceState.step_groups), the path the equality tests above then hold to a brain per
-    robot."""
-    from services.policies.plasticity import ReferenceState
-
-    sizes = []
-    step_groups = ReferenceState.step_groups
-
-    def counted(self, groups):
-        sizes.append(len(groups))
-        return step_groups(self, groups)
-
-    monkeypatch.setattr(ReferenceState, "step_groups", counted)
-    run_episode(EpisodeSpec(scale="tiny", condition="morph", seed=4, steps=100, faults=FLEET_FAULTS))
-    assert sizes and max(sizes) >= 2

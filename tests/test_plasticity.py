@@ -248,38 +248,3 @@ def test_paper_replicas_fed_the_same_steps_equal_one_shared_history(paper):
     for name in ("W", "A", "age", "theta_bcm", "h", "formed", "pruned"):
         np.testing.assert_array_equal(getattr(shared, name), getattr(split, name), err_msg=name)
     assert (split.t == shared.t[0]).all() and (split.history == shared.history[0]).all()
-
-
-def test_groups_stepped_together_equal_each_group_stepped_alone(ref):
-    # under a congested network the robots of a fleet brain take views of different ticks; their replicas are stepped
-    # in one update, each with its own view's inputs: every array must be what one step per group gives it
-    n = 12
-    rng = np.random.default_rng(3)
-
-    def inputs(seed):
-        r = np.random.default_rng(seed)
-        jac = (r.random((n, n)) < 0.3) * r.random((n, n))
-        jac = np.maximum(jac, jac.T)
-        np.fill_diagonal(jac, 0.0)
-        pred = (r.random((n, n)) < 0.2).astype(float)
-        return r.random((n, 2)), jac, int(r.integers(0, 3)), np.maximum(pred, pred.T)
-
-    together, apart = (ReferenceState(ref.params, n, n, 0.12) for _ in range(2))
-    for t in range(120):
-        # a few replicas miss the tick, the rest fall into one to four groups (each group a view of its own)
-        order = rng.permutation(n)
-        cut = np.sort(rng.choice(np.arange(1, n), size=int(rng.integers(1, 4)), replace=False))
-        groups = [g for g in np.split(order[: n - int(rng.integers(0, 3))], cut) if g.size]
-        batch = []
-        for k, rows in enumerate(groups):
-            positions, jac, delivery, pred = inputs(1000 * t + k)
-            if not apart.structural_due(rows):
-                positions = pred = None
-            apart.step(positions, jac, delivery, pred, rows)
-            batch.append((positions, jac, delivery, pred, rows))
-        together.step_groups(batch)
-        for name in ReferenceState._ARRAYS:
-            assert np.array_equal(getattr(together, name), getattr(apart, name)), (t, name)
-    assert together.formed.sum() or together.A.any()  # links formed: the structural path ran
-    with pytest.raises(ValueError, match="two groups"):
-        together.step_groups([(None, jac, 0, None, [0, 1]), (None, jac, 0, None, [1, 2])])

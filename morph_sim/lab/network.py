@@ -367,8 +367,8 @@ class LabDispatch:
                 else:
                     taking.setdefault(id(new), (new, []))[1].append(robot)
             ages.append(view.age(s))
-        if taking:
-            self.fleet_brain.learn_groups(list(taking.values()))
+        for new, robots in taking.values():
+            self.fleet_brain.learn_for(new, robots)
         self._hand_mail(obs.t, s)
         mean, top = view_age_stats(ages)
         self.view_ages.append(float("nan") if mean is None else mean)

@@ -333,45 +333,16 @@ class MorphBrains(Coordinator):
             raise ValueError("learn_for: needs one replica per owned agent")
         self._learn(obs, self._rep[[self.slot(a) for a in agents]])
 
-    def learn_groups(self, groups) -> None:
-        """The reference preset updates every group's replicas in one step (ReferenceState.step_groups)."""
-        if self.preset != "reference" or len(groups) < 2:
-            super().learn_groups(groups)
-            return
-        if len(set(self._rep.tolist())) != len(self.owners):
-            raise ValueError("learn_groups: needs one replica per owned agent")
-        steps, taken = [], []
-        for obs, agents in groups:
-            replicas = self._rep[[self.slot(a) for a in agents]]
-            taken.append((obs, replicas))
-            if obs.has_previous:
-                steps.append(self._reference_inputs(obs, replicas))
-        if steps:
-            self.state.step_groups(steps)
-        for obs, replicas in taken:
-            self._reset_due(obs, replicas)
-
-    def _reference_inputs(self, obs: TickObservation, replicas) -> tuple:
-        """(positions, jaccard, deliveries, hint, replicas): what the reference's update of ``replicas`` reads from
-        ``obs``; the positions and the hint only when a structural update is due (the only step that reads them,
-        two of three are not)."""
-        positions = pred = None
-        if self.state.structural_due(replicas):
-            rows, cols = obs.grid_shape
-            positions = obs.cells / np.array([cols, rows], dtype=float)
-            pred = reference_hint(obs) if self.params.use_pred_hint else None
-        return positions, obs.coassignment(previous=True), obs.deliveries, pred, replicas
-
-    def _reset_due(self, obs: TickObservation, replicas) -> None:
-        p = self.params
-        if p.reset_every and obs.t > 0 and obs.t % p.reset_every == 0 and not obs.final:
-            self.state.reset_links(replicas)
-
     def _learn(self, obs: TickObservation, replicas) -> None:
         p = self.params
         if obs.has_previous:
             if self.preset == "reference":
-                self.state.step(*self._reference_inputs(obs, replicas))
+                positions = pred = None
+                if self.state.structural_due(replicas):  # the only step that reads them (two of three are not)
+                    rows, cols = obs.grid_shape
+                    positions = obs.cells / np.array([cols, rows], dtype=float)
+                    pred = reference_hint(obs) if p.use_pred_hint else None
+                self.state.step(positions, obs.coassignment(previous=True), obs.deliveries, pred, replicas)
             else:
                 hint = open_request_hint(obs) if p.use_pred_hint else np.zeros((obs.n, obs.n))
                 self.state.step(
@@ -385,7 +356,8 @@ class MorphBrains(Coordinator):
                     ),
                     replicas,  # with a replica per owned agent, replica k is row k
                 )
-        self._reset_due(obs, replicas)
+        if p.reset_every and obs.t > 0 and obs.t % p.reset_every == 0 and not obs.final:
+            self.state.reset_links(replicas)
 
     def eta(self, agent: int) -> float:
         """The arousal signal η of ``agent``'s last update."""

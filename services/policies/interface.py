@@ -166,14 +166,6 @@ class Coordinator(ABC):
         exactly as it would in a brain of its own fed its own views."""
         raise NotImplementedError(f"{type(self).__name__} learns the whole team at once")
 
-    def learn_groups(self, groups: Sequence[tuple[TickObservation, Sequence[int]]]) -> None:
-        """:meth:`learn_for` of each ``(view, agents)`` group, in order: the robots that took a view this tick,
-        grouped by the view (under a congested network they hold views of different ticks). The groups' agents are
-        disjoint. Brains may update the groups together; each robot's state must evolve as with one
-        :meth:`learn_for` per group."""
-        for obs, agents in groups:
-            self.learn_for(obs, agents)
-
     # -- an AGV's decision ------------------------------------------------------------------------------------------
     def candidate(self, agv: int, obs: TickObservation, free: np.ndarray | None = None) -> int:
         """The picker this AGV asks (-1: none): the nearest free one to its target (the reference's rule)."""

@@ -20,7 +20,6 @@ lives in :mod:`.policies`.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -71,17 +70,6 @@ def position_mi(positions: np.ndarray) -> np.ndarray:
     on = oc / (oc.std(axis=1, keepdims=True) + _EPS)
     mi = np.abs(on @ on.T) / positions.shape[1]
     np.fill_diagonal(mi, 0.0)
-    return mi
-
-
-def structural_mi(params: MorphParams, positions: np.ndarray | None, pred: np.ndarray | None) -> np.ndarray:
-    """What the reference's structural update scores pairs by: :func:`position_mi`, raised by the predictive hint."""
-    if positions is None:
-        raise ValueError("the structural update needs the positions (structural_due() was true)")
-    mi = position_mi(positions)
-    if pred is not None and params.pred_boost > 0.0:
-        mi = _clip(mi + params.pred_boost * pred, 0.0, 1.0)
-        np.fill_diagonal(mi, 0.0)
     return mi
 
 
@@ -183,12 +171,11 @@ class ReferenceState:
             arr[where] = 0.0
         self.h[where] = self.params.rho_target
 
-    def _neuromodulation(self, delivery):
-        """Advance d̂ and η of every replica from ``delivery`` (one count, or one per replica); returns (α_eff, θ_adj):
-        floats when every replica has the same d̂, t and count (always so for one replica, or replicas fed the same
-        views), else per replica ((B, 1, 1) and (B,))."""
+    def _neuromodulation(self, delivery: int):
+        """Advance d̂ and η of every replica; returns (α_eff, θ_adj): floats when every replica has the same d̂ and t
+        (always so for one replica, or replicas fed the same views), else per replica ((B, 1, 1) and (B,))."""
         p, t, dhat = self.params, self.t, self.dhat
-        if np.ndim(delivery) == 0 and (self.replicas == 1 or ((t == t[0]).all() and (dhat == dhat[0]).all())):
+        if self.replicas == 1 or ((t == t[0]).all() and (dhat == dhat[0]).all()):
             d, eta, alpha_eff, theta_adj = neuromodulation(p, float(dhat[0]), delivery, self.d_exp, int(t[0]))
             self.dhat[:] = d
             self.eta[:] = eta
@@ -221,55 +208,14 @@ class ReferenceState:
                 stepped[rows] = True
                 others = np.flatnonzero(~stepped)
                 kept = self._take(others)
-                self._step(jaccard, delivery, lambda: structural_mi(self.params, positions, pred), stepped)
+                self._step(positions, jaccard, delivery, pred, stepped)
                 self._put(others, kept)
             return
-        self._step(jaccard, delivery, lambda: structural_mi(self.params, positions, pred), None)
+        self._step(positions, jaccard, delivery, pred, None)
 
-    def step_groups(self, groups) -> None:
-        """:meth:`step` of several groups of replicas, each with inputs of its own, in one update: ``groups`` is a
-        list of ``(positions, jaccard, delivery, pred, rows)``, the rows of different groups disjoint (robots that
-        took views of different ticks). Each replica's arithmetic is what :meth:`step` of its group gives it."""
-        if len(groups) == 1:
-            self.step(*groups[0])
-            return
-        rows_of = [np.asarray(g[4], dtype=int) for g in groups]
-        union = np.concatenate(rows_of)
-        if np.unique(union).size != union.size:
-            raise ValueError("step_groups: a replica is in two groups")
-        if 2 * union.size <= self.replicas:  # few replicas: step them as a state of their own
-            part = self._take(union)
-            ends = np.cumsum([r.size for r in rows_of])
-            part.step_groups([(*g[:4], np.arange(end - r.size, end)) for g, r, end in zip(groups, rows_of, ends)])
-            self._put(union, part)
-            return
-        b, n = self.replicas, self.n
-        jaccard = np.zeros((b, n, n))
-        delivery = np.zeros(b, dtype=np.int64)
-        for g, rows in zip(groups, rows_of):
-            jaccard[rows] = g[1]
-            delivery[rows] = g[2]
-
-        def mi() -> np.ndarray:
-            out = np.zeros((b, n, n))
-            for (positions, _, _, pred, _), rows in zip(groups, rows_of):
-                if positions is not None:  # (a group none of whose replicas is due gives none: never read)
-                    out[rows] = structural_mi(self.params, positions, pred)
-            return out
-
-        stepped = np.zeros(b, dtype=bool)
-        stepped[union] = True
-        others = np.flatnonzero(~stepped)
-        kept = self._take(others) if others.size else None
-        self._step(jaccard, delivery, mi, stepped)
-        if kept is not None:
-            self._put(others, kept)
-
-    def _step(self, jaccard, delivery, mi: Callable[[], np.ndarray], stepped: np.ndarray | None) -> None:
+    def _step(self, positions, jaccard, delivery, pred, stepped: np.ndarray | None) -> None:
         """:meth:`step` of every replica; the structural update only of those ``stepped`` (a mask; None: all), the
-        others being put back afterwards. ``jaccard`` and ``delivery``: one for every replica, or one per replica
-        ((B, n, n) and (B,)); ``mi()``: the structural update's MI, (n, n) or one per replica, asked for only when
-        some replica is due."""
+        others being put back afterwards."""
         p = self.params
         self.t += 1
         alpha_eff, theta_adj = self._neuromodulation(delivery)
@@ -304,15 +250,9 @@ class ReferenceState:
         scratch *= A
         W += scratch
         # delivery burst credits the pairs co-assigned on the previous step
-        if np.ndim(delivery) == 0:
-            if delivery > 0 and p.reward_alpha > 0.0:
-                credit = np.where(self.j_prev > p.credit_threshold, self.j_prev, 0.0)
-                self.W += p.reward_alpha * delivery * credit * self.A
-        elif p.reward_alpha > 0.0 and (delivery > 0).any():  # only the replicas whose view had deliveries
-            got = np.flatnonzero(delivery > 0)
-            j_prev = self.j_prev[got]
-            credit = np.where(j_prev > p.credit_threshold, j_prev, 0.0)
-            W[got] += (p.reward_alpha * delivery[got])[:, None, None] * credit * self.A[got]
+        if delivery > 0 and p.reward_alpha > 0.0:
+            credit = np.where(self.j_prev > p.credit_threshold, self.j_prev, 0.0)
+            self.W += p.reward_alpha * delivery * credit * self.A
         self.j_prev[...] = jaccard
         _clip(W, 0.0, 1.0)
         _zero_diagonal(W)
@@ -328,9 +268,9 @@ class ReferenceState:
         if stepped is not None:
             due &= stepped
         if due.all():
-            self._structural(mi(), theta_adj)
+            self._structural(positions, pred, theta_adj)
         elif due.any():  # replicas that missed views run their structural steps at other ticks
-            self._structural(mi(), theta_adj, due)
+            self._structural(positions, pred, theta_adj, due)
 
         # age + 1 on links, 0 elsewhere (the reference's np.where, in place: age ≥ 0, so no −0.0 appears)
         age = self.age
@@ -345,11 +285,18 @@ class ReferenceState:
         t = self.t if (rows := self._some(rows)) is None else self.t[rows]
         return bool(((t + 1) % self.params.k == 0).any())
 
-    def _structural(self, mi: np.ndarray, theta_adj, due: np.ndarray | None = None) -> None:
-        """Prune and form in every replica, or in those ``due`` (a mask); ``mi``: one for every replica or one per
-        replica; ``theta_adj`` is one threshold or one per replica."""
+    def _structural(self, positions: np.ndarray | None, pred: np.ndarray | None, theta_adj,
+                    due: np.ndarray | None = None) -> None:
+        """Prune and form in every replica, or in those ``due`` (a mask); ``theta_adj`` is one threshold or one per
+        replica."""
         p = self.params
         n = self.n
+        if positions is None:
+            raise ValueError("the structural update needs the positions (structural_due() was true)")
+        mi = position_mi(positions)
+        if pred is not None and p.pred_boost > 0.0:
+            mi = _clip(mi + p.pred_boost * pred, 0.0, 1.0)
+            np.fill_diagonal(mi, 0.0)
 
         prune = (self.A > 0) & (self.W < p.theta_prune) & (self.age > p.grace)
         if due is not None:
@@ -363,7 +310,7 @@ class ReferenceState:
         sel = np.arange(self.replicas) if due is None else np.flatnonzero(due)
         h = self.h if due is None else self.h[sel]
         gain = h[:, :, None] + h[:, None, :]
-        score = (mi[None, :, :] if mi.ndim == 2 else mi if due is None else mi[sel]) * (1.0 + gain)
+        score = mi[None, :, :] * (1.0 + gain)
         score[((self.A if due is None else self.A[sel]) != 0) | self._eye] = -1.0
         if self.replicas == 1:
             self._form_one(score[0], p.max_new(n), float(np.reshape(theta_adj, -1)[0]))
