@@ -266,17 +266,27 @@ def _fate_log(monkeypatch):
     from services.faults import layer as fault_layer
 
     log: dict[tuple, bool] = {}
-    judge = fault_layer.FaultLayer.fate
+    judge, judge_copies = fault_layer.FaultLayer.fate, fault_layer.FaultLayer.fate_copies
 
-    def fate(self, key, sender, receiver, at=None, *, msg=None, size=0, radio=None):
-        out = judge(self, key, sender, receiver, at, msg=msg, size=size, radio=radio)
+    def note(key, sender, receiver, at, msg, out) -> None:
         rel = key.split("/", 2)[2]
         if at is not None and receiver != "monitor" and (rel == FLEET_KEY or "/request/" in rel or "/reply/" in rel
                                                           or rel.endswith("/commit") or "refusal" in rel):
             log[(round(at, 6), rel, sender, receiver, msg)] = bool(out)
+
+    def fate(self, key, sender, receiver, at=None, *, msg=None, size=0, radio=None):
+        out = judge(self, key, sender, receiver, at, msg=msg, size=size, radio=radio)
+        note(key, sender, receiver, at, msg, out)
+        return out
+
+    def fate_copies(self, key, sender, receivers, at, *, msg=None, size=0):  # the lab's fleet broadcast
+        out = judge_copies(self, key, sender, receivers, at, msg=msg, size=size)
+        for receiver, copy in zip(receivers, out):
+            note(key, sender, receiver, at, msg, copy)
         return out
 
     monkeypatch.setattr(fault_layer.FaultLayer, "fate", fate)
+    monkeypatch.setattr(fault_layer.FaultLayer, "fate_copies", fate_copies)
     return log
 
 
