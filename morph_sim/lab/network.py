@@ -202,16 +202,16 @@ class EventNetwork:
             fates: list[list[float]] = [[0.0]] * len(receivers)
         else:
             fates = self.layer.fate_copies(key, sender, receivers, at, msg=(sender, seq), size=size)
-        heap, order = self._heap, self._order
         for receiver, fate in zip(receivers, fates):
-            if not fate:
-                self.stats.dropped += 1
-            for delay in fate:
-                heapq.heappush(heap, (at + delay, next(order), receiver, msg))
+            self._enqueue(receiver, msg, at, fate)
 
     def _judge(self, key: str, sender, receiver, msg, at: float, seq: int, size: int) -> None:
         fate = (self.layer.fate(key, sender, receiver, at, msg=(sender, seq), size=size)
                 if self.layer is not None else [0.0])
+        self._enqueue(receiver, msg, at, fate)
+
+    def _enqueue(self, receiver, msg, at: float, fate: list[float]) -> None:
+        """Put a message sent at ``at`` in flight to ``receiver`` with the delays ``fate`` gave it (none: dropped)."""
         if not fate:
             self.stats.dropped += 1
         for delay in fate:

@@ -298,10 +298,7 @@ class FaultLayer:
         self.stats.seen += 1
         if not self._faults and (at is None or not self._history) and self.network is None:
             return [0.0]
-        kind = self._kinds.get(key)
-        if kind is None:
-            kind = self._kind_of(key)
-        rel, radio_traffic = kind
+        rel, radio_traffic = self._kinds.get(key) or self._kind_of(key)
         if rel is None or (at is not None and radio_traffic is None):
             return [0.0]
         delay = 0.0
@@ -374,8 +371,7 @@ class FaultLayer:
         read once for every copy (a fleet broadcast has a copy per robot)."""
         if self._faults:
             self._expire()  # (the clock stands still while one publication is judged: once for every copy)
-        kind = self._kinds.get(key) or self._kind_of(key)
-        rel, radio_traffic = kind
+        rel, radio_traffic = self._kinds.get(key) or self._kind_of(key)
         if (at is None or rel is None or radio_traffic is None
                 or (self.network is None and not self._faults and not self._history)):
             return [self.fate(key, sender, receiver, at, msg=msg, size=size) for receiver in receivers]

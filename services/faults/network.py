@@ -388,6 +388,10 @@ class NetworkModel:
             if receiver_cell is not None:
                 self.move(receiver, at, receiver_cell)
             at, cause = self._leg(receiver, "down", at, text, size)
+        return self._verdict(sent_at, at, cause)
+
+    def _verdict(self, sent_at: float, at: float | None, cause: str | None) -> Fate:
+        """The fate of a message sent at ``sent_at`` whose legs ended at ``at`` (None: lost for ``cause``), counted."""
         if at is None:
             self.stats.lost[cause or "loss"] += 1
             return Fate(None, cause)
@@ -403,19 +407,12 @@ class NetworkModel:
         if isinstance(sender, int):  # every copy crosses the sender's uplink on its own
             return [self.fate(sent_at, sender, receiver, msg, size=size) for receiver in receivers]
         text = str(msg).encode()
-        stats, leg = self.stats, self._leg
         out = []
         for receiver in receivers:
-            stats.seen += 1
-            at, cause = leg(receiver, "down", sent_at, text, size) if isinstance(receiver, int) else (sent_at, None)
-            if at is None:
-                stats.lost[cause or "loss"] += 1
-                out.append(Fate(None, cause))
-                continue
-            stats.delivered += 1
-            if at > sent_at:
-                stats.delayed += 1
-            out.append(Fate(at, None))
+            self.stats.seen += 1
+            at, cause = (self._leg(receiver, "down", sent_at, text, size) if isinstance(receiver, int)
+                         else (sent_at, None))
+            out.append(self._verdict(sent_at, at, cause))
         return out
 
     @property
