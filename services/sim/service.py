@@ -236,8 +236,8 @@ class SimService(Presence, PhaseCollection, Answers, air.AirAnnouncements):
                      STREAM_DRAIN_SECONDS)
             # A client following the metric streams (watch, a user's script) may still be reading what the monitor
             # published last, often a backlog of rows it sent out as it left; closing the endpoint now would cut it
-            # off (seen on a busy machine: a client still reading rows 200-300 seconds after the run's end). A
-            # client that has what it wanted leaves, and then the endpoint closes at once.
+            # off (seen on a busy machine: a client still reading rows 200-300 of a 300-tick run four seconds after
+            # the run's end). A client that has what it wanted leaves, and then the endpoint closes at once.
             drain_until = time.monotonic() + STREAM_DRAIN_SECONDS
             while time.monotonic() < drain_until and await self._streams_followed():
                 await asyncio.sleep(0.1)
