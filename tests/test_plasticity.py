@@ -14,7 +14,7 @@ from services.policies.plasticity import (
     position_mi,
     theta_form,
 )
-from services.policies.presets import load_preset
+from services.policies.presets import ABLATIONS, load_preset
 
 
 @pytest.fixture
@@ -248,3 +248,119 @@ def test_paper_replicas_fed_the_same_steps_equal_one_shared_history(paper):
     for name in ("W", "A", "age", "theta_bcm", "h", "formed", "pruned"):
         np.testing.assert_array_equal(getattr(shared, name), getattr(split, name), err_msg=name)
     assert (split.t == shared.t[0]).all() and (split.history == shared.history[0]).all()
+
+
+def _mixed_reference_state(params, n, replicas, rng):
+    """A reference state whose replicas have learnt different things: random symmetric links and weights, ages,
+    thresholds, credits, h, d̂ and update counts (so their structural steps fall at different ticks)."""
+    s = ReferenceState(params, n, replicas, params.d_exp("large"))
+    for r in range(replicas):
+        a = np.triu(rng.random((n, n)) < 0.3, 1)
+        s.A[r] = a + a.T
+        w = np.triu(rng.random((n, n)), 1) * (rng.random((n, n)) < 0.8)
+        s.W[r] = w + w.T
+        s.age[r] = np.where(s.A[r] > 0, rng.integers(0, 40, (n, n)), 0.0)
+        s.age[r] = np.maximum(s.age[r], s.age[r].T)
+        th = np.triu(rng.random((n, n)) * 0.5, 1)
+        s.theta_bcm[r] = th + th.T
+        jp = np.triu(rng.random((n, n)), 1)
+        s.j_prev[r] = jp + jp.T
+    s.h[:] = rng.random((replicas, n))
+    s.h[::2] = params.rho_target  # as after a reset: the scores of these replicas tie but for the MI's last bits
+    s.dhat[:] = rng.random(replicas) * 0.3
+    s.t[:] = rng.integers(0, 200, replicas)
+    return s
+
+
+def _copy_state(s):
+    return s._take(np.arange(s.replicas))
+
+
+@pytest.mark.parametrize("ablation", ("full",) + ABLATIONS)
+def test_the_compiled_reference_update_has_the_numpy_bits(ablation, monkeypatch):
+    # the lab's fleet brain steps many replicas in one compiled loop; an agent steps its one replica with numpy: every
+    # array must come out with the same bits, for every replica set a tick may step (all, a few, most), or the lab
+    # stops being the services' twin
+    from services.policies import plasticity
+
+    kernel = plasticity.compiled_kernel()
+    assert kernel is not None, "numba is a test dependency: the compiled update must be what the lab runs here"
+    params = load_preset("reference").resolve(ablation)
+    rng = np.random.default_rng(11)
+    n, replicas = 12, 9
+    formed = pruned = 0
+    for trial in range(24):
+        state = _mixed_reference_state(params, n, replicas, rng)
+        twin = _copy_state(state)
+        choice = trial % 4
+        rows = (None, [3], [0, 2, 5, 6, 7, 8, 1], [8, 4])[choice]
+        jac = np.triu((rng.random((n, n)) < 0.2) * rng.random((n, n)), 1)
+        jac = jac + jac.T
+        pos = _positions(n, seed=trial)
+        pred = np.zeros((n, n))
+        pred[rng.integers(0, n, 3), rng.integers(0, n, 3)] = 1.0
+        pred = np.maximum(pred, pred.T)
+        np.fill_diagonal(pred, 0.0)
+        delivery = int(rng.integers(0, 3))
+        for _ in range(4):  # a few ticks in a row: structural steps of different replicas on different ticks
+            state.step(pos, jac, delivery, pred, rows)
+            monkeypatch.setattr(plasticity, "_KERNEL", [None])
+            twin.step(pos, jac, delivery, pred, rows)
+            monkeypatch.setattr(plasticity, "_KERNEL", [kernel])
+            formed += int(state.formed.sum())
+            pruned += int(state.pruned.sum())
+        for name in ReferenceState._ARRAYS:
+            a, b = getattr(state, name), getattr(twin, name)
+            assert a.tobytes() == b.tobytes(), (ablation, trial, name)
+    assert formed > 0 and pruned > 0  # both halves of the structural step ran
+
+
+def test_the_compiled_update_is_not_the_numpy_update_with_another_name(monkeypatch):
+    # the comparison above fails on a kernel that drops one term: the delivery credit
+    from services.policies import plasticity, reference_kernel
+
+    params = load_preset("reference").params
+    rng = np.random.default_rng(3)
+    state = _mixed_reference_state(params, 8, 4, rng)
+    twin = _copy_state(state)
+    jac = np.zeros((8, 8))
+    pos = _positions(8)
+    kernel = plasticity.compiled_kernel()
+
+    def without_credit(rows, W, A, age, theta, j_prev, h, jaccard, alpha, credit_gain, *rest):
+        return reference_kernel.step_rows(rows, W, A, age, theta, j_prev, h, jaccard, alpha, 0.0, *rest)
+
+    monkeypatch.setattr(plasticity, "_KERNEL", [without_credit])
+    state.step(pos, jac, 2, None if not state.structural_due() else np.zeros((8, 8)))
+    monkeypatch.setattr(plasticity, "_KERNEL", [None])
+    twin.step(pos, jac, 2, None if not twin.structural_due() else np.zeros((8, 8)))
+    assert kernel is not None and state.W.tobytes() != twin.W.tobytes()
+
+
+def test_numpy_is_asked_for_by_the_environment(monkeypatch):
+    from services.policies import plasticity
+
+    monkeypatch.setattr(plasticity, "_KERNEL", [])
+    monkeypatch.setenv("MORPH_SIM_KERNEL", "numpy")
+    assert plasticity.compiled_kernel() is None
+    monkeypatch.setattr(plasticity, "_KERNEL", [])
+    monkeypatch.delenv("MORPH_SIM_KERNEL")
+    assert plasticity.compiled_kernel() is not None
+
+
+def test_position_mi_has_the_bits_of_numpy_mean_and_std():
+    # the formation ties are broken by the last bits of the MI: it must be the reference's formula to the bit
+    rng = np.random.default_rng(5)
+    for trial in range(200):
+        n = int(rng.integers(2, 40))
+        cells = rng.integers(0, 60, size=(n, 2)).astype(float)
+        if trial % 3 == 0:
+            cells[: n // 2, 1] = cells[: n // 2, 0]  # x == y on some rows
+        pos = cells / np.array([float(rng.integers(5, 70)), float(rng.integers(5, 70))])
+        oc = pos - pos.mean(axis=1, keepdims=True)
+        on = oc / (oc.std(axis=1, keepdims=True) + 1e-9)
+        want = np.abs(on @ on.T) / pos.shape[1]
+        np.fill_diagonal(want, 0.0)
+        assert position_mi(pos).tobytes() == want.tobytes(), trial
+    with pytest.raises(ValueError, match="positions"):
+        position_mi(np.zeros((4, 3)))

@@ -1,5 +1,8 @@
 """MORPH plasticity rules: pure numpy state and updates, no I/O.
 
+Where numba is installed, a state of many replicas (the lab's fleet brain) takes the reference rule set's update in one
+compiled loop (:mod:`.reference_kernel`) with the numpy update's bits; one replica (an agent) always runs numpy.
+
 Two rule sets share the parameter model (:mod:`.presets`):
 
 * :class:`ReferenceState` reproduces the reference code (docs/morph.md): symmetric W and A,
@@ -20,6 +23,7 @@ lives in :mod:`.policies`.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -66,9 +70,20 @@ def position_mi(positions: np.ndarray) -> np.ndarray:
     the way the reference does (centre, divide by std + 1e-9) because the last bits of it break the
     formation ties.
     """
-    oc = positions - positions.mean(axis=1, keepdims=True)
-    on = oc / (oc.std(axis=1, keepdims=True) + _EPS)
-    mi = np.abs(on @ on.T) / positions.shape[1]
+    if positions.ndim != 2 or positions.shape[1] != 2:
+        raise ValueError(f"positions: expected (n, 2) normalised cells, got shape {positions.shape}")
+    # numpy's mean and std of each row, written out for rows of two: a sum of two numbers is one addition whichever
+    # way a reduction orders it, so every value keeps the bits of positions.mean(axis=1) and oc.std(axis=1), at a
+    # fraction of their cost (the fleet brain builds this every tick)
+    x, y = positions[:, 0], positions[:, 1]
+    mean = (x + y) / 2.0
+    oc = positions - mean[:, None]
+    ox, oy = oc[:, 0], oc[:, 1]
+    centre = (ox + oy) / 2.0
+    dx, dy = ox - centre, oy - centre
+    std = np.sqrt((dx * dx + dy * dy) / 2.0)
+    on = oc / (std + _EPS)[:, None]
+    mi = np.abs(on @ on.T) / 2
     np.fill_diagonal(mi, 0.0)
     return mi
 
@@ -94,6 +109,23 @@ def _zero_diagonal(x: np.ndarray) -> None:
 
 # --------------------------------------------------------------------------------------------------
 # reference rule set
+
+_NO_MI: dict[int, np.ndarray] = {}
+_KERNEL: list = []
+
+
+def compiled_kernel():
+    """:func:`.reference_kernel.step_rows`, or None where numba is not installed or ``MORPH_SIM_KERNEL=numpy``
+    asks for the numpy update (both give the same bits; the kernel is the faster for many replicas)."""
+    if not _KERNEL:
+        kernel = None
+        if os.environ.get("MORPH_SIM_KERNEL", "") != "numpy":
+            try:
+                from services.policies.reference_kernel import step_rows as kernel
+            except ImportError:
+                kernel = None
+        _KERNEL.append(kernel)
+    return _KERNEL[0]
 
 
 @dataclass
@@ -198,6 +230,9 @@ class ReferenceState:
         ``positions`` and ``pred``: on the other steps (:meth:`structural_due` false) they may be None.
         Each replica's arithmetic is the same whether it steps alone or with others.
         """
+        if self.replicas > 1 and (kernel := compiled_kernel()) is not None:
+            self._step_compiled(kernel, positions, jaccard, delivery, pred, self._some(rows))
+            return
         if (rows := self._some(rows)) is not None:
             if 2 * len(rows) <= self.replicas:
                 part = self._take(rows)
@@ -212,6 +247,29 @@ class ReferenceState:
                 self._put(others, kept)
             return
         self._step(positions, jaccard, delivery, pred, None)
+
+    def _step_compiled(self, kernel, positions, jaccard, delivery, pred, rows: np.ndarray | None) -> None:
+        """:meth:`step` of the replicas ``rows`` (None: all) by :func:`.reference_kernel.step_rows`: the same
+        values, bit for bit, as :meth:`_step`."""
+        p = self.params
+        rows = np.arange(self.replicas) if rows is None else rows
+        self.t[rows] += 1
+        t = self.t[rows]
+        self.dhat[rows], self.eta[rows], alpha, theta_adj = neuromodulation_rows(
+            p, self.dhat[rows], delivery, self.d_exp, t)
+        due = t % p.k == 0
+        if due.any():
+            mi = self._formation_mi(positions, pred)
+        else:  # read by no replica
+            mi = _NO_MI.get(self.n)
+            if mi is None:
+                mi = _NO_MI[self.n] = np.zeros((self.n, self.n))
+        credit_gain = p.reward_alpha * delivery if (delivery > 0 and p.reward_alpha > 0.0) else 0.0
+        kernel(rows, self.W, self.A, self.age, self.theta_bcm, self.j_prev, self.h, np.asarray(jaccard, dtype=float),
+               alpha, float(credit_gain), p.bcm_tau, 1.0 - p.bcm_tau, float(p.bcm_gain), 1.0 - p.gamma, p.gamma,
+               min(max(p.gamma, 0.5), 1.0), float(p.grace), p.cov, p.credit_threshold, p.beta,
+               p.rho_target * (self.n - 1), float(self.n - 1), _EPS, due, mi, theta_adj, p.max_new(self.n),
+               p.theta_prune, self.formed, self.pruned)
 
     def _step(self, positions, jaccard, delivery, pred, stepped: np.ndarray | None) -> None:
         """:meth:`step` of every replica; the structural update only of those ``stepped`` (a mask; None: all), the
@@ -285,18 +343,23 @@ class ReferenceState:
         t = self.t if (rows := self._some(rows)) is None else self.t[rows]
         return bool(((t + 1) % self.params.k == 0).any())
 
+    def _formation_mi(self, positions: np.ndarray | None, pred: np.ndarray | None) -> np.ndarray:
+        """The MI the formation scores: of the positions, boosted by the predictive hint where it is on."""
+        if positions is None:
+            raise ValueError("the structural update needs the positions (structural_due() was true)")
+        mi = position_mi(positions)
+        if pred is not None and self.params.pred_boost > 0.0:
+            mi = _clip(mi + self.params.pred_boost * pred, 0.0, 1.0)
+            np.fill_diagonal(mi, 0.0)
+        return mi
+
     def _structural(self, positions: np.ndarray | None, pred: np.ndarray | None, theta_adj,
                     due: np.ndarray | None = None) -> None:
         """Prune and form in every replica, or in those ``due`` (a mask); ``theta_adj`` is one threshold or one per
         replica."""
         p = self.params
         n = self.n
-        if positions is None:
-            raise ValueError("the structural update needs the positions (structural_due() was true)")
-        mi = position_mi(positions)
-        if pred is not None and p.pred_boost > 0.0:
-            mi = _clip(mi + p.pred_boost * pred, 0.0, 1.0)
-            np.fill_diagonal(mi, 0.0)
+        mi = self._formation_mi(positions, pred)
 
         prune = (self.A > 0) & (self.W < p.theta_prune) & (self.age > p.grace)
         if due is not None:
