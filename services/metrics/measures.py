@@ -145,6 +145,9 @@ class LinkTracker:
         self.n_agents = int(n_agents)
         self.directed = bool(directed)
         self._prev = np.zeros((n_agents, n_agents), dtype=bool)
+        # the pairs tracked: i < j (undirected) or every i != j (directed), one mask for every update
+        self._pairs = np.triu(np.ones((n_agents, n_agents), dtype=bool), k=1) if not directed else ~np.eye(
+            n_agents, dtype=bool)
         self._prev_key: tuple | None = None  # the last matrix fed (dtype, shape, bytes)
         self._open: dict[tuple[int, int], int] = {}
         self._closed: list[LinkEvent] = []
@@ -154,12 +157,13 @@ class LinkTracker:
         self.prunings = 0
 
     def _mask(self, A) -> np.ndarray:
-        L = _offdiag_links(A)
+        L = _square("A", A) != 0
         if L.shape != (self.n_agents, self.n_agents):
             raise ValueError(f"A: expected shape ({self.n_agents}, {self.n_agents}), got {L.shape}")
-        if self.directed:
-            return L
-        return np.triu(L | L.T, k=1)
+        if not self.directed:
+            L |= L.T
+        L &= self._pairs
+        return L
 
     def update(self, A, tick: int | None = None) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
         """Feed the link matrix observed at ``tick`` (default: previous tick + 1, starting at 0).
@@ -179,10 +183,10 @@ class LinkTracker:
             return [], []
         self._prev_key = key
         cur = self._mask(A)
-        formed_idx = np.argwhere(cur & ~self._prev)
-        pruned_idx = np.argwhere(self._prev & ~cur)
-        formed = [(int(i), int(j)) for i, j in formed_idx]
-        pruned = [(int(i), int(j)) for i, j in pruned_idx]
+        changed = cur != self._prev
+        # pairs as plain ints (np.nonzero's two index arrays, row-major as np.argwhere lists them)
+        formed = list(zip(*(ix.tolist() for ix in np.nonzero(changed & cur))))
+        pruned = list(zip(*(ix.tolist() for ix in np.nonzero(changed & self._prev))))
         for p in pruned:
             self._closed.append(LinkEvent(p[0], p[1], self._open.pop(p), tick))
         for p in formed:

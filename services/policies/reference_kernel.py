@@ -46,6 +46,12 @@ def step_rows(rows, W, A, age, theta, j_prev, h, jaccard, alpha, credit_gain, bc
             deg = 0.0
             for j in range(n):
                 w = W[b, i, j]
+                a = A[b, i, j]
+                if w == 0.0 and a == 0.0 and theta[b, i, j] == 0.0:
+                    # a pair never linked (or long unlinked): every term below is +0.0 and leaves W and θ at +0.0
+                    # (every operand is non-negative, so no -0.0 appears); only the co-assignment is kept
+                    j_prev[b, i, j] = jaccard[i, j]
+                    continue
                 # BCM threshold tracks W before this step's decay
                 th = theta[b, i, j] * bcm_tau + w * keep_tau
                 if i == j:
@@ -60,7 +66,6 @@ def step_rows(rows, W, A, age, theta, j_prev, h, jaccard, alpha, credit_gain, bc
                     w = w * _clip(gamma - s, 0.5, 1.0)
                 else:
                     w = w * flat_decay
-                a = A[b, i, j]
                 # Hebbian term, then the delivery burst's credit to the pairs co-assigned on the previous step
                 w = w + a_eff * jaccard[i, j] * cov * a
                 if credit_gain != 0.0:
