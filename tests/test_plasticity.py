@@ -1,5 +1,7 @@
 """MORPH plasticity rules on synthetic inputs (no warehouse): the reference's mechanics and the paper's rows."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -283,8 +285,8 @@ def test_the_compiled_reference_update_has_the_numpy_bits(ablation, monkeypatch)
     # stops being the services' twin
     from services.policies import plasticity
 
-    kernel = plasticity.compiled_kernel()
-    assert kernel is not None, "numba is a test dependency: the compiled update must be what the lab runs here"
+    kernels = plasticity.compiled_kernels()
+    assert kernels is not None, "numba is a test dependency: the compiled update must be what the lab runs here"
     params = load_preset("reference").resolve(ablation)
     rng = np.random.default_rng(11)
     n, replicas = 12, 9
@@ -306,7 +308,7 @@ def test_the_compiled_reference_update_has_the_numpy_bits(ablation, monkeypatch)
             state.step(pos, jac, delivery, pred, rows)
             monkeypatch.setattr(plasticity, "_KERNEL", [None])
             twin.step(pos, jac, delivery, pred, rows)
-            monkeypatch.setattr(plasticity, "_KERNEL", [kernel])
+            monkeypatch.setattr(plasticity, "_KERNEL", [kernels])
             formed += int(state.formed.sum())
             pruned += int(state.pruned.sum())
         for name in ReferenceState._ARRAYS:
@@ -325,16 +327,16 @@ def test_the_compiled_update_is_not_the_numpy_update_with_another_name(monkeypat
     twin = _copy_state(state)
     jac = np.zeros((8, 8))
     pos = _positions(8)
-    kernel = plasticity.compiled_kernel()
+    kernels = plasticity.compiled_kernels()
 
     def without_credit(rows, W, A, age, theta, j_prev, h, jaccard, alpha, credit_gain, *rest):
         return reference_kernel.step_rows(rows, W, A, age, theta, j_prev, h, jaccard, alpha, 0.0, *rest)
 
-    monkeypatch.setattr(plasticity, "_KERNEL", [without_credit])
+    monkeypatch.setattr(plasticity, "_KERNEL", [SimpleNamespace(step_rows=without_credit)])
     state.step(pos, jac, 2, None if not state.structural_due() else np.zeros((8, 8)))
     monkeypatch.setattr(plasticity, "_KERNEL", [None])
     twin.step(pos, jac, 2, None if not twin.structural_due() else np.zeros((8, 8)))
-    assert kernel is not None and state.W.tobytes() != twin.W.tobytes()
+    assert kernels is not None and state.W.tobytes() != twin.W.tobytes()
 
 
 def test_numpy_is_asked_for_by_the_environment(monkeypatch):
@@ -342,10 +344,10 @@ def test_numpy_is_asked_for_by_the_environment(monkeypatch):
 
     monkeypatch.setattr(plasticity, "_KERNEL", [])
     monkeypatch.setenv("MORPH_SIM_KERNEL", "numpy")
-    assert plasticity.compiled_kernel() is None
+    assert plasticity.compiled_kernels() is None
     monkeypatch.setattr(plasticity, "_KERNEL", [])
     monkeypatch.delenv("MORPH_SIM_KERNEL")
-    assert plasticity.compiled_kernel() is not None
+    assert plasticity.compiled_kernels() is not None
 
 
 def test_position_mi_has_the_bits_of_numpy_mean_and_std():
@@ -364,3 +366,66 @@ def test_position_mi_has_the_bits_of_numpy_mean_and_std():
         assert position_mi(pos).tobytes() == want.tobytes(), trial
     with pytest.raises(ValueError, match="positions"):
         position_mi(np.zeros((4, 3)))
+
+
+def test_the_compiled_task_sets_have_the_numpy_bits(paper, monkeypatch):
+    # the paper preset's fleet brain counts each robot's task sets over a window of its own length; compiled or in
+    # numpy, every Jaccard must have the same bits
+    from services.policies import plasticity
+
+    kernels = plasticity.compiled_kernels()
+    assert kernels is not None
+    rng = np.random.default_rng(21)
+    p = paper.params
+    n = 10
+    checked = 0
+    for trial in range(60):
+        state = PaperState(p, n, np.arange(n), 0.1, replicas=n)
+        top = (3, 12, 70_000)[trial % 3]  # few labels (many shared), more, and ids too large to count by index
+        state.history[:] = rng.integers(0, top, size=state.history.shape) * (rng.random(state.history.shape) < 0.6)
+        state.filled[:] = rng.integers(0, p.mi_window + 2, size=n)
+        got = state.task_jaccard()
+        monkeypatch.setattr(plasticity, "_KERNEL", [None])
+        want = state.task_jaccard()
+        monkeypatch.setattr(plasticity, "_KERNEL", [kernels])
+        assert got.tobytes() == want.tobytes(), trial
+        checked += int(((want > 0) & (want < 1)).sum())
+    assert checked > 0  # partial overlaps, not only disjoint or equal sets
+
+
+@pytest.mark.parametrize("estimator", ("coassignment_rate", "nmi"))
+def test_the_compiled_paper_structural_step_has_the_numpy_bits(paper, estimator, monkeypatch):
+    # prune (age ≥ grace, exactly at grace included), the best candidates with ties to the lower index, homeostasis:
+    # of some rows of a fleet brain, compiled in place or in numpy on a copy of those rows
+    from services.policies import plasticity
+
+    kernels = plasticity.compiled_kernels()
+    assert kernels is not None
+    p = paper.params.model_copy(update={"mi_estimator": estimator})
+    rng = np.random.default_rng(8)
+    n = 12
+    formed = pruned = 0
+    for trial in range(40):
+        state = PaperState(p, n, np.arange(n), 0.1, replicas=n)
+        state.history[:] = rng.integers(0, 5, size=state.history.shape)
+        state.filled[:] = rng.integers(0, p.mi_window + 1, size=n)
+        state.A[:] = rng.random((n, n)) < 0.3
+        state.A[np.arange(n), np.arange(n)] = 0.0
+        state.W[:] = state.A * rng.random((n, n))
+        state.age[:] = state.A * rng.integers(p.grace - 2, p.grace + 3, size=(n, n))
+        state.theta_bcm[:] = rng.random((n, n)) * 0.3
+        state.h[:] = rng.random(n) * (0.5 if trial % 2 else 0.0)  # h = 0 everywhere: scores tie more often
+        twin = state._take(np.arange(n))
+        rows = np.sort(rng.choice(n, size=int(rng.integers(1, n)), replace=False))
+        theta_adj = rng.random(n) * 0.3
+        hint = (rng.random((n, n)) < 0.2).astype(float)
+        x = _paper_inputs(n, np.zeros(n, dtype=int), hint=hint)
+        state._structural(x, theta_adj, rows)
+        monkeypatch.setattr(plasticity, "_KERNEL", [None])
+        twin._structural(x, theta_adj, rows)
+        monkeypatch.setattr(plasticity, "_KERNEL", [kernels])
+        for name in PaperState._ROWS[1:]:
+            assert getattr(state, name).tobytes() == getattr(twin, name).tobytes(), (trial, name)
+        formed += int(state.formed.sum())
+        pruned += int(state.pruned.sum())
+    assert formed > 0 and pruned > 0

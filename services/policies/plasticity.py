@@ -114,17 +114,17 @@ _NO_MI: dict[int, np.ndarray] = {}
 _KERNEL: list = []
 
 
-def compiled_kernel():
-    """:func:`.reference_kernel.step_rows`, or None where numba is not installed or ``MORPH_SIM_KERNEL=numpy``
-    asks for the numpy update (both give the same bits; the kernel is the faster for many replicas)."""
+def compiled_kernels():
+    """:mod:`.reference_kernel`, or None where numba is not installed or ``MORPH_SIM_KERNEL=numpy`` asks for numpy
+    (both give the same bits; the compiled functions are the faster for many replicas)."""
     if not _KERNEL:
-        kernel = None
+        kernels = None
         if os.environ.get("MORPH_SIM_KERNEL", "") != "numpy":
             try:
-                from services.policies.reference_kernel import step_rows as kernel
+                from services.policies import reference_kernel as kernels
             except ImportError:
-                kernel = None
-        _KERNEL.append(kernel)
+                kernels = None
+        _KERNEL.append(kernels)
     return _KERNEL[0]
 
 
@@ -230,8 +230,8 @@ class ReferenceState:
         ``positions`` and ``pred``: on the other steps (:meth:`structural_due` false) they may be None.
         Each replica's arithmetic is the same whether it steps alone or with others.
         """
-        if self.replicas > 1 and (kernel := compiled_kernel()) is not None:
-            self._step_compiled(kernel, positions, jaccard, delivery, pred, self._some(rows))
+        if self.replicas > 1 and (kernels := compiled_kernels()) is not None:
+            self._step_compiled(kernels.step_rows, positions, jaccard, delivery, pred, self._some(rows))
             return
         if (rows := self._some(rows)) is not None:
             if 2 * len(rows) <= self.replicas:
@@ -613,10 +613,11 @@ class PaperState:
             arr[where] = 0.0
         self.h[where] = 0.0
 
-    def _window(self, length: np.ndarray, size: int) -> np.ndarray:
-        """(replicas, size, n): the last ``size`` ticks of each replica's history with the ticks before its own last
-        ``length`` (per replica) set to 0, idle: what every rule below ignores."""
-        hist = self.history[:, -size:]
+    def _window(self, length: np.ndarray, size: int, history: np.ndarray | None = None) -> np.ndarray:
+        """(replicas, size, n): the last ``size`` ticks of each replica's history (or of ``history``, some replicas'
+        histories) with the ticks before its own last ``length`` (per replica) set to 0, idle: what every rule below
+        ignores."""
+        hist = (self.history if history is None else history)[:, -size:]
         old = np.arange(size)[None, :] < (size - length)[:, None]
         return np.where(old[:, :, None], 0, hist) if old.any() else hist
 
@@ -637,6 +638,11 @@ class PaperState:
             size = m.sum(axis=1)
             union = size[self.owners][:, None] + size[None, :] - inter
         else:
+            kernels = compiled_kernels()
+            if kernels is not None:
+                jac = np.empty((self.replicas, n))
+                if kernels.task_jaccard_rows(self.history, self.filled, p.task_window, self.owners, jac):
+                    return jac
             # each replica's window as long as it alone takes (at least one tick), padded with idle ticks; the
             # intersections and sizes are counts (sums of 0/1 products), so exact, the same numbers as alone
             hist = self._window(np.maximum(np.minimum(self.filled, p.task_window), 1), p.task_window)
@@ -751,9 +757,19 @@ class PaperState:
 
         self.age = np.where(self.A > 0, self.age + 1.0, 0.0)
 
-    def _mi(self) -> np.ndarray:
-        """(B, n) MI estimate of every row from its replica's history."""
+    def _mi(self, rows: np.ndarray | None = None) -> np.ndarray:
+        """(B, n) MI estimate of every row from its replica's history; with ``rows`` (a replica per row), of those
+        rows only."""
         p = self.params
+        if rows is not None:
+            own, filled, history = self.owners[rows], self.filled[rows], self.history[rows]
+            if p.mi_estimator == "nmi":
+                out = np.empty((len(rows), self.n))
+                for k, f in enumerate(filled.tolist()):
+                    hist = history[k, -f:] if f >= 2 else history[k, -2:]
+                    out[k] = history_nmi(hist, own[k : k + 1])[0]
+                return out
+            return coassignment_rates(self._window(np.maximum(filled, 2), p.mi_window, history), own)
         own = self.owners
         if self.replicas == 1:
             f = int(self.filled[0])
@@ -772,6 +788,15 @@ class PaperState:
         """Prune, form and homeostasis of every row, or of the rows ``rows`` (their replicas are at a k-th step);
         ``theta_adj`` is one threshold or one per row."""
         p = self.params
+        if rows is not None and self.replicas > 1 and (kernels := compiled_kernels()) is not None:
+            mi = self._mi(rows)
+            if p.use_pred_hint and p.pred_boost > 0.0:
+                mi = mi + p.pred_boost * x.hint[self.owners[rows]]
+            kernels.paper_structural_rows(rows, mi, self.W, self.A, self.age, self.theta_bcm, self.h, self.owners,
+                                          theta_adj[rows], p.theta_prune, float(p.grace), p.max_new(self.n), p.beta,
+                                          p.rho_target, float(self.n - 1), p.h_min, p.h_max, self.formed,
+                                          self.pruned)
+            return
         if rows is not None:
             part = self._take(rows)
             part._structural(x, theta_adj[rows], None)

@@ -123,3 +123,109 @@ def step_rows(rows, W, A, age, theta, j_prev, h, jaccard, alpha, credit_gain, bc
         for i in range(n):
             for j in range(n):
                 age[b, i, j] = age[b, i, j] + 1.0 if A[b, i, j] > 0.0 else 0.0
+
+
+@njit(cache=True)
+def task_jaccard_rows(history, filled, task_window, owners, out):
+    """The paper preset's task-set Jaccard of every row b, from a history of its own (``PaperState.task_jaccard`` of
+    many replicas): T_i = the distinct non-zero labels agent i held in the last max(min(filled[b], task_window), 1)
+    ticks of history[b]; out[b, j] = |T_own ∩ T_j| / |T_own ∪ T_j| (0 for an empty union and for j = own). Counts are
+    integers, so the division has numpy's operands and bits. Returns False, leaving ``out`` unfinished, when a label
+    is negative or above 65536 (the caller then counts with numpy)."""
+    replicas, ticks, n = history.shape
+    top = 0
+    for b in range(replicas):
+        for t in range(ticks):
+            for j in range(n):
+                label = history[b, t, j]
+                if label < 0 or label > 65536:
+                    return False
+                if label > top:
+                    top = label
+    own_mark = np.zeros(top + 1, dtype=np.int64)
+    seen = np.zeros(top + 1, dtype=np.int64)
+    stamp = 0
+    for b in range(replicas):
+        own = owners[b]
+        length = min(filled[b], task_window)
+        length = min(max(length, 1), ticks)
+        start = ticks - length
+        stamp += 1
+        own_stamp = stamp
+        own_size = 0
+        for t in range(start, ticks):
+            label = history[b, t, own]
+            if label > 0 and own_mark[label] != own_stamp:
+                own_mark[label] = own_stamp
+                own_size += 1
+        for j in range(n):
+            if j == own:
+                out[b, j] = 0.0
+                continue
+            stamp += 1
+            size = 0
+            inter = 0
+            for t in range(start, ticks):
+                label = history[b, t, j]
+                if label > 0 and seen[label] != stamp:
+                    seen[label] = stamp
+                    size += 1
+                    if own_mark[label] == own_stamp:
+                        inter += 1
+            union = own_size + size - inter
+            out[b, j] = float(inter) / float(union) if union > 0 else 0.0
+    return True
+
+
+@njit(cache=True)
+def paper_structural_rows(rows, mi, W, A, age, theta, h, owners, theta_adj, theta_prune, grace, cap, beta,
+                          rho_target, n_minus_1, h_min, h_max, formed, pruned):
+    """The paper preset's structural step of the rows ``rows`` (``PaperState._structural``), ``mi`` holding their
+    MI (hint included) row by row: prune links of age ≥ grace below θ_prune; form links to the ``cap`` best
+    candidates (score = MI · (1 + 2 h) ≥ θ_adj, not linked, not pruned now, not itself; ties to the lower index, as a
+    stable sort gives them); homeostasis from the new degree."""
+    n = W.shape[1]
+    chosen = np.empty(n, dtype=np.bool_)
+    score = np.empty(n)
+    for k in range(rows.shape[0]):
+        b = rows[k]
+        own = owners[b]
+        cut = 0
+        for j in range(n):
+            candidate = True
+            if A[b, j] > 0.0 and W[b, j] < theta_prune and age[b, j] >= grace:
+                A[b, j] = 0.0
+                W[b, j] = 0.0
+                theta[b, j] = 0.0
+                age[b, j] = 0.0
+                cut += 1
+                candidate = False
+            s = mi[k, j] * (1.0 + 2.0 * h[b])
+            chosen[j] = False
+            if candidate and A[b, j] == 0.0 and j != own and s >= theta_adj[k]:
+                score[j] = s
+            else:
+                score[j] = -np.inf
+        pruned[b] = cut
+        count = 0
+        for _ in range(cap):
+            best, pick = -np.inf, -1
+            for j in range(n):
+                if not chosen[j] and score[j] > best:
+                    best, pick = score[j], j
+            if pick < 0:
+                break
+            chosen[pick] = True
+            A[b, pick] = 1.0
+            age[b, pick] = 0.0
+            count += 1
+        formed[b] = count
+        deg = 0.0
+        for j in range(n):
+            deg += A[b, j]
+        value = h[b] + beta * (rho_target - deg / n_minus_1)
+        if not value >= h_min:
+            value = h_min
+        if not value <= h_max:
+            value = h_max
+        h[b] = value
