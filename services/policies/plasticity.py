@@ -762,6 +762,10 @@ class PaperState:
         rows only."""
         p = self.params
         if rows is not None:
+            if p.mi_estimator != "nmi" and (kernels := compiled_kernels()) is not None:
+                out = np.empty((len(rows), self.n))
+                kernels.coassignment_rows(self.history, rows, self.owners, self.filled, out)
+                return out
             own, filled, history = self.owners[rows], self.filled[rows], self.history[rows]
             if p.mi_estimator == "nmi":
                 out = np.empty((len(rows), self.n))

@@ -135,7 +135,7 @@ def task_jaccard_rows(history, filled, task_window, owners, out):
     replicas, ticks, n = history.shape
     top = 0
     for b in range(replicas):
-        for t in range(ticks):
+        for t in range(ticks - min(max(task_window, 1), ticks), ticks):  # the ticks any window reads
             for j in range(n):
                 label = history[b, t, j]
                 if label < 0 or label > 65536:
@@ -229,3 +229,31 @@ def paper_structural_rows(rows, mi, W, A, age, theta, h, owners, theta_adj, thet
         if not value <= h_max:
             value = h_max
         h[b] = value
+
+
+@njit(cache=True)
+def coassignment_rows(history, rows, owners, filled, out):
+    """The paper preset's co-assignment rate of the rows ``rows``, each from its own history (``coassignment_rates``
+    of their windows): over the last max(filled[b], 2) ticks, out[k, j] = the ticks on which agent j held the task own
+    held (a task: label > 0) ÷ the ticks own held one (at least 1), 0 for j = own. Counts are integers, so the
+    division has numpy's operands and bits."""
+    ticks, n = history.shape[1], history.shape[2]
+    for k in range(rows.shape[0]):
+        b = rows[k]
+        own = owners[b]
+        start = max(ticks - max(filled[b], 2), 0)
+        busy = 0
+        for t in range(start, ticks):
+            if history[b, t, own] > 0:
+                busy += 1
+        denominator = float(max(busy, 1))
+        for j in range(n):
+            if j == own:
+                out[k, j] = 0.0
+                continue
+            same = 0
+            for t in range(start, ticks):
+                label = history[b, t, own]
+                if label > 0 and history[b, t, j] == label:
+                    same += 1
+            out[k, j] = float(same) / denominator
