@@ -792,7 +792,8 @@ class PaperState:
         """Prune, form and homeostasis of every row, or of the rows ``rows`` (their replicas are at a k-th step);
         ``theta_adj`` is one threshold or one per row."""
         p = self.params
-        if rows is not None and self.replicas > 1 and (kernels := compiled_kernels()) is not None:
+        if self.replicas > 1 and (kernels := compiled_kernels()) is not None:
+            rows = np.arange(self.replicas) if rows is None else rows
             mi = self._mi(rows)
             if p.use_pred_hint and p.pred_boost > 0.0:
                 mi = mi + p.pred_boost * x.hint[self.owners[rows]]
