@@ -144,6 +144,8 @@ def test_bench_brains_prints_both_ways_and_the_ratio_to_proximity(capsys):
         assert (robot_s - 5e-4) / (fleet_s + 5e-4) - 0.005 <= speedup <= (robot_s + 5e-4) / (fleet_s - 5e-4) + 0.005
         assert r[-1] == "yes"  # the same episode both ways
     assert rows[2][5] == "1.00×"  # Proximity against itself
+    # numba is a test dependency: the table is the compiled update's
+    assert any(line.startswith("MORPH's fleet brain: compiled update (numba ") for line in out), out
 
 
 def test_bench_brains_refuses_bad_seeds_in_one_line(capsys):

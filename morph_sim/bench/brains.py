@@ -87,6 +87,21 @@ def measure(policies, profiles, seeds, scale: str, steps: int) -> list[dict]:
     return rows
 
 
+def update_in_use() -> str:
+    """Which update MORPH's fleet brain runs here: compiled (with numba's version) or numpy, and why."""
+    import os
+
+    from services.policies.plasticity import compiled_kernels
+
+    if compiled_kernels() is not None:
+        from importlib.metadata import version
+
+        return f"compiled update (numba {version('numba')}; the numpy update's bits)"
+    if os.environ.get("MORPH_SIM_KERNEL", "") == "numpy":
+        return "numpy update (MORPH_SIM_KERNEL=numpy)"
+    return "numpy update (numba is not installed: pip install 'morph-sim[lab]' compiles it)"
+
+
 def run(args: argparse.Namespace) -> int:
     from schemas.errors import one_line
     from services.inputs import at_most
@@ -106,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     print(f"{args.scale}, {args.steps} steps, seeds {','.join(map(str, seeds))}: CPU s per episode (median); "
           "one fleet brain vs a brain per robot, and against Proximity's episode of the same profile, same way")
+    print(f"MORPH's fleet brain: {update_in_use()}")
     print(f"{'profile':<22}{'policy':<12}{'fleet brain':>12}{'per robot':>11}{'speed-up':>10}"
           f"{'fleet/Prox':>12}{'robot/Prox':>12}  same")
     base = {(r["profile"]): r for r in rows if r["policy"] == "proximity"}
