@@ -46,9 +46,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("suite", choices=SUITES, help="which study: " + ", ".join(SUITES) + ". faults' default grid: "
                         "four scales × latency 0–10 ticks and Bernoulli/Gilbert–Elliott loss 0–50 %% on dispatch, "
                         "fleet broadcast and both × five policies × seeds 1–10, T = 800 (2,600 episodes a scale, "
-                        "≈ 30 min of two idle cores in all). network's default grid: four scales × five profiles × six "
+                        "≈ 28 min of two idle cores in all). network's default grid: four scales × five profiles × six "
                         "policies × seeds 301–310, T = 800 (tiny, small), 600 (medium), 400 (large) (1,200 episodes, "
-                        "measured: 3 min 11 s on two idle cores)")
+                        "measured: 2 min 54 s on two idle cores)")
     parser.add_argument("--preset", default=None, help="scale/ablation: MORPH preset reference (scale default) or "
                         "paper (ablation default), or a preset TOML path; emergent: comma-separated presets "
                         "(default reference,paper)")
