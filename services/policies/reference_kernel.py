@@ -126,6 +126,21 @@ def step_rows(rows, W, A, age, theta, j_prev, h, jaccard, alpha, credit_gain, bc
 
 
 @njit(cache=True)
+def _task_set(labels, mark, stamp, own_mark, own_stamp):
+    """(the distinct tasks among ``labels``, how many of them own holds): a task is a label > 0, counted once by
+    marking it with ``stamp`` in ``mark``; own's tasks are those marked ``own_stamp`` in ``own_mark``."""
+    size = 0
+    shared = 0
+    for label in labels:
+        if label > 0 and mark[label] != stamp:
+            mark[label] = stamp
+            size += 1
+            if own_mark[label] == own_stamp:
+                shared += 1
+    return size, shared
+
+
+@njit(cache=True)
 def task_jaccard_rows(history, filled, task_window, owners, out):
     """The paper preset's task-set Jaccard of every row b, from a history of its own (``PaperState.task_jaccard`` of
     many replicas): T_i = the distinct non-zero labels agent i held in the last max(min(filled[b], task_window), 1)
@@ -152,26 +167,13 @@ def task_jaccard_rows(history, filled, task_window, owners, out):
         start = ticks - length
         stamp += 1
         own_stamp = stamp
-        own_size = 0
-        for t in range(start, ticks):
-            label = history[b, t, own]
-            if label > 0 and own_mark[label] != own_stamp:
-                own_mark[label] = own_stamp
-                own_size += 1
+        own_size, _ = _task_set(history[b, start:, own], own_mark, own_stamp, own_mark, own_stamp)
         for j in range(n):
             if j == own:
                 out[b, j] = 0.0
                 continue
             stamp += 1
-            size = 0
-            inter = 0
-            for t in range(start, ticks):
-                label = history[b, t, j]
-                if label > 0 and seen[label] != stamp:
-                    seen[label] = stamp
-                    size += 1
-                    if own_mark[label] == own_stamp:
-                        inter += 1
+            size, inter = _task_set(history[b, start:, j], seen, stamp, own_mark, own_stamp)
             union = own_size + size - inter
             out[b, j] = float(inter) / float(union) if union > 0 else 0.0
     return True
