@@ -118,3 +118,37 @@ def test_the_monitor_counts_every_state_of_a_small_run(live_run, tmp_path):
 @pytest.mark.slow
 def test_the_monitor_sustains_a_64_agent_run_with_no_drops(live_run, tmp_path):
     _sustain(live_run, tmp_path, "large", 42, 22, 60)
+
+
+def test_the_run_s_final_samples_go_out_without_loss_even_behind_a_publication_under_way():
+    # the run ends while a droppable publication of a backlog is going out: the run's final samples, queued meanwhile,
+    # must go out without loss, whichever publication takes them (a client once ended 13 rows short of the run)
+    from services.monitor.streams import StreamPublisher, sample
+
+    sent: list[tuple[str, int, bool]] = []
+
+    class Bus:
+        async def publish(self, key, s, droppable):
+            sent.append((s.name, s.t, droppable))
+            await asyncio.sleep(0)  # the transport's turn: other tasks run between samples
+
+    class Keys:
+        def metric(self, name):
+            return f"metrics/{name}"
+
+    async def scenario():
+        pub = StreamPublisher(Bus(), Keys(), None, None, None, dt=0.1, state_every=1, max_rate=0)
+        pub._pending = [sample(name, t, t * 0.1, value=float(t)) for t in range(50) for name in ("deliveries", "links")]
+        under_way = asyncio.create_task(pub.publish_pending())
+        await asyncio.sleep(0)  # the backlog starts going out
+        pub.latest_metric = {name: sample(name, 299, 29.9, value=299.0) for name in ("deliveries", "links")}
+        pub.finish()
+        await pub.publish_pending(force=True, lossless=True)
+        await under_way
+        return pub
+
+    pub = asyncio.run(scenario())
+    finals = [(name, droppable) for name, t, droppable in sent if t == 299]
+    assert sorted(finals) == [("deliveries", False), ("links", False)]
+    assert sent[0][2] is True  # the backlog went out droppable while the run was on
+    assert pub.published_lossless >= 2
