@@ -122,3 +122,31 @@ def test_a_state_sample_completes_into_a_snapshot_and_the_w_block_means():
         closed += every_report(rows, t)
     row10 = next(c.values for c in closed + rows.finish()[0] if c.values["t"] == 10)
     assert row10["w_picker_picker"] == (W[1, 2] + W[2, 1]) / 2 and row10["w_agv_picker"] is not None
+
+
+def test_the_final_acks_still_missing_are_those_of_the_robots_that_acked_the_tick_before():
+    # the monitor may see the sim's end of run before final acks the sim routed to it: it waits for these, and the
+    # last row then holds every robot's final links and η, as the in-process run's does
+    rows = reducer(plastic=True)
+    assert rows.final_acks_missing() == set()  # nothing ticked yet
+    for t in range(STEPS):
+        every_report(rows, t)
+    rows.tick(STEPS, sim_time=float(STEPS), deliveries=0, outcomes=None)  # the final tick
+    assert rows.final_acks_missing() == set(range(N))
+    rows.ack(ack(STEPS, 0, links=[1], eta=0.5))
+    rows.ack(ack(STEPS, 2, links=[], eta=-0.5))
+    assert rows.final_acks_missing() == {1}
+    rows.ack(ack(STEPS, 1, links=[0], eta=0.1))
+    assert rows.final_acks_missing() == set()
+    closed, _ = rows.finish()
+    last = closed[-1].values
+    assert last["t"] == STEPS - 1 and last["links"] == 1  # the pair 0-1, from the final acks
+
+
+def test_a_robot_absent_at_the_end_is_not_awaited():
+    rows = reducer(plastic=True)
+    for t in range(STEPS - 1):
+        every_report(rows, t)
+    every_report(rows, STEPS - 1, agents=(0, 1))  # robot 2 died before its last ack
+    rows.tick(STEPS, sim_time=float(STEPS), deliveries=0, outcomes=None)
+    assert rows.final_acks_missing() == {0, 1}

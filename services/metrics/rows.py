@@ -95,6 +95,7 @@ class RowReducer:
         self._graph: tuple[dict[int, list[int]] | None, int, float] = (None, 0, 0.0)  # (links, count, λ₂) of a row
         self._link_shift = 1 if plastic else 0
         self.outcomes = OutcomeTally()  # the robots' dispatch outcome counts, taken in row order
+        self._acked: dict[int, int] = {}  # agent -> the newest tick it acked
         self._sim_outcomes: dict[str, int] = {}
 
     def resume(self, next_row: int, deliveries_total: int) -> None:
@@ -132,6 +133,8 @@ class RowReducer:
     def ack(self, ack: Ack) -> bool:
         """An agent's ack of phase TICK; True if it is the first of that agent for its open row."""
         first = False
+        if ack.t > self._acked.get(ack.agent, -1):
+            self._acked[ack.agent] = ack.t
         if ack.t < self.steps:
             row = self.row(ack.t)
             if row is not None and ack.agent not in row.ackers:
@@ -178,6 +181,17 @@ class RowReducer:
         if len(at) == self.n:
             return self._complete_states(state.t)
         return None
+
+    def final_acks_missing(self) -> set[int]:
+        """The agents that acked the tick before the newest one but not the newest one yet. At the end of the run the
+        newest tick is the final one, whose acks carry what the last row holds (links, η, outcome counts): the sim
+        has them when it ends the run, and the monitor may take them after the end's event."""
+        if self.last_tick < 1:
+            return set()
+        before = self._rows.get(self.last_tick - 1)
+        if before is None:
+            return set()
+        return {a for a in before.ackers if self._acked.get(a, -1) < self.last_tick}
 
     def finish(self) -> tuple[list[ClosedRow], list[Snapshot]]:
         """The end of the run: every row up to the last completed step (the final tick only reported that step),
