@@ -337,3 +337,48 @@ async def test_monitor_answers_late_joiners_with_the_latest_state(tmp_path):
     assert len(states) == config.n_agents
     assert answers[keys.latest("agent", "3")].decode(AgentState).agent == 3
     await joiner.close()
+
+
+async def test_the_record_s_last_row_waits_for_final_acks_the_end_of_run_overtook(tmp_path):
+    """The sim ends the run once it has every robot's final ack, but its end of run (``run.finished``, then its stop)
+    can reach the monitor before acks it routed on: the record's last row still holds every robot's final links and
+    η, as it does when the acks come first."""
+    from schemas import Ack
+    from schemas.codec import decode
+    from services.agent.roles import make_agent
+    from services.monitor.service import MonitorService
+    from services.sim.service import SimService
+
+    steps = 30
+
+    async def last_row(overtaken: bool) -> dict:
+        config = cfg(tmp_path, steps=steps, run_id=f"overtaken-{overtaken}")
+        net = LocalNetwork()
+        monitor = MonitorService(config, net.session("monitor"), record=False, max_rate=0.0)
+        keys = RunKeys(config.run_id)
+        handle, held = monitor.on_sample, []
+
+        def arriving(sample) -> None:
+            # the final tick's acks held back until the sim's stop has been handled, then handed in one by one
+            if overtaken and sample.key.endswith("/ack") and decode(sample.payload, Ack).t == steps:
+                held.append(sample)
+                return
+            handle(sample)
+            if sample.key == keys.stop:
+                loop = asyncio.get_running_loop()
+                for i, late in enumerate(held):
+                    loop.call_later(0.05 * (i + 1), handle, late)
+
+        monitor.on_sample = arriving  # (before run() subscribes it)
+        agents = [make_agent(config, net.session(f"agent-{i}"), i) for i in range(config.n_agents)]
+        tasks = [asyncio.create_task(s.run()) for s in (monitor, *agents)]
+        await asyncio.wait_for(SimService(config, net.session("sim")).run(), 30)
+        result, *_ = await asyncio.wait_for(asyncio.gather(*tasks), 10)
+        if overtaken:
+            assert len(held) == config.n_agents  # every final ack came after the end of run
+        assert len(result.rows) == steps
+        return result.rows[-1]
+
+    in_order, overtaken = await last_row(False), await last_row(True)
+    assert {k: overtaken[k] for k in ("t", "links", "eta", "lambda2")} == \
+        {k: in_order[k] for k in ("t", "links", "eta", "lambda2")}

@@ -111,8 +111,7 @@ class MonitorService:
         self._stop = asyncio.Event()
         self._done = False
         self._stop_timer: asyncio.TimerHandle | None = None
-        self._final_acks: set[int] | None = None  # after the end of run: the final acks still awaited
-        self._final_acks_timer: asyncio.TimerHandle | None = None
+        self._final_acks: set[int] | None = None  # after the sim's end of run: the final acks still awaited
         self.stats = MessageStats(self.n, config.dt)  # message streams (counts, drops, latency, dispatch)
         self.stats.refused_by_robot = self.intake.flood.refused
         # per key class sent / delivered / dropped / duplicated / late and latency, from the samples'
@@ -196,6 +195,18 @@ class MonitorService:
         await token.close()
         return self.result
 
+    def _end_of_run(self) -> None:
+        """The sim ended the run (its ``run.finished``, then its stop): finish the record now, or once the final acks
+        still on their way have come. The sim ends the run when it has every final ack, but its messages can reach us
+        before acks it routed on (seen: a last row short of one robot's links and η, in one suite run of five); a
+        robot that died at the very end sends none, hence the bound."""
+        if self._final_acks is None:
+            self._final_acks = self.rows.final_acks_missing()
+        if self._final_acks:
+            self.stop(FINAL_ACKS_GRACE)
+        else:
+            self._stop.set()
+
     def stop(self, grace: float = 0.0) -> None:
         """Finish the record now, or after ``grace`` seconds unless the sim's end of run comes first."""
         if grace <= 0:
@@ -241,7 +252,7 @@ class MonitorService:
             elif kind is Ack:
                 if self.rows.ack(message) and message.requests_sent:
                     self.stats.requested(message.t, message.agent)
-                if self._final_acks is not None:
+                if self._final_acks and message.agent in self._final_acks:
                     self._final_acks.discard(message.agent)
                     if not self._final_acks:
                         self._stop.set()
@@ -259,7 +270,7 @@ class MonitorService:
                 self.streams.air(message)
             elif kind is Stop:
                 if sample.sender == "sim":
-                    self._stop.set()
+                    self._end_of_run()
                 elif self._stop_timer is None:
                     # an operator's stop: the sim ends the run and says so; stop anyway if it cannot
                     self._stop_timer = asyncio.get_running_loop().call_later(STOP_GRACE, self._stop.set)
@@ -314,14 +325,7 @@ class MonitorService:
         self.fault_windows.add({"kind": event.kind, "t": event.t, "details": event.details})
         if event.kind == "run.finished":
             self.result.finished = {**(self.result.finished or {}), **event.details}
-            # The sim ends the run once it has every final ack, but its event can reach us before acks it routed
-            # (seen: a last row short of one robot's links and η, in one suite run of five): wait for those, briefly
-            missing = self.rows.final_acks_missing()
-            if missing:
-                self._final_acks = missing
-                self._final_acks_timer = asyncio.get_running_loop().call_later(FINAL_ACKS_GRACE, self._stop.set)
-            else:
-                self._stop.set()
+            self._end_of_run()
         if self.recorder is not None:
             self.recorder.event(event.model_dump(mode="json"))
 
@@ -355,8 +359,6 @@ class MonitorService:
         self._done = True
         if self._stop_timer is not None:
             self._stop_timer.cancel()
-        if self._final_acks_timer is not None:
-            self._final_acks_timer.cancel()
         self._closed(*self.rows.finish())
         self.streams.finish()
         steps = self.rows.next_row
