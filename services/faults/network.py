@@ -60,10 +60,15 @@ def _uniform_of(data: bytes, _hash=hashlib.blake2b, _int=int.from_bytes) -> floa
     return (_int(_hash(data, digest_size=8).digest(), "big") >> 11) * (1.0 / (1 << 53))
 
 
+def _has_spread(lat: Latency) -> bool:
+    """Whether a delay from ``lat`` is drawn: only where it has a spread, so a message's parts are hashed only then
+    (the hashes are most of the radio model's cost)."""
+    return lat.delay > 0.0 or lat.jitter > 0.0
+
+
 def draw_for(lat: Latency, *parts: object) -> float:
-    """A delay from ``lat`` at the quantile ``uniform(*parts)``, hashing ``parts`` only where the latency has a
-    spread to draw from (the hashes are most of the radio model's cost)."""
-    return latency_quantile(lat, uniform(*parts)) if (lat.delay > 0.0 or lat.jitter > 0.0) else 0.0
+    """A delay from ``lat`` at the quantile ``uniform(*parts)`` (0 where it has no spread: :func:`_has_spread`)."""
+    return latency_quantile(lat, uniform(*parts)) if _has_spread(lat) else 0.0
 
 
 def default_access_points(layout: Layout, spacing: float) -> np.ndarray:
@@ -365,9 +370,7 @@ class NetworkModel:
         if keep < 1.0 and self._draw("zone", robot, direction, msg) >= keep:
             return None, "dead_zone"
         lat = p.latency
-        delay = 0.0
-        if lat.delay > 0.0 or lat.jitter > 0.0:  # (draw_for's rule: a latency without spread draws nothing)
-            delay = latency_quantile(lat, self._draw("latency", robot, direction, msg))
+        delay = latency_quantile(lat, self._draw("latency", robot, direction, msg)) if _has_spread(lat) else 0.0
         return at + delay + extra, None
 
     def fate(self, sent_at: float, sender: object, receiver: object, msg: object, *, size: int = 0,

@@ -641,7 +641,8 @@ class PaperState:
             kernels = compiled_kernels()
             if kernels is not None:
                 jac = np.empty((self.replicas, n))
-                if kernels.task_jaccard_rows(self.history, self.filled, p.task_window, self.owners, jac):
+                if kernels.task_jaccard_rows(self.history, self.filled, p.task_window, self.owners, jac,
+                                             _DENSE_LABELS):
                     return jac
             # each replica's window as long as it alone takes (at least one tick), padded with idle ticks; the
             # intersections and sizes are counts (sums of 0/1 products), so exact, the same numbers as alone
@@ -761,32 +762,24 @@ class PaperState:
         """(B, n) MI estimate of every row from its replica's history; with ``rows`` (a replica per row), of those
         rows only."""
         p = self.params
-        if rows is not None:
-            if p.mi_estimator != "nmi" and (kernels := compiled_kernels()) is not None:
-                out = np.empty((len(rows), self.n))
-                kernels.coassignment_rows(self.history, rows, self.owners, self.filled, out)
-                return out
-            own, filled, history = self.owners[rows], self.filled[rows], self.history[rows]
-            if p.mi_estimator == "nmi":
-                out = np.empty((len(rows), self.n))
-                for k, f in enumerate(filled.tolist()):
-                    hist = history[k, -f:] if f >= 2 else history[k, -2:]
-                    out[k] = history_nmi(hist, own[k : k + 1])[0]
-                return out
-            return coassignment_rates(self._window(np.maximum(filled, 2), p.mi_window, history), own)
-        own = self.owners
         if self.replicas == 1:
             f = int(self.filled[0])
             hist = self.history[0, -f:] if f >= 2 else self.history[0, -2:]
-            return history_nmi(hist, own) if p.mi_estimator == "nmi" else coassignment_rate(hist, own)
+            return history_nmi(hist, self.owners) if p.mi_estimator == "nmi" else coassignment_rate(hist, self.owners)
+        if rows is not None and p.mi_estimator != "nmi" and (kernels := compiled_kernels()) is not None:
+            out = np.empty((len(rows), self.n))
+            kernels.coassignment_rows(self.history, rows, self.owners, self.filled, out)
+            return out
+        own, filled, history = ((self.owners, self.filled, self.history) if rows is None else
+                                (self.owners[rows], self.filled[rows], self.history[rows]))
         if p.mi_estimator == "nmi":  # its entropies depend on the window's length: each replica's on its own
-            out = np.empty((self.replicas, self.n))
-            for r, f in enumerate(self.filled.tolist()):
-                hist = self.history[r, -f:] if f >= 2 else self.history[r, -2:]
+            out = np.empty((len(own), self.n))
+            for r, f in enumerate(filled.tolist()):
+                hist = history[r, -f:] if f >= 2 else history[r, -2:]
                 out[r] = history_nmi(hist, own[r : r + 1])[0]
             return out
         # counts over each replica's window (at least two ticks, as alone), its older ticks idle
-        return coassignment_rates(self._window(np.maximum(self.filled, 2), p.mi_window), own)
+        return coassignment_rates(self._window(np.maximum(filled, 2), p.mi_window, history), own)
 
     def _structural(self, x: PaperInputs, theta_adj, rows: np.ndarray | None) -> None:
         """Prune, form and homeostasis of every row, or of the rows ``rows`` (their replicas are at a k-th step);

@@ -1,8 +1,9 @@
-"""The reference rule set's update of many replicas in one compiled loop (numba), for the in-process lab's fleet brain.
+"""MORPH's updates of many replicas in compiled loops (numba), for the in-process lab's fleet brain.
 
 :meth:`.plasticity.ReferenceState.step` on B replicas of (n, n) arrays is some sixty numpy calls a tick, each on a few
-thousand numbers, so what it costs is the calls, not the arithmetic. This module does the same arithmetic element by
-element in one compiled function: every value is computed by the same IEEE operations, in the same order, from the same
+thousand numbers, so what it costs is the calls, not the arithmetic. :func:`step_rows` does the same arithmetic element
+by element in one compiled function; the paper preset's task sets, co-assignment rates and structural step have
+theirs. Every value is computed by the same IEEE operations, in the same order, from the same
 operands as the numpy code (numba compiles without fast-math, so no operation is fused or reordered), and so has the
 same bits. The tests step both on the same states and episodes and compare every array bit for bit.
 
@@ -141,19 +142,19 @@ def _task_set(labels, mark, stamp, own_mark, own_stamp):
 
 
 @njit(cache=True)
-def task_jaccard_rows(history, filled, task_window, owners, out):
+def task_jaccard_rows(history, filled, task_window, owners, out, most_labels):
     """The paper preset's task-set Jaccard of every row b, from a history of its own (``PaperState.task_jaccard`` of
     many replicas): T_i = the distinct non-zero labels agent i held in the last max(min(filled[b], task_window), 1)
     ticks of history[b]; out[b, j] = |T_own ∩ T_j| / |T_own ∪ T_j| (0 for an empty union and for j = own). Counts are
     integers, so the division has numpy's operands and bits. Returns False, leaving ``out`` unfinished, when a label
-    is negative or above 65536 (the caller then counts with numpy)."""
+    is negative or above ``most_labels`` (the caller then counts with numpy)."""
     replicas, ticks, n = history.shape
     top = 0
     for b in range(replicas):
         for t in range(ticks - min(max(task_window, 1), ticks), ticks):  # the ticks any window reads
             for j in range(n):
                 label = history[b, t, j]
-                if label < 0 or label > 65536:
+                if label < 0 or label > most_labels:
                     return False
                 if label > top:
                     top = label
@@ -225,12 +226,7 @@ def paper_structural_rows(rows, mi, W, A, age, theta, h, owners, theta_adj, thet
         deg = 0.0
         for j in range(n):
             deg += A[b, j]
-        value = h[b] + beta * (rho_target - deg / n_minus_1)
-        if not value >= h_min:
-            value = h_min
-        if not value <= h_max:
-            value = h_max
-        h[b] = value
+        h[b] = _clip(h[b] + beta * (rho_target - deg / n_minus_1), h_min, h_max)
 
 
 @njit(cache=True)
