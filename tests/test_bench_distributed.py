@@ -7,12 +7,13 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 
-from morph_sim.bench.distributed import CpuMeter, code_cwd, code_env, code_of, summarize
+from morph_sim.bench.distributed import CPU_SERIES_MAX, CpuMeter, code_cwd, code_env, code_of, summarize
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,60 +25,110 @@ def _meter() -> CpuMeter:
     return CpuMeter(sup, n_agvs=2)
 
 
-def test_cpu_per_tick_by_role_over_the_window():
+# the sim's tick clock: tick t started at 100 + t/10 s, every tenth tick and the final tick 100 (at 110 s); the
+# window runs from tick 20 (102 s) to tick 100 (110 s): 80 ticks
+CLOCK = [[t, 100.0 + t / 10] for t in range(0, 101, 10)]
+# CPU seconds each process uses per second of the run: with ten ticks a second, ms per tick = 100 × this
+RATES = {"sim:10": 0.04, "monitor:11": 0.02, "agent-0:20": 0.012, "agent-1:21": 0.012, "agent-2:22": 0.006,
+         "supervisor:1": 0.002}
+
+
+def _readings(meter: CpuMeter, times, rates=RATES) -> None:
+    for at in times:
+        meter.record({key: (at, 1.0 + rate * (at - 100.0)) for key, rate in rates.items()})
+
+
+def test_cpu_per_tick_by_role_over_the_sim_s_window():
     meter = _meter()
     assert meter._role("agent-1") == "agv" and meter._role("agent-2") == "picker" and meter._role("sim") == "sim"
-    meter.record(20, {"sim:10": 1.0, "monitor:11": 2.0, "agent-0:20": 0.5, "agent-1:21": 0.5, "agent-2:22": 0.1,
-                      "supervisor:1": 3.0})
-    meter.record(70, {"sim:10": 1.2, "monitor:11": 2.1, "agent-0:20": 0.55, "agent-1:21": 0.57, "agent-2:22": 0.13,
-                      "supervisor:1": 3.01})
-    cpu = meter.per_tick_ms()
+    _readings(meter, [100.5, 101.7, 105.05, 110.3])  # none on the window's edges: those are interpolated
+    cpu = meter.per_tick_ms(CLOCK)
     expect = {"sim": 4.0, "monitor": 2.0, "agv": 1.2, "picker": 0.6, "supervisor": 0.2}
     assert set(cpu) == {*expect, "total"}
     for role, ms in expect.items():
-        assert abs(cpu[role] - ms) < 1e-9, role
-    assert abs(cpu["total"] - (4.0 + 2.0 + 1.0 + 1.4 + 0.6 + 0.2)) < 1e-9  # agents summed, not averaged
+        assert cpu[role] == pytest.approx(ms), role
+    assert cpu["total"] == pytest.approx(4.0 + 2.0 + 1.2 + 1.2 + 0.6 + 0.2)  # agents summed, not averaged
 
 
-def test_processes_that_exit_before_the_last_sample_keep_their_own_window():
-    # the run's agents and monitor end while the supervisor has not yet seen the last Ticks: the last samples find
-    # only the sim and the supervisor, and each process's figure comes from the samples that saw it
+def test_the_window_is_the_sim_s_not_when_the_ticks_reached_the_supervisor():
+    # the CPU the sim used before tick 20 and after the final tick is not the window's, however the readings fall:
+    # a burst of work before the window and after it changes nothing
     meter = _meter()
-    meter.record(20, {"sim:10": 1.0, "monitor:11": 2.0, "agent-0:20": 0.5, "agent-1:21": 0.5, "agent-2:22": 0.1,
-                      "supervisor:1": 3.0})
-    meter.record(60, {"sim:10": 1.16, "monitor:11": 2.08, "agent-0:20": 0.54, "agent-1:21": 0.556,
-                      "agent-2:22": 0.124, "supervisor:1": 3.008})
-    meter.record(70, {"sim:10": 1.2, "supervisor:1": 3.01})
-    cpu = meter.per_tick_ms()
+    meter.record({"sim:10": (101.0, 1.0)})
+    meter.record({"sim:10": (102.0, 3.0)})  # two seconds of CPU in the second before the window: start-up
+    meter.record({"sim:10": (110.0, 3.32)})
+    meter.record({"sim:10": (111.0, 9.0)})  # the run's end
+    assert meter.per_tick_ms(CLOCK) == {"sim": pytest.approx(4.0), "total": pytest.approx(4.0)}
+
+
+def test_processes_that_exit_before_the_window_closes_keep_their_own_window():
+    # the run's agents and monitor may leave before the meter's last reading: each is measured up to its last reading,
+    # over the ticks up to then
+    meter = _meter()
+    _readings(meter, [101.0, 104.0])
+    _readings(meter, [106.0, 111.0], {"sim:10": RATES["sim:10"], "supervisor:1": RATES["supervisor:1"]})
+    cpu = meter.per_tick_ms(CLOCK)
     expect = {"sim": 4.0, "monitor": 2.0, "agv": 1.2, "picker": 0.6, "supervisor": 0.2}
     assert set(cpu) == {*expect, "total"}
     for role, ms in expect.items():
         assert cpu[role] == pytest.approx(ms), role
 
 
-def test_a_process_restarted_inside_the_window_is_left_out():
+def test_a_process_restarted_in_the_run_or_first_seen_inside_the_window_is_left_out():
     meter = _meter()
-    meter.record(20, {"sim:10": 1.0, "agent-0:20": 0.5, "agent-1:21": 0.5, "supervisor:1": 3.0})
-    meter.record(40, {"sim:10": 1.08, "agent-0:20": 0.52, "agent-1:21": 0.52, "supervisor:1": 3.004})
-    meter.record(70, {"sim:10": 1.2, "agent-0:99": 5.0, "agent-1:21": 0.55, "supervisor:1": 3.01})
-    cpu = meter.per_tick_ms()
-    assert cpu["agv"] == pytest.approx(1.0)  # agent-1 alone: agent-0 lived twice, neither life spans the window
-    assert cpu["total"] == pytest.approx(4.0 + 1.0 + 0.2)
+    _readings(meter, [101.0, 111.0], {"sim:10": 0.04, "agent-0:20": 0.012, "agent-1:21": 0.012})
+    _readings(meter, [106.0, 111.0], {"agent-0:99": 0.5, "agent-2:22": 0.5})
+    cpu = meter.per_tick_ms(CLOCK)
+    assert cpu["agv"] == pytest.approx(1.2)  # agent-1 alone: agent-0 lived twice, neither life spans the window
+    assert "picker" not in cpu  # agent-2 was first seen after the window opened
+    assert cpu["total"] == pytest.approx(4.0 + 1.2)
 
 
 def test_no_window_no_figures():
     meter = _meter()
-    assert meter.per_tick_ms() == {}
-    meter.record(30, {"sim:10": 1.0})
-    assert meter.per_tick_ms() == {}
+    assert meter.per_tick_ms(CLOCK) == {}  # no readings
+    _readings(meter, [101.0, 111.0])
+    assert meter.per_tick_ms(None) == {} and meter.per_tick_ms([[0, 100.0]]) == {}  # no clock
+    assert meter.per_tick_ms([[0, 100.0], [15, 101.5]]) == {}  # the run ended before the window opened
+    assert meter.per_tick_ms([[30, 103.0], [100, 110.0]]) == {}  # the clock starts after the window's first tick
 
 
-def test_samples_read_the_live_processes():
+def test_a_long_run_s_readings_stay_bounded_and_keep_their_span():
+    meter = _meter()
+    for i in range(3 * CPU_SERIES_MAX):
+        meter.record({"sim:10": (100.0 + i / 100, 1.0 + 0.04 * i / 100)})
+    series = meter.series["sim:10"]
+    assert len(series) <= CPU_SERIES_MAX
+    assert series[0] == (100.0, 1.0) and series[-1][0] == pytest.approx(100.0 + (3 * CPU_SERIES_MAX - 1) / 100)
+    assert meter.per_tick_ms(CLOCK)["sim"] == pytest.approx(4.0)
+
+
+def test_the_meter_samples_the_live_processes_on_its_own_thread_until_stopped():
     meter = _meter()
     meter.sup.children = {"sim": SimpleNamespace(pid=os.getpid(), alive=lambda: True),
                           "agent-0": SimpleNamespace(pid=None, alive=lambda: False)}
-    sample = meter._sample()
-    assert set(sample) == {f"sim:{os.getpid()}", f"supervisor:{os.getpid()}"} and all(v > 0 for v in sample.values())
+    meter.sample_s = 0.01
+    before = time.monotonic()
+    meter.start()
+    deadline = time.monotonic() + 10
+    key = f"sim:{os.getpid()}"
+
+    def seen() -> bool:  # three readings, and CPU used between them (its clock counts in steps of 10 ms)
+        readings = list(meter.series.get(key, ()))
+        return len(readings) >= 3 and readings[-1][1] > readings[0][1]
+
+    while not seen() and time.monotonic() < deadline:
+        sum(range(100_000))
+    meter.stop()
+    after = time.monotonic()
+    assert set(meter.series) == {f"sim:{os.getpid()}", f"supervisor:{os.getpid()}"}
+    readings = meter.series[key]
+    assert len(readings) >= 3 and not meter._thread.is_alive()
+    assert before <= readings[0][0] and all(a <= b for a, b in zip(readings, readings[1:])) and readings[-1][0] <= after
+    assert readings[-1][1] > readings[0][1] > 0
+    n = len(readings)
+    time.sleep(0.05)
+    assert len(meter.series[key]) == n  # stopped means stopped
 
 
 def _copy_of_head(tmp_path: Path) -> Path:
@@ -212,3 +263,47 @@ def test_bench_fleet_measures_a_fleet_and_its_paced_runs_in_one_invocation():
     bad = subprocess.run([sys.executable, "-m", "morph_sim.cli", "bench", "fleet", "--sizes", "2"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and bad.stderr.strip().endswith("sizes: each from 4 to 256 robots, got '2'")
+
+
+def test_the_sim_s_tick_clock_keeps_a_bounded_number_of_tick_starts_and_the_final_tick():
+    from services.sim.result import TICK_CLOCK_POINTS, TickClock
+
+    for steps in (1, 60, TICK_CLOCK_POINTS, TICK_CLOCK_POINTS + 1, 1000, 100_000):
+        clock = TickClock.for_steps(steps)
+        for t in range(steps):
+            clock.started(t, 5.0 + t)
+        clock.started(steps, 5.0 + steps, last=True)
+        ticks = [t for t, _ in clock.summary()]
+        assert ticks[0] == 0 and ticks[-1] == steps and len(ticks) <= TICK_CLOCK_POINTS + 1, steps
+        assert ticks[:-1] == list(range(0, steps, clock.stride)), steps
+        assert all(at == 5.0 + t for t, at in clock.summary()), steps
+
+
+def test_the_fleet_bench_reads_the_agents_memory_in_rounds_and_takes_the_round_nearest_the_middle_tick():
+    from morph_sim.bench.fleet import _MemoryMeter
+
+    children = {"sim": SimpleNamespace(pid=os.getpid(), alive=lambda: True),
+                "agent-0": SimpleNamespace(pid=os.getpid(), alive=lambda: True),
+                "agent-1": SimpleNamespace(pid=None, alive=lambda: False)}
+    memory = _MemoryMeter(SimpleNamespace(children=children), sample_s=0.01)
+    before = time.monotonic()
+    memory.start()
+    deadline = time.monotonic() + 10
+    while len(memory.rounds) < 3 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    memory.stop()
+    after = time.monotonic()
+    rounds = list(memory.rounds)
+    assert len(rounds) >= 3 and not memory._thread.is_alive()
+    assert before <= rounds[0][0] and rounds[-1][0] <= after and all(1 << 20 < uss < 1 << 40 for _, uss in rounds)
+    time.sleep(0.05)
+    assert memory.rounds == rounds  # stopped means stopped
+    # placed by the sim's clock: ticks 0..100 from 100 s to 110 s, the middle tick 50 at 105 s
+    memory.rounds = [(99.0, 1 << 20), (103.0, 2 << 20), (105.4, 3 << 20), (106.0, 4 << 20), (111.0, 9 << 20)]
+    clock = [[t, 100.0 + t / 10] for t in range(0, 101, 10)]
+    assert memory.uss_mib(clock) == 3.0
+    # none while the run ticked: the agents after the run, not before its first tick
+    memory.rounds = [(99.0, 1 << 20), (99.9, 2 << 20), (111.0, 9 << 20), (112.0, 8 << 20)]
+    assert memory.uss_mib(clock) == 9.0
+    memory.rounds = [(99.0, 1 << 20), (99.9, 2 << 20)]
+    assert memory.uss_mib(clock) is None and memory.uss_mib(None) is None

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 
 import numpy as np
 import pytest
@@ -30,7 +31,9 @@ def cfg(tmp_path, **kw) -> RunConfig:
 
 async def test_local_run_end_to_end_writes_the_record(tmp_path):
     config = cfg(tmp_path, steps=60, state_every=10, snapshot_every=20)
+    before = time.monotonic()
     run = await run_local(config)
+    after = time.monotonic()
     assert run.sim.steps == 60 and run.sim.rejected == 0 and run.monitor.rejected == 0
     rows = run.monitor.rows
     assert [r["t"] for r in rows] == list(range(60))
@@ -50,8 +53,13 @@ async def test_local_run_end_to_end_writes_the_record(tmp_path):
     snaps = read_snapshots(d)
     assert sorted(snaps) == [0, 20, 40, 60]
     assert snaps[60]["W"].shape == (config.n_agents, config.n_agents)
-    events = [json.loads(line)["kind"] for line in (d / "events.jsonl").read_text().splitlines()]
-    assert events[0] == "run.started" and events[-1] == "run.finished"
+    events = [json.loads(line) for line in (d / "events.jsonl").read_text().splitlines()]
+    assert events[0]["kind"] == "run.started" and events[-1]["kind"] == "run.finished"
+    # when each tick started, on the host's monotonic clock: within this test's own readings, in order, and the final
+    # tick last (an observer on the host places its readings among the ticks by it)
+    clock = events[-1]["details"]["tick_clock"]
+    assert [t for t, _ in clock] == list(range(61))
+    assert before < clock[0][1] and all(a[1] <= b[1] for a, b in zip(clock, clock[1:])) and clock[-1][1] < after
     summary = json.loads((d / "summary.json").read_text())
     assert summary["deliveries_total"] == run.sim.deliveries and summary["steps"] == 60
 

@@ -20,6 +20,7 @@ import asyncio
 import json
 import os
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -59,78 +60,114 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 CPU_SAMPLE_S = 0.05  # seconds between CPU samples of the run's processes
 CPU_WARMUP_TICKS = 20  # the CPU window opens at this tick (start-up and the first ticks excluded)
+CPU_SERIES_MAX = 4096  # samples kept per process: beyond, every other one goes (the series keeps its span)
 
 
 class CpuMeter:
     """CPU seconds per tick of every process of a distributed run, by role (sim, monitor, agv, picker, supervisor).
 
-    Samples each process's CPU time (user + system, from ``psutil``) while the run ticks. Each process has its own
-    window: from the first sample at tick ≥ ``CPU_WARMUP_TICKS`` that saw it to the last sample before the run's end
-    that saw it, with the tick count of the window from the supervisor's progress (every Tick it receives). A window
-    of its own keeps a process's figure when the run's processes exit before the supervisor has seen the last Ticks
-    (the last samples then find only some of them). CPU time is what a tick costs the machine, and unlike the tick
-    rate it barely depends on what else runs on the cores.
+    A thread of its own (:meth:`start`, :meth:`stop`) samples each process's CPU time (user + system, from
+    ``psutil``) every ``sample_s`` seconds, each reading stamped with the host's monotonic clock. The window is placed
+    by the sim's own tick clock (its run.finished ``tick_clock``: when ticks started, on the same clock): from the
+    start of tick ``CPU_WARMUP_TICKS`` to the start of the final tick. Neither the samples nor the window depend on
+    when the ticks reach the supervisor: on a loaded machine they reach it late and in bursts, and a window placed
+    by its progress measured nothing, or no time at all.
+
+    Each process's CPU at the window's edges is interpolated between the samples on either side. A process must have
+    been sampled before the window opened; one that exits before the window closes (the run's processes may leave
+    before the last sample) is measured up to its last sample, with the ticks up to then. A process restarted in the
+    run (its name seen with two pids) is left out: neither of its lives spans the window. CPU time is what a tick
+    costs the machine, and unlike the tick rate it barely depends on what else runs on the cores.
     """
 
     def __init__(self, supervisor, n_agvs: int, sample_s: float = CPU_SAMPLE_S):
         self.sup = supervisor
         self.n_agvs = n_agvs
         self.sample_s = sample_s
-        # "name:pid" -> (tick, CPU seconds) at the first and at the latest sample that saw that process
-        self.first: dict[str, tuple[int, float]] = {}
-        self.last: dict[str, tuple[int, float]] = {}
+        # "name:pid" -> [(monotonic seconds, CPU seconds), ...] in time order
+        self.series: dict[str, list[tuple[float, float]]] = {}
+        self._done = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._processes: dict[int, object] = {}  # pid -> psutil.Process
 
     def _role(self, name: str) -> str:
         if name.startswith("agent-"):
             return "agv" if int(name.split("-", 1)[1]) < self.n_agvs else "picker"
         return name
 
-    def _sample(self) -> dict[str, float]:
+    def _sample(self) -> dict[str, tuple[float, float]]:
+        """One reading of every live process: "name:pid" -> (when, CPU seconds), each stamped as it is read."""
         import psutil
 
-        cpu: dict[str, float] = {}
-        pids = [(name, child.pid) for name, child in self.sup.children.items() if child.alive()]
+        out: dict[str, tuple[float, float]] = {}
+        pids = [(name, child.pid) for name, child in list(self.sup.children.items()) if child.alive()]
         for name, pid in [*pids, ("supervisor", os.getpid())]:
             try:
-                times = psutil.Process(pid).cpu_times()
+                # one handle per process: making one reads the process's start time, a cost the supervisor's own
+                # figure would carry on every reading
+                process = self._processes.get(pid)
+                if process is None:
+                    process = self._processes[pid] = psutil.Process(pid)
+                times = process.cpu_times()
             except psutil.Error:
                 continue
-            cpu[f"{name}:{pid}"] = times.user + times.system
-        return cpu
+            out[f"{name}:{pid}"] = (time.monotonic(), times.user + times.system)
+        return out
 
-    def record(self, t: int, sample: dict[str, float]) -> None:
-        """Take one sample at tick ``t`` into the processes' windows."""
-        for key, seconds in sample.items():
-            self.first.setdefault(key, (t, seconds))
-            self.last[key] = (t, seconds)
+    def record(self, sample: dict[str, tuple[float, float]]) -> None:
+        """Take one reading into the processes' series."""
+        for key, point in sample.items():
+            series = self.series.setdefault(key, [])
+            series.append(point)
+            if len(series) > CPU_SERIES_MAX:
+                series[:] = [*series[:-1:2], series[-1]]
 
-    async def watch(self) -> None:
-        steps = self.sup.config.steps
-        while True:
-            t = self.sup.progress.t
-            if CPU_WARMUP_TICKS <= t < steps - 1:
-                self.record(t, self._sample())
-            await asyncio.sleep(self.sample_s)
+    def start(self) -> None:
+        """Sample from now until :meth:`stop`, on a thread of its own."""
+        def sample() -> None:
+            while True:
+                self.record(self._sample())
+                if self._done.wait(self.sample_s):
+                    return
 
-    def per_tick_ms(self) -> dict[str, float]:
-        """Milliseconds of CPU per tick: per process role (agents: the mean over that role's processes) and total.
+        self._thread = threading.Thread(target=sample, name="cpu-meter", daemon=True)
+        self._thread.start()
 
-        Only processes present from the window's first sample count, and a process restarted inside the window
-        (its name seen with two pids) is left out: neither of its lives spans what the others' windows span."""
-        if not self.first:
+    def stop(self) -> None:
+        self._done.set()
+        if self._thread is not None:
+            self._thread.join()
+
+    def per_tick_ms(self, tick_clock: list | None) -> dict[str, float]:
+        """Milliseconds of CPU per tick over the window that ``tick_clock`` (the sim's [[tick, monotonic seconds],
+        ...]) places: per process role (agents: the mean over that role's processes) and total."""
+        import numpy as np
+
+        points = sorted((int(t), float(at)) for t, at in tick_clock or ())
+        if len(points) < 2:
             return {}
-        first_tick = min(t for t, _ in self.first.values())  # the window's first sample
+        ticks, times = np.array([p[0] for p in points], float), np.array([p[1] for p in points])
+        first_tick, last_tick = float(CPU_WARMUP_TICKS), ticks[-1]
+        if last_tick <= first_tick or ticks[0] > first_tick:
+            return {}
+        opens = float(np.interp(first_tick, ticks, times))
+        closes = times[-1]
         pids: dict[str, int] = {}
-        for key in self.first:
+        for key in self.series:
             name = key.rsplit(":", 1)[0]
             pids[name] = pids.get(name, 0) + 1
         sums: dict[str, list[float]] = {}
-        for key, (t0, start) in self.first.items():
+        for key, series in self.series.items():
             name = key.rsplit(":", 1)[0]
-            t1, end = self.last[key]
-            if t0 != first_tick or pids[name] > 1 or t1 <= t0:
+            at, cpu = np.array([p[0] for p in series]), np.array([p[1] for p in series])
+            end = min(closes, at[-1])
+            if pids[name] > 1 or at[0] > opens or end <= opens:
                 continue
-            sums.setdefault(self._role(name), []).append(1e3 * (end - start) / (t1 - t0))
+            span = float(np.interp(end, times, ticks)) - first_tick
+            if span <= 0:
+                continue
+            used = float(np.interp(end, at, cpu)) - float(np.interp(opens, at, cpu))
+            sums.setdefault(self._role(name), []).append(1e3 * used / span)
         if not sums:
             return {}
         out = {role: sum(v) / len(v) for role, v in sorted(sums.items())}
@@ -154,15 +191,11 @@ def distributed_rate(config, insecure: bool = False) -> dict:
     started = time.monotonic()
     supervisor = Supervisor(config, insecure=insecure)
     meter = CpuMeter(supervisor, config.n_agvs)
-
-    async def supervise() -> int:
-        watcher = asyncio.get_running_loop().create_task(meter.watch())
-        try:
-            return await supervisor.run()
-        finally:
-            watcher.cancel()
-
-    code = asyncio.run(supervise())
+    meter.start()
+    try:
+        code = asyncio.run(supervisor.run())
+    finally:
+        meter.stop()
     if code != 0:
         raise RuntimeError(f"the distributed run ended with status {code}")
     finished = None
@@ -174,7 +207,7 @@ def distributed_rate(config, insecure: bool = False) -> dict:
         raise RuntimeError(f"no run.finished event in {config.record_dir}")
     return {"ticks": finished["steps"], "seconds": finished["wall_seconds"],
             "ticks_per_s": finished["steps"] / finished["wall_seconds"], "deliveries": finished["deliveries"],
-            "total_wall_s": time.monotonic() - started, "cpu_ms_per_tick": meter.per_tick_ms()}
+            "total_wall_s": time.monotonic() - started, "cpu_ms_per_tick": meter.per_tick_ms(finished.get("tick_clock"))}
 
 
 def checkout(path: str, flag: str) -> Path:

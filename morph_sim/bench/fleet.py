@@ -23,6 +23,7 @@ import asyncio
 import json
 import os
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -90,17 +91,33 @@ def _parse_sizes(text: str) -> list[int]:
     return sorted(set(sizes))
 
 
+MEMORY_DUTY = 50  # the memory meter reads at most 1/this of its time: a round of USS readings costs ~0.3 ms an agent
+
+
 class _MemoryMeter:
-    """The largest private memory (USS, MiB) of an agent process, read once the run has settled."""
+    """The largest private memory (USS, MiB) of an agent process at the run's middle tick.
 
-    def __init__(self, supervisor, at_tick: int):
-        self.sup, self.at_tick, self.uss_mib = supervisor, at_tick, None
+    A thread reads every live agent's USS in rounds, each round stamped with the host's monotonic clock and the next
+    one after a pause of ``MEMORY_DUTY`` times the CPU the round took (at least ``sample_s``), so that reading costs
+    the supervisor's process a bounded share. After the run, the round nearest the start of the middle tick on the
+    sim's tick clock is the figure. Rounds before the first tick do not count (the agents have not run yet); rounds
+    after the final tick do, if the round nearest the middle is one (a short run on a loaded machine): the agents
+    have run the whole run then. Placing the reading by the sim's clock rather than by the ticks the supervisor has
+    seen finds the agents alive even when a loaded machine hands the supervisor the run's ticks late, after the
+    agents have left."""
 
-    async def watch(self) -> None:
+    def __init__(self, supervisor, sample_s: float = 0.05):
+        self.sup, self.sample_s = supervisor, sample_s
+        self.rounds: list[tuple[float, int]] = []  # (monotonic seconds at the round's end, largest USS in bytes)
+        self._done = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _round(self) -> float:
+        """One round of readings; the CPU seconds they took (unlike their wall time, not stretched by a loaded
+        machine)."""
         import psutil
 
-        while self.sup.progress.t < self.at_tick:
-            await asyncio.sleep(0.1)
+        began = time.thread_time()
         largest = 0
         for name, child in list(self.sup.children.items()):
             if not name.startswith("agent-") or not child.alive():
@@ -109,30 +126,59 @@ class _MemoryMeter:
                 largest = max(largest, psutil.Process(child.pid).memory_full_info().uss)
             except psutil.Error:
                 continue
-        self.uss_mib = largest / 2**20 if largest else None
+        if largest:
+            self.rounds.append((time.monotonic(), largest))
+            if len(self.rounds) > 4096:
+                self.rounds[:] = [*self.rounds[:-1:2], self.rounds[-1]]
+        return time.thread_time() - began
+
+    def start(self) -> None:
+        import psutil  # noqa: F401  (imported here, not in the first round: its import is no reading's cost)
+
+        def read() -> None:
+            while not self._done.wait(max(self.sample_s, MEMORY_DUTY * self._round())):
+                pass
+
+        self._thread = threading.Thread(target=read, name="agent-uss", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._done.set()
+        if self._thread is not None:
+            self._thread.join()
+
+    def uss_mib(self, tick_clock: list | None) -> float | None:
+        """The figure, by the sim's ``tick_clock`` ([[tick, monotonic seconds], ...]); None without a round taken
+        from the first tick on."""
+        points = sorted((int(t), float(at)) for t, at in tick_clock or ())
+        if len(points) < 2:
+            return None
+        began = points[0][1]
+        middle_tick = points[-1][0] / 2
+        middle = next(at0 + (at1 - at0) * (middle_tick - t0) / (t1 - t0)
+                      for (t0, at0), (t1, at1) in zip(points, points[1:]) if t0 <= middle_tick <= t1)
+        ran = [(abs(at - middle), uss) for at, uss in self.rounds if at >= began]
+        return min(ran)[1] / 2**20 if ran else None
 
 
-def _run(config) -> tuple[dict, dict[str, float], float | None]:
+def _run(config, *, memory: bool = False) -> tuple[dict, dict[str, float], float | None]:
     """One ``up`` of ``config`` under the supervisor in this process: its ``run.finished`` details, its CPU ms per
-    tick by role, the largest agent USS (MiB)."""
+    tick by role, and with ``memory`` the largest agent USS (MiB) at its middle tick."""
     from morph_sim.bench.distributed import CpuMeter
     from services.supervisor.launcher import Supervisor
 
     supervisor = Supervisor(config)
     # a small fleet runs its ticks in a blink at full speed: samples close enough that its window holds several
-    cpu = CpuMeter(supervisor, config.n_agvs, sample_s=SAMPLE_S)
-    memory = _MemoryMeter(supervisor, at_tick=config.steps // 2)
-
-    async def supervise() -> int:
-        loop = asyncio.get_running_loop()
-        watchers = [loop.create_task(cpu.watch()), loop.create_task(memory.watch())]
-        try:
-            return await supervisor.run()
-        finally:
-            for w in watchers:
-                w.cancel()
-
-    code = asyncio.run(supervise())
+    meters = [CpuMeter(supervisor, config.n_agvs, sample_s=SAMPLE_S)]
+    if memory:
+        meters.append(_MemoryMeter(supervisor))
+    for meter in meters:
+        meter.start()
+    try:
+        code = asyncio.run(supervisor.run())
+    finally:
+        for meter in meters:
+            meter.stop()
     if code != 0:
         raise RuntimeError(f"bench fleet: the run of {config.n_agents} robots ended with status {code} "
                            f"(record: {config.record_dir})")
@@ -143,7 +189,8 @@ def _run(config) -> tuple[dict, dict[str, float], float | None]:
             finished = event["details"]
     if finished is None:
         raise RuntimeError(f"bench fleet: no run.finished event in {config.record_dir}")
-    return finished, cpu.per_tick_ms(), memory.uss_mib
+    clock = finished.get("tick_clock")
+    return finished, meters[0].per_tick_ms(clock), meters[1].uss_mib(clock) if memory else None
 
 
 def measure_size(robots: int, args: argparse.Namespace, out: Path) -> dict:
@@ -160,7 +207,7 @@ def measure_size(robots: int, args: argparse.Namespace, out: Path) -> dict:
             steps=args.ticks, seed=42, output_dir=out, mode=mode, state_every=every, snapshot_every=every * 4,
             **({"period": period} if period is not None else {})))
 
-    finished, cpu, uss = _run(config("lockstep"))
+    finished, cpu, uss = _run(config("lockstep"), memory=True)
     capacity = finished["steps"] / finished["wall_seconds"] if finished.get("wall_seconds") else 0.0
 
     def paced(period: float) -> dict:

@@ -5,6 +5,30 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 SETTLE_TICKS = 10  # a paced run's first ticks, left out of its settled interval maximum
+TICK_CLOCK_POINTS = 256  # a run's tick clock keeps about this many tick starts, spread evenly over the run
+
+
+@dataclass
+class TickClock:
+    """When ticks started, on this host's monotonic clock: every ``stride``-th tick and the final tick.
+
+    ``time.monotonic()`` reads CLOCK_MONOTONIC, one clock for every process on the host, so an observer on the same
+    host (a bench sampling the processes' CPU) can place its own readings among the sim's ticks without trusting when
+    the ticks reached it: on a loaded machine they reach an observer late and in bursts."""
+
+    stride: int = 1
+    points: list[tuple[int, float]] = field(default_factory=list)
+
+    @classmethod
+    def for_steps(cls, steps: int) -> TickClock:
+        return cls(stride=max(1, -(-steps // TICK_CLOCK_POINTS)))
+
+    def started(self, t: int, now: float, *, last: bool = False) -> None:
+        if last or t % self.stride == 0:
+            self.points.append((t, now))
+
+    def summary(self) -> list[list[float]]:
+        return [[t, round(now, 6)] for t, now in self.points]
 
 
 @dataclass
@@ -63,6 +87,7 @@ class SimResult:
     protocol: dict[str, int] = field(default_factory=dict)  # the dispatch protocol's outcome counters (sim + robots)
     network_stops: int = 0  # robot-steps a network profile's silence stop held a robot in place
     pace: Pace = field(default_factory=Pace)  # paced mode: the tick starts' intervals
+    tick_clock: TickClock = field(default_factory=TickClock)  # when the ticks started (monotonic clock)
     # wall seconds spent per part of the tick (where a distributed tick's time goes)
     phase_seconds: dict[str, float] = field(default_factory=lambda: {
         "controller": 0.0, "tick_phase": 0.0, "resolve_phase": 0.0, "step": 0.0})

@@ -52,7 +52,7 @@ from services.sim import air
 from services.sim.answers import Answers
 from services.sim.phases import PhaseBarrier, PhaseCollection
 from services.sim.presence import MONITOR, Presence
-from services.sim.result import SimResult
+from services.sim.result import SimResult, TickClock
 from services.sim.wire import make_controller, world_fields
 
 log = logging.getLogger("morph_sim.sim")
@@ -214,7 +214,7 @@ class SimService(Presence, PhaseCollection, Answers, air.AirAnnouncements):
                           protocol=r.protocol,
                           **({"network_stops": r.network_stops} if self.config.network is not None else {}),
                           **({"pace": r.pace.summary()} if self.config.mode == "paced" else {}),
-                          wall_seconds=round(r.wall_seconds, 3),
+                          wall_seconds=round(r.wall_seconds, 3), tick_clock=r.tick_clock.summary(),
                           phase_seconds={k: round(v, 3) for k, v in r.phase_seconds.items()})
         await bus.publish(k.stop, Stop(reason="finished" if r.stopped_early is None else r.stopped_early))
         # The sim hosts the endpoint: let the others leave first (their tokens go), so nobody loses the stop and
@@ -299,6 +299,7 @@ class SimService(Presence, PhaseCollection, Answers, air.AirAnnouncements):
         k = self.keys
         t0 = time.monotonic()
         next_start = t0
+        self.result.tick_clock = clock = TickClock.for_steps(cfg.steps)
         for _ in range(cfg.steps):
             if self._stop is not None:
                 self.result.stopped_early = self._stop
@@ -327,6 +328,7 @@ class SimService(Presence, PhaseCollection, Answers, air.AirAnnouncements):
                 await self._event(kind, agent=robot, refused=refused)
             obs = self.step.begin()
             t = obs.t
+            clock.started(t, started)
             if self.on_tick is not None:
                 self.on_tick(t, obs)
             if self.faults is not None:
@@ -372,6 +374,7 @@ class SimService(Presence, PhaseCollection, Answers, air.AirAnnouncements):
             self.result.wall_seconds = time.monotonic() - t0
         # the final tick: agents apply the update of the last step, nobody dispatches
         obs = self.step.final()
+        clock.started(obs.t, time.monotonic(), last=True)
         if self.faults is not None:
             self.faults.advance(obs.t * cfg.dt)  # its boundary, as every tick: stamps and releases like the others
         ph = PhaseBarrier(obs.t, Phase.TICK, self.present())
