@@ -399,6 +399,18 @@ def test_mean_std_population_as_reference():
         m.mean_std([])
 
 
+def test_nan_mean_and_std_leave_nans_out_and_are_nan_without_a_warning_when_all_are():
+    import warnings
+
+    values = [1.0, float("nan"), 3.0, 8.0]
+    assert m.nan_mean(values) == pytest.approx(4.0) and m.nan_std(values) == pytest.approx(np.std([1.0, 3.0, 8.0]))
+    assert m.nan_mean(iter(values)) == pytest.approx(4.0)  # any iterable, as the summaries pass generators
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's nanmean and nanstd warn here ("Mean of empty slice")
+        assert math.isnan(m.nan_mean([float("nan")] * 3)) and math.isnan(m.nan_std([float("nan")] * 3))
+        assert math.isnan(m.nan_mean([])) and math.isnan(m.nan_std([]))
+
+
 def test_welch_p_hand_computed():
     # a = [1,2,3], b = [4,5,6]: t = −3/sqrt(2/3), Welch df = 4 ⇒ p = 2·(1 − F_t4(3.674)) ≈ 0.02131.
     assert m.welch_p([1, 2, 3], [4, 5, 6]) == pytest.approx(0.021311, abs=2e-6)

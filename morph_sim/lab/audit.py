@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from services.metrics import measures
 from services.policies.conditions import AUDIT_STUDY, select
 from services.policies.presets import load_preset
 
@@ -131,7 +132,7 @@ def summarise_audit(episodes: dict[str, list[dict]], scales) -> list[dict]:
                         warnings.simplefilter("ignore", RuntimeWarning)
                         p = float(stats.ttest_ind(d, base[sc], equal_var=False).pvalue)
                 row[sc] = {"mean": float(d.mean()), "std": float(d.std()), "per_seed": d.astype(int).tolist(),
-                           "gate": float(np.nanmean([e["mean_p_respond"] for e in group])),
+                           "gate": measures.nan_mean(e["mean_p_respond"] for e in group),
                            "links": float(np.mean([e["mean_links"] for e in group])),
                            "links_converged": float(np.mean([e["mean_links_converged"] for e in group])),
                            "p_vs_paper": p,

@@ -147,12 +147,12 @@ def summarise_emergent(cfg: EmergentConfig, episodes: list[dict]) -> dict:
         row: dict = {}
         for k in _SUMMARY_KEYS:
             v = np.array([e[k] for e in eps], dtype=float)
-            row[k] = {"mean": float(np.nanmean(v)), "std": float(np.nanstd(v)), "values": v.tolist()}
+            row[k] = {"mean": measures.nan_mean(v), "std": measures.nan_std(v), "values": v.tolist()}
         for k in ("spearman_agv_to_picker", "spearman_directed_both", "spearman_reference_153"):
             row[k] = {
                 "rho": [e[k]["rho"] for e in eps], "p_permutation": [e[k]["p_permutation"] for e in eps],
                 "p": [e[k]["p"] for e in eps], "pairs": eps[0][k]["pairs"],
-                "rho_mean": float(np.nanmean([e[k]["rho"] for e in eps])),
+                "rho_mean": measures.nan_mean(e[k]["rho"] for e in eps),
                 "significant_5pct": int(sum(1 for e in eps if (e[k]["p_permutation"] or 1.0) < 0.05)),
             }
         for k in ("lambda_ref_at", "lambda_alg_at"):

@@ -294,9 +294,9 @@ def summarise(cfg: SuiteConfig, episodes: list[dict]) -> list[dict]:
                 "links": links,
                 "links_pct_max": 100.0 * links / max_links if max_links else float("nan"),
                 "p_vs_morph": _welch(morph, d) if morph and c != "morph" else float("nan"),
-                "mean_p_respond": float(np.nanmean([e["mean_p_respond"] for e in eps])),
+                "mean_p_respond": measures.nan_mean(e["mean_p_respond"] for e in eps),
                 "divergent_ticks": float(np.mean([e["divergent_dispatch_ticks"] for e in eps])),
-                "median_lifetime": _nanmean([e.get("median_lifetime", np.nan) for e in eps]),
+                "median_lifetime": measures.nan_mean(e.get("median_lifetime", np.nan) for e in eps),
             })
     return rows
 
@@ -307,11 +307,6 @@ def _welch(a, b) -> float:
     with warnings.catch_warnings():  # near-identical samples: scipy warns, the p-value is still what it is
         warnings.simplefilter("ignore", RuntimeWarning)
         return measures.welch_p(a, b)
-
-
-def _nanmean(values) -> float:
-    v = np.asarray(values, dtype=float)
-    return float(v[~np.isnan(v)].mean()) if np.any(~np.isnan(v)) else float("nan")
 
 
 def _fmt_p(p: float) -> str:

@@ -614,6 +614,21 @@ def mean_std(values: Iterable[float], ddof: int = 0) -> MeanStd:
     return MeanStd(float(v.mean()), float(v.std(ddof=ddof)), int(v.size))
 
 
+def nan_mean(values: Iterable[float]) -> float:
+    """The mean of the values that are not NaN (numpy's ``nanmean``); NaN, without numpy's warning, when none is."""
+    v = np.asarray(list(values), dtype=float)
+    v = v[~np.isnan(v)]
+    return float(v.mean()) if v.size else float("nan")
+
+
+def nan_std(values: Iterable[float]) -> float:
+    """The population standard deviation of the values that are not NaN (numpy's ``nanstd``); NaN, without numpy's
+    warning, when none is."""
+    v = np.asarray(list(values), dtype=float)
+    v = v[~np.isnan(v)]
+    return float(v.std()) if v.size else float("nan")
+
+
 def welch_p(a: Iterable[float], b: Iterable[float]) -> float:
     """Two-sided Welch t-test p-value (scipy ``ttest_ind(equal_var=False)``), as the reference's statistics.
 
