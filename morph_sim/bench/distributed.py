@@ -63,7 +63,39 @@ CPU_WARMUP_TICKS = 20  # the CPU window opens at this tick (start-up and the fir
 CPU_SERIES_MAX = 4096  # samples kept per process: beyond, every other one goes (the series keeps its span)
 
 
-class CpuMeter:
+class Sampler:
+    """A thread that takes a reading (:meth:`reading`, which returns the seconds to wait before the next) from
+    :meth:`start` until :meth:`stop`."""
+
+    name = "sampler"
+
+    def __init__(self) -> None:
+        self._done = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def reading(self) -> float:
+        raise NotImplementedError
+
+    def start(self) -> None:
+        def read() -> None:
+            while not self._done.wait(self.reading()):
+                pass
+
+        self._thread = threading.Thread(target=read, name=self.name, daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._done.set()
+        if self._thread is not None:
+            self._thread.join()
+
+
+def tick_points(tick_clock: list | None) -> list[tuple[int, float]]:
+    """The sim's run.finished ``tick_clock`` ([[tick, monotonic seconds], ...]) as (tick, seconds) in tick order."""
+    return sorted((int(t), float(at)) for t, at in tick_clock or ())
+
+
+class CpuMeter(Sampler):
     """CPU seconds per tick of every process of a distributed run, by role (sim, monitor, agv, picker, supervisor).
 
     A thread of its own (:meth:`start`, :meth:`stop`) samples each process's CPU time (user + system, from
@@ -80,14 +112,15 @@ class CpuMeter:
     costs the machine, and unlike the tick rate it barely depends on what else runs on the cores.
     """
 
+    name = "cpu-meter"
+
     def __init__(self, supervisor, n_agvs: int, sample_s: float = CPU_SAMPLE_S):
+        super().__init__()
         self.sup = supervisor
         self.n_agvs = n_agvs
         self.sample_s = sample_s
         # "name:pid" -> [(monotonic seconds, CPU seconds), ...] in time order
         self.series: dict[str, list[tuple[float, float]]] = {}
-        self._done = threading.Event()
-        self._thread: threading.Thread | None = None
         self._processes: dict[int, object] = {}  # pid -> psutil.Process
 
     def _role(self, name: str) -> str:
@@ -122,28 +155,16 @@ class CpuMeter:
             if len(series) > CPU_SERIES_MAX:
                 series[:] = [*series[:-1:2], series[-1]]
 
-    def start(self) -> None:
-        """Sample from now until :meth:`stop`, on a thread of its own."""
-        def sample() -> None:
-            while True:
-                self.record(self._sample())
-                if self._done.wait(self.sample_s):
-                    return
-
-        self._thread = threading.Thread(target=sample, name="cpu-meter", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._done.set()
-        if self._thread is not None:
-            self._thread.join()
+    def reading(self) -> float:
+        self.record(self._sample())
+        return self.sample_s
 
     def per_tick_ms(self, tick_clock: list | None) -> dict[str, float]:
         """Milliseconds of CPU per tick over the window that ``tick_clock`` (the sim's [[tick, monotonic seconds],
         ...]) places: per process role (agents: the mean over that role's processes) and total."""
         import numpy as np
 
-        points = sorted((int(t), float(at)) for t, at in tick_clock or ())
+        points = tick_points(tick_clock)
         if len(points) < 2:
             return {}
         ticks, times = np.array([p[0] for p in points], float), np.array([p[1] for p in points])

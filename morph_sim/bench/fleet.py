@@ -23,10 +23,10 @@ import asyncio
 import json
 import os
 import tempfile
-import threading
 import time
 from pathlib import Path
 
+from morph_sim.bench.distributed import CpuMeter, Sampler, load_average, tick_points
 from services.sim.result import SETTLE_TICKS
 
 NAME = "fleet"
@@ -94,7 +94,7 @@ def _parse_sizes(text: str) -> list[int]:
 MEMORY_DUTY = 50  # the memory meter reads at most 1/this of its time: a round of USS readings costs ~0.3 ms an agent
 
 
-class _MemoryMeter:
+class _MemoryMeter(Sampler):
     """The largest private memory (USS, MiB) of an agent process at the run's middle tick.
 
     A thread reads every live agent's USS in rounds, each round stamped with the host's monotonic clock and the next
@@ -106,11 +106,12 @@ class _MemoryMeter:
     seen finds the agents alive even when a loaded machine hands the supervisor the run's ticks late, after the
     agents have left."""
 
+    name = "agent-uss"
+
     def __init__(self, supervisor, sample_s: float = 0.05):
+        super().__init__()
         self.sup, self.sample_s = supervisor, sample_s
         self.rounds: list[tuple[float, int]] = []  # (monotonic seconds at the round's end, largest USS in bytes)
-        self._done = threading.Event()
-        self._thread: threading.Thread | None = None
 
     def _round(self) -> float:
         """One round of readings; the CPU seconds they took (unlike their wall time, not stretched by a loaded
@@ -135,22 +136,15 @@ class _MemoryMeter:
     def start(self) -> None:
         import psutil  # noqa: F401  (imported here, not in the first round: its import is no reading's cost)
 
-        def read() -> None:
-            while not self._done.wait(max(self.sample_s, MEMORY_DUTY * self._round())):
-                pass
+        super().start()
 
-        self._thread = threading.Thread(target=read, name="agent-uss", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._done.set()
-        if self._thread is not None:
-            self._thread.join()
+    def reading(self) -> float:
+        return max(self.sample_s, MEMORY_DUTY * self._round())
 
     def uss_mib(self, tick_clock: list | None) -> float | None:
         """The figure, by the sim's ``tick_clock`` ([[tick, monotonic seconds], ...]); None without a round taken
         from the first tick on."""
-        points = sorted((int(t), float(at)) for t, at in tick_clock or ())
+        points = tick_points(tick_clock)
         if len(points) < 2:
             return None
         began = points[0][1]
@@ -164,7 +158,6 @@ class _MemoryMeter:
 def _run(config, *, memory: bool = False) -> tuple[dict, dict[str, float], float | None]:
     """One ``up`` of ``config`` under the supervisor in this process: its ``run.finished`` details, its CPU ms per
     tick by role, and with ``memory`` the largest agent USS (MiB) at its middle tick."""
-    from morph_sim.bench.distributed import CpuMeter
     from services.supervisor.launcher import Supervisor
 
     supervisor = Supervisor(config)
@@ -194,7 +187,6 @@ def _run(config, *, memory: bool = False) -> tuple[dict, dict[str, float], float
 
 
 def measure_size(robots: int, args: argparse.Namespace, out: Path) -> dict:
-    from morph_sim.bench.distributed import load_average
     from services.runconfig import RunConfig
 
     agvs, pickers = fleet_of(robots)
