@@ -91,7 +91,7 @@ def _parse_sizes(text: str) -> list[int]:
     return sorted(set(sizes))
 
 
-MEMORY_DUTY = 50  # the memory meter reads at most 1/this of its time: a round of USS readings costs ~0.3 ms an agent
+MEMORY_DUTY = 20  # the memory meter reads at most 1/this of its time: a round of USS readings costs ~0.3 ms an agent
 
 
 class _MemoryMeter(Sampler):
@@ -133,11 +133,6 @@ class _MemoryMeter(Sampler):
                 self.rounds[:] = [*self.rounds[:-1:2], self.rounds[-1]]
         return time.thread_time() - began
 
-    def start(self) -> None:
-        import psutil  # noqa: F401  (imported here, not in the first round: its import is no reading's cost)
-
-        super().start()
-
     def reading(self) -> float:
         return max(self.sample_s, MEMORY_DUTY * self._round())
 
@@ -164,7 +159,7 @@ def _run(config, *, memory: bool = False) -> tuple[dict, dict[str, float], float
     # a small fleet runs its ticks in a blink at full speed: samples close enough that its window holds several
     meters = [CpuMeter(supervisor, config.n_agvs, sample_s=SAMPLE_S)]
     if memory:
-        meters.append(_MemoryMeter(supervisor))
+        meters.append(_MemoryMeter(supervisor, sample_s=SAMPLE_S))
     for meter in meters:
         meter.start()
     try:
