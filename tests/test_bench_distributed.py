@@ -277,6 +277,17 @@ def test_the_sim_s_tick_clock_keeps_a_bounded_number_of_tick_starts_and_the_fina
         assert ticks[0] == 0 and ticks[-1] == steps and len(ticks) <= TICK_CLOCK_POINTS + 1, steps
         assert ticks[:-1] == list(range(0, steps, clock.stride)), steps
         assert all(at == 5.0 + t for t, at in clock.summary()), steps
+    # it rides in the run.finished event: however long the run, a small part of what an event may weigh
+    from schemas.codec import encode
+    from schemas.limits import max_payload
+    from schemas.messages import Event
+
+    clock = TickClock.for_steps(10**7)
+    for t in range(0, 10**7, clock.stride):
+        clock.started(t, 1e6 + t / 10)
+    clock.started(10**7, 2e6, last=True)
+    size = len(encode(Event(kind="run.finished", details={"tick_clock": clock.summary()})))
+    assert size < max_payload(["events"]) / 3
 
 
 def test_the_fleet_bench_reads_the_agents_memory_in_rounds_and_takes_the_round_nearest_the_middle_tick():
