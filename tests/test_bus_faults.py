@@ -118,6 +118,23 @@ def test_directional_partition_and_scope() -> None:
     assert layer.fate("morph/other/agent/2/ack", 2, "sim") == [0.0]  # another run's traffic
 
 
+def test_a_fault_s_scope_answers_every_key_as_its_key_expression_does_and_its_memory_stays_bounded() -> None:
+    from schemas.keys import matches
+    from services.faults.layer import ActiveFault
+
+    fault = ActiveFault(FaultSpec(loss=Loss(percent=100), scope=Scope(key_expr="agent/*/request/**", agents=[2, 3])),
+                        "f", 0.0, None)
+    keys = [f"agent/{a}/{kind}/{b}" for a in range(5) for kind in ("request", "reply", "ack") for b in range(5)]
+    for _ in range(2):  # the second pass answers from what the first one kept
+        for key in keys:
+            for sender, receiver in ((2, "sim"), (1, 3), (1, 4)):
+                expect = matches("agent/*/request/**", key) and (sender in (2, 3) or receiver in (2, 3))
+                assert fault.applies(key, sender, receiver) is expect, (key, sender, receiver)
+    for i in range(5000):  # keys nobody planned
+        fault.applies(f"agent/1/request/x{i}", 2, "sim")
+    assert len(fault._matched) <= 4096
+
+
 def test_duplicate_and_reorder() -> None:
     layer = FaultLayer("f1")
     layer.set(FaultSpec(duplicate=Duplicate(percent=100)))

@@ -89,9 +89,18 @@ class ActiveFault:
         """Was this fault active at sim time ``at`` (virtual time: faults are judged at a message's send time)?"""
         return self.started <= at + _VT_EPS and (self.expires is None or at < self.expires - _VT_EPS)
 
+    # whether the scope's key expression matches a key, by key: every copy of every message asks, and a run has a
+    # few dozen keys (bounded like the layer's own table of keys, against keys nobody planned)
+    _matched: dict[str, bool] = field(default_factory=dict, repr=False, compare=False)
+
     def applies(self, rel_key: str, sender: object, receiver: object) -> bool:
         scope = self.spec.scope
-        if not matches(scope.key_expr, rel_key):
+        matched = self._matched.get(rel_key)
+        if matched is None:
+            if len(self._matched) >= 4096:
+                self._matched.clear()
+            matched = self._matched[rel_key] = matches(scope.key_expr, rel_key)
+        if not matched:
             return False
         if scope.agents is not None and sender not in scope.agents and receiver not in scope.agents:
             return False
