@@ -58,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "security's cost; with --against, a checkout older than security runs as it is")
 
 
-CPU_SAMPLE_S = 0.05  # seconds between CPU samples of the run's processes
+CPU_SAMPLE_S = 0.05  # seconds between CPU samples of the run's processes, at least
 CPU_WARMUP_TICKS = 20  # the CPU window opens at this tick (start-up and the first ticks excluded)
 CPU_DUTY = 50  # the CPU meter reads at most 1/this of its time: a round reads every process (~30 µs each)
 CPU_SERIES_MAX = 4096  # samples kept per process: beyond, every other one goes (the series keeps its span)
@@ -103,12 +103,12 @@ class CpuMeter(Sampler):
 
     A thread of its own (:meth:`start`, :meth:`stop`) samples each process's CPU time (user + system, from
     ``psutil``) every ``sample_s`` seconds, or less often where a round of readings costs more than a
-    ``CPU_DUTY``-th of that (a fleet of 128 robots: the meter would take a quarter of a core and load the machine it
-    measures), each reading stamped with the host's monotonic clock. The window is placed
-    by the sim's own tick clock (its run.finished ``tick_clock``: when ticks started, on the same clock): from the
-    start of tick ``CPU_WARMUP_TICKS`` to the start of the final tick. Neither the samples nor the window depend on
-    when the ticks reach the supervisor: on a loaded machine they reach it late and in bursts, and a window placed
-    by its progress measured nothing, or no time at all.
+    ``CPU_DUTY``-th of that (at 128 robots the meter would otherwise take a quarter of a core from the machine it
+    measures), each reading stamped with the host's monotonic clock. The window is placed by the sim's own tick
+    clock (its run.finished ``tick_clock``: when ticks started, on the same clock): from the start of tick
+    ``CPU_WARMUP_TICKS`` to the start of the final tick. Neither the samples nor the window depend on when the ticks
+    reach the supervisor: on a loaded machine they reach it late and in bursts, and a window placed by its progress
+    measured nothing, or no time at all.
 
     Each process's CPU at the window's edges is interpolated between the samples on either side. A process must have
     been sampled before the window opened; one that exits before the window closes (the run's processes may leave
