@@ -13,7 +13,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from morph_sim.bench.distributed import CPU_SERIES_MAX, CpuMeter, code_cwd, code_env, code_of, summarize
+from morph_sim.bench.distributed import READINGS_MAX, CpuMeter, code_cwd, code_env, code_of, summarize
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -95,11 +95,11 @@ def test_no_window_no_figures():
 
 def test_a_long_run_s_readings_stay_bounded_and_keep_their_span():
     meter = _meter()
-    for i in range(3 * CPU_SERIES_MAX):
+    for i in range(3 * READINGS_MAX):
         meter.record({"sim:10": (100.0 + i / 100, 1.0 + 0.04 * i / 100)})
     series = meter.series["sim:10"]
-    assert len(series) <= CPU_SERIES_MAX
-    assert series[0] == (100.0, 1.0) and series[-1][0] == pytest.approx(100.0 + (3 * CPU_SERIES_MAX - 1) / 100)
+    assert len(series) <= READINGS_MAX
+    assert series[0] == (100.0, 1.0) and series[-1][0] == pytest.approx(100.0 + (3 * READINGS_MAX - 1) / 100)
     assert meter.per_tick_ms(CLOCK)["sim"] == pytest.approx(4.0)
 
 

@@ -61,21 +61,39 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 CPU_SAMPLE_S = 0.05  # seconds between CPU samples of the run's processes, at least
 CPU_WARMUP_TICKS = 20  # the CPU window opens at this tick (start-up and the first ticks excluded)
 CPU_DUTY = 50  # the CPU meter reads at most 1/this of its time: a round reads every process (~30 µs each)
-CPU_SERIES_MAX = 4096  # samples kept per process: beyond, every other one goes (the series keeps its span)
+READINGS_MAX = 4096  # readings a meter keeps per series: beyond, every other one goes (the series keeps its span)
 
 
 class Sampler:
     """A thread that takes a reading (:meth:`reading`, which returns the seconds to wait before the next) from
-    :meth:`start` until :meth:`stop`."""
+    :meth:`start` until :meth:`stop`, of the run's processes through ``psutil`` handles it keeps."""
 
     name = "sampler"
 
     def __init__(self) -> None:
         self._done = threading.Event()
         self._thread: threading.Thread | None = None
+        self._processes: dict[int, object] = {}  # pid -> psutil.Process
 
     def reading(self) -> float:
         raise NotImplementedError
+
+    def process(self, pid: int):
+        """The ``psutil`` handle of ``pid``, one per process: making one reads the process's start time, a cost the
+        supervisor's own figure would carry on every reading (psutil.Error where there is no such process)."""
+        import psutil
+
+        handle = self._processes.get(pid)
+        if handle is None:
+            handle = self._processes[pid] = psutil.Process(pid)
+        return handle
+
+    @staticmethod
+    def keep(series: list, reading) -> None:
+        """Append ``reading`` to ``series``, keeping at most ``READINGS_MAX`` of them over the whole span."""
+        series.append(reading)
+        if len(series) > READINGS_MAX:
+            series[:] = [*series[:-1:2], series[-1]]
 
     def start(self) -> None:
         import psutil  # noqa: F401  (imported here, not in the first reading: its import is no reading's cost)
@@ -96,6 +114,13 @@ class Sampler:
 def tick_points(tick_clock: list | None) -> list[tuple[int, float]]:
     """The sim's run.finished ``tick_clock`` ([[tick, monotonic seconds], ...]) as (tick, seconds) in tick order."""
     return sorted((int(t), float(at)) for t, at in tick_clock or ())
+
+
+def tick_time(points: list[tuple[int, float]], tick: float) -> float:
+    """When tick ``tick`` started (monotonic seconds), interpolated between the tick clock's ``points``."""
+    import numpy as np
+
+    return float(np.interp(tick, [t for t, _ in points], [at for _, at in points]))
 
 
 class CpuMeter(Sampler):
@@ -126,7 +151,6 @@ class CpuMeter(Sampler):
         self.sample_s = sample_s
         # "name:pid" -> [(monotonic seconds, CPU seconds), ...] in time order
         self.series: dict[str, list[tuple[float, float]]] = {}
-        self._processes: dict[int, object] = {}  # pid -> psutil.Process
 
     def _role(self, name: str) -> str:
         if name.startswith("agent-"):
@@ -141,12 +165,7 @@ class CpuMeter(Sampler):
         pids = [(name, child.pid) for name, child in list(self.sup.children.items()) if child.alive()]
         for name, pid in [*pids, ("supervisor", os.getpid())]:
             try:
-                # one handle per process: making one reads the process's start time, a cost the supervisor's own
-                # figure would carry on every reading
-                process = self._processes.get(pid)
-                if process is None:
-                    process = self._processes[pid] = psutil.Process(pid)
-                times = process.cpu_times()
+                times = self.process(pid).cpu_times()
             except psutil.Error:
                 continue
             out[f"{name}:{pid}"] = (time.monotonic(), times.user + times.system)
@@ -155,10 +174,7 @@ class CpuMeter(Sampler):
     def record(self, sample: dict[str, tuple[float, float]]) -> None:
         """Take one reading into the processes' series."""
         for key, point in sample.items():
-            series = self.series.setdefault(key, [])
-            series.append(point)
-            if len(series) > CPU_SERIES_MAX:
-                series[:] = [*series[:-1:2], series[-1]]
+            self.keep(self.series.setdefault(key, []), point)
 
     def reading(self) -> float:
         began = time.thread_time()  # CPU, not wall time: a loaded machine stretches the round, not its cost
@@ -177,7 +193,7 @@ class CpuMeter(Sampler):
         first_tick, last_tick = float(CPU_WARMUP_TICKS), ticks[-1]
         if last_tick <= first_tick or ticks[0] > first_tick:
             return {}
-        opens = float(np.interp(first_tick, ticks, times))
+        opens = tick_time(points, first_tick)
         closes = times[-1]
         pids: dict[str, int] = {}
         for key in self.series:

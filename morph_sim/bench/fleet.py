@@ -26,7 +26,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from morph_sim.bench.distributed import CpuMeter, Sampler, load_average, tick_points
+from morph_sim.bench.distributed import CpuMeter, Sampler, load_average, tick_points, tick_time
 from services.sim.result import SETTLE_TICKS
 
 NAME = "fleet"
@@ -124,13 +124,11 @@ class _MemoryMeter(Sampler):
             if not name.startswith("agent-") or not child.alive():
                 continue
             try:
-                largest = max(largest, psutil.Process(child.pid).memory_full_info().uss)
+                largest = max(largest, self.process(child.pid).memory_full_info().uss)
             except psutil.Error:
                 continue
         if largest:
-            self.rounds.append((time.monotonic(), largest))
-            if len(self.rounds) > 4096:
-                self.rounds[:] = [*self.rounds[:-1:2], self.rounds[-1]]
+            self.keep(self.rounds, (time.monotonic(), largest))
         return time.thread_time() - began
 
     def reading(self) -> float:
@@ -142,10 +140,7 @@ class _MemoryMeter(Sampler):
         points = tick_points(tick_clock)
         if len(points) < 2:
             return None
-        began = points[0][1]
-        middle_tick = points[-1][0] / 2
-        middle = next(at0 + (at1 - at0) * (middle_tick - t0) / (t1 - t0)
-                      for (t0, at0), (t1, at1) in zip(points, points[1:]) if t0 <= middle_tick <= t1)
+        began, middle = points[0][1], tick_time(points, points[-1][0] / 2)
         ran = [(abs(at - middle), uss) for at, uss in self.rounds if at >= began]
         return min(ran)[1] / 2**20 if ran else None
 
