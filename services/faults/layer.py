@@ -51,6 +51,9 @@ if TYPE_CHECKING:
 WALL_STAMP = 1e8
 # Virtual time keeps healed fault windows this many steps, to judge stragglers sent while they were active.
 HISTORY_STEPS = 64
+# the most keys a table by key holds (the layer's kinds of key, a fault's scope matches): a run has a few dozen keys,
+# and keys nobody planned (a fuzzer's) empty the table rather than grow it
+KEY_TABLE_MAX = 4096
 
 
 def is_wall_stamp(sent_at: float) -> bool:
@@ -89,15 +92,14 @@ class ActiveFault:
         """Was this fault active at sim time ``at`` (virtual time: faults are judged at a message's send time)?"""
         return self.started <= at + _VT_EPS and (self.expires is None or at < self.expires - _VT_EPS)
 
-    # whether the scope's key expression matches a key, by key: every copy of every message asks, and a run has a
-    # few dozen keys (bounded like the layer's own table of keys, against keys nobody planned)
+    # whether the scope's key expression matches a key, by key: every copy of every message asks (KEY_TABLE_MAX)
     _matched: dict[str, bool] = field(default_factory=dict, repr=False, compare=False)
 
     def applies(self, rel_key: str, sender: object, receiver: object) -> bool:
         scope = self.spec.scope
         matched = self._matched.get(rel_key)
         if matched is None:
-            if len(self._matched) >= 4096:
+            if len(self._matched) >= KEY_TABLE_MAX:
                 self._matched.clear()
             matched = self._matched[rel_key] = matches(scope.key_expr, rel_key)
         if not matched:
@@ -272,7 +274,7 @@ class FaultLayer:
         run): (its key relative to the run, or None when it is never faulted; whether it is radio traffic, or None
         when it is faulted only in wall time)."""
         kinds = self._kinds
-        if len(kinds) >= 4096:  # keys nobody planned (a fuzzer's): the table stays bounded
+        if len(kinds) >= KEY_TABLE_MAX:
             kinds.clear()
         try:
             chunks = self.keys.relative(key)
