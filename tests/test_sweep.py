@@ -129,6 +129,23 @@ def test_interrupted_at_half_and_resumed_equals_an_uninterrupted_sweep(tmp_path,
     _check_tidy(reduced_sweep[0], whole.stdout)
 
 
+def test_an_interrupted_pool_has_ended_its_manager_thread_and_workers_when_the_command_goes_on():
+    # what the interpreter's exit finds of an interrupted pool: no thread left to close its wake-up pipe while the exit
+    # wakes it (Python 3.11 does so without a lock: "Bad file descriptor" once ended an interrupted sweep's output)
+    from morph_sim.lab.executors import episode_pool
+
+    seen = {}
+    with pytest.raises(KeyboardInterrupt):
+        with episode_pool(2) as pool:
+            assert pool.submit(abs, -1).result(timeout=30) == 1
+            pool.submit(time.sleep, 30)
+            seen["manager"] = pool._executor_manager_thread
+            seen["workers"] = list(pool._processes.values())
+            raise KeyboardInterrupt
+    assert not seen["manager"].is_alive()
+    assert not any(worker.is_alive() for worker in seen["workers"])
+
+
 def test_a_killed_sweep_resumes_too(tmp_path):
     """SIGKILL may cut a line of the record in half: the resumed sweep drops it and runs that episode again."""
     grid = ["--grid", "policy=morph,tsg", "--seeds", "1-5", "--set", "steps=40"]

@@ -109,14 +109,22 @@ def episode_pool(jobs: int) -> Iterator[PoolExecutor]:
 
 def _stop(pool: ProcessPoolExecutor) -> None:
     """Drop the queued episodes and end the workers (they ignore SIGINT, so only the parent can stop them).
-    ProcessPoolExecutor gains a method for this in Python 3.14; before it, the pool's own process table."""
+    ProcessPoolExecutor gains a method for this in Python 3.14; before it, the pool's own process table.
+
+    Then wait for the pool's manager thread, which closes its wake-up pipe once it sees the workers gone. Python
+    3.11 wakes every such thread at interpreter exit without a lock: a close racing that wake-up raised "OSError:
+    [Errno 9] Bad file descriptor" as an interrupted command's last line, after its own (seen once in a run of the
+    suite). With the thread ended first, the pipe is closed and the exit's wake-up does nothing."""
     workers = list((getattr(pool, "_processes", None) or {}).values())
+    manager = getattr(pool, "_executor_manager_thread", None)  # (shutdown forgets it)
     pool.shutdown(wait=False, cancel_futures=True)
     for worker in workers:
         if worker.is_alive():
             worker.terminate()
     for worker in workers:
         worker.join(STOP_WAIT)
+    if manager is not None:
+        manager.join(STOP_WAIT)
 
 
 #: Most local worker processes: more than the machine's cores only queue for them, and each is a Python process
