@@ -9,6 +9,7 @@ import asyncio
 import time
 
 import pytest
+from hypothesis import given, settings, strategies as st
 
 from schemas import Ack, RegistrationReply, RegistrationRequest, RunKeys, Stop, decode, intersects
 from services.bus import Bus, LivelinessEvent, LocalNetwork, Sample, wait_for_alive
@@ -537,3 +538,34 @@ async def test_local_reply_after_timeout_is_dropped() -> None:
     assert await client.get(K.registry, timeout=0.05) == []
     await server.close()
     await client.close()
+
+
+_CHUNKS = ("morph", "t1", "agent", "7", "12", "ack", "@onboard", "reply")
+_EXPR_CHUNKS = (*_CHUNKS, "*", "**")
+
+
+@settings(max_examples=60, deadline=None)
+@given(exprs=st.lists(st.lists(st.sampled_from(_EXPR_CHUNKS), min_size=1, max_size=5), min_size=1, max_size=30),
+       keys=st.lists(st.lists(st.sampled_from(_CHUNKS), min_size=1, max_size=6), min_size=1, max_size=30),
+       dropped=st.sets(st.integers(0, 29), max_size=10))
+async def test_local_routes_are_every_matching_subscription_in_declaration_order(exprs, keys, dropped) -> None:
+    """The in-process network finds a key's subscribers by the shape of their expressions; what it finds is what
+    matching the key against every subscription finds, in the order they were declared, also after some leave."""
+    net = LocalNetwork()
+    bus = net.session("s")
+    subs = []
+    for chunks in exprs:
+        expr = "/".join(chunks)
+        if any(a == "**" and b in ("*", "**") for a, b in zip(chunks, chunks[1:])):  # not canonical: refused
+            continue
+        subs.append(await bus.subscribe(expr, lambda s: None))
+    for i in sorted(dropped):
+        if i < len(subs):
+            await subs[i].close()
+    for chunks in keys:
+        key = "/".join(chunks)
+        expected = [entry for entry in net.subscribers if intersects(entry[1].key_expr, key)]
+        assert net.routes_of(key) == expected, key
+        assert net.routes_of(key) == expected, key  # and again from the table
+    await bus.close()
+    assert all(not net.routes_of("/".join(chunks)) for chunks in keys)
