@@ -429,3 +429,84 @@ def test_the_compiled_paper_structural_step_has_the_numpy_bits(paper, estimator,
         formed += int(state.formed.sum())
         pruned += int(state.pruned.sum())
     assert formed > 0 and pruned > 0
+
+
+def _mixed_paper_state(params, n, rng):
+    """A paper fleet brain whose rows have learnt different things: links, weights, ages around the grace period,
+    thresholds, h, d̂, baselines, η of both signs, update counts and task histories of their own."""
+    s = PaperState(params, n, np.arange(n), 0.1, replicas=n)
+    s.A[:] = rng.random((n, n)) < 0.35
+    s.A[np.arange(n), np.arange(n)] = 0.0
+    s.W[:] = s.A * rng.random((n, n)) * (rng.random((n, n)) < 0.9)
+    s.age[:] = s.A * rng.integers(0, 2 * params.grace + 2, size=(n, n))
+    s.theta_bcm[:] = rng.random((n, n)) * 0.4 * (rng.random((n, n)) < 0.7)
+    s.h[:] = rng.random(n) * 0.3
+    s.dhat[:] = rng.random(n) * 0.3
+    s.baseline[:] = rng.random(n) * 0.3
+    s.eta[:] = rng.random(n) * 2.0 - 1.0
+    s.t[:] = rng.integers(0, 200, n)
+    s.history[:] = rng.integers(0, 6, size=s.history.shape) * (rng.random(s.history.shape) < 0.7)
+    s.filled[:] = rng.integers(0, params.mi_window + 1, size=n)
+    return s
+
+
+@pytest.mark.parametrize("ablation", ("full",) + ABLATIONS)
+def test_the_compiled_paper_update_has_the_numpy_bits(ablation, monkeypatch):
+    # the lab's paper fleet brain steps the rows that took a view in place, compiled; an agent steps its one row with
+    # numpy: every array must have the same bits for every row set a tick may step, deliveries and credits included
+    from services.policies import plasticity
+
+    kernels = plasticity.compiled_kernels()
+    assert kernels is not None
+    params = load_preset("paper").resolve(ablation)
+    rng = np.random.default_rng(17)
+    n = 11
+    credited = formed = 0
+    for trial in range(30):
+        state = _mixed_paper_state(params, n, rng)
+        twin = state._take(np.arange(n))
+        rows = (None, [4], [0, 1, 2, 3, 5, 6, 7, 8, 10], [9, 2], [])[trial % 5]
+        for _ in range(4):
+            task = rng.integers(0, 6, size=n) * (rng.random(n) < 0.8)
+            delivered = rng.random(n) < 0.3
+            loader = np.where(delivered, rng.integers(0, n, size=n), -1)
+            x = _paper_inputs(n, task, reward=rng.random(n) * 0.2 - 0.05, delivered=delivered, loader=loader,
+                              hint=(rng.random((n, n)) < 0.2).astype(float))
+            before = state.W.copy()
+            state.step(x, rows)
+            monkeypatch.setattr(plasticity, "_KERNEL", [None])
+            twin.step(x, rows)
+            monkeypatch.setattr(plasticity, "_KERNEL", [kernels])
+            credited += int((state.W > before).sum())
+            formed += int(state.formed.sum())
+            for name in PaperState._ROWS[1:] + PaperState._REPLICA:
+                a, b = getattr(state, name), getattr(twin, name)
+                assert a.tobytes() == b.tobytes(), (ablation, trial, name)
+    assert credited > 0 and formed > 0
+
+
+def test_the_compiled_paper_update_is_not_the_numpy_update_with_another_name(paper, monkeypatch):
+    # the comparison above fails on a kernel that leaves out the loader's credit for a delivered shelf
+    from services.policies import plasticity, reference_kernel
+
+    kernels = plasticity.compiled_kernels()
+    n = 6
+    state = _mixed_paper_state(paper.params, n, np.random.default_rng(2))
+    twin = state._take(np.arange(n))
+    state.A[:] = 1.0 - np.eye(n)
+    twin.A[:] = state.A
+    delivered = np.ones(n, dtype=bool)
+    x = _paper_inputs(n, np.ones(n, dtype=int), delivered=delivered, loader=np.arange(n)[::-1].copy())
+
+    def without_loader_credit(*args):
+        args = list(args)
+        args[11] = False
+        return reference_kernel.paper_step_rows(*args)
+
+    monkeypatch.setattr(plasticity, "_KERNEL", [SimpleNamespace(
+        paper_step_rows=without_loader_credit, task_jaccard_rows=kernels.task_jaccard_rows,
+        paper_structural_rows=kernels.paper_structural_rows, coassignment_rows=kernels.coassignment_rows)])
+    state.step(x)
+    monkeypatch.setattr(plasticity, "_KERNEL", [None])
+    twin.step(x)
+    assert state.W.tobytes() != twin.W.tobytes()

@@ -664,6 +664,13 @@ class PaperState:
     def step(self, x: PaperInputs, rows=None) -> None:
         """One update of the rows ``rows`` (default every row) from ``x``. With ``rows``, each row has a replica of its
         own (``replicas`` = B) and the other rows are untouched."""
+        if self.replicas > 1 and (kernels := compiled_kernels()) is not None:
+            if rows is not None:
+                rows = np.asarray(rows, dtype=int)
+                if len(rows) == self.replicas and (rows == np.arange(self.replicas)).all():
+                    rows = None
+            self._step_compiled(kernels, x, rows)
+            return
         if rows is not None:
             rows = np.asarray(rows, dtype=int)
             if len(rows) != self.replicas or (rows != np.arange(self.replicas)).any():
@@ -696,6 +703,56 @@ class PaperState:
         self.dhat[:], self.eta[:], _, theta_adj = neuromodulation_rows(p, self.dhat, deliveries, self.baseline, self.t)
         self.baseline += p.baseline_ema * (deliveries - self.baseline)
         return theta_adj
+
+    def _step_compiled(self, kernels, x: PaperInputs, rows: np.ndarray | None) -> None:
+        """:meth:`_step` of the rows ``rows`` (None: every row), each with its replica, in place: the element-wise
+        update by :func:`.reference_kernel.paper_step_rows`, the rest as :meth:`_step` does it, on those rows only.
+        The same values, bit for bit, as :meth:`_step` of the rows taken apart."""
+        p = self.params
+        every = rows is None
+        if every:
+            rows = np.arange(self.replicas)
+            self.t += 1
+            self.history[:, :-1] = self.history[:, 1:]
+            self.history[:, -1] = x.task
+            np.minimum(self.filled + 1, p.mi_window, out=self.filled)
+            jac = self.task_jaccard()
+        else:
+            self.t[rows] += 1
+            history = self.history[rows]
+            history[:, :-1] = history[:, 1:].copy()
+            history[:, -1] = x.task
+            self.history[rows] = history
+            self.filled[rows] = np.minimum(self.filled[rows] + 1, p.mi_window)
+            jac = np.empty((len(rows), self.n))
+            if not kernels.task_jaccard_rows(history, self.filled[rows], p.task_window, self.owners[rows], jac,
+                                             _DENSE_LABELS):
+                jac = self._take(rows).task_jaccard()
+        eta = self.eta[rows]
+        alpha_eff = p.alpha * (1.0 + p.neuromod_gain * np.maximum(eta, 0.0))
+        reward = (x.reward[self.owners[rows]].astype(float) if p.use_step_reward
+                  else np.full(len(rows), float(p.cov)))
+        kernels.paper_step_rows(rows, self.W, self.A, self.age, self.theta_bcm, jac, alpha_eff, reward, self.owners,
+                                np.asarray(x.loader, dtype=np.int64), np.asarray(x.delivered, dtype=np.bool_),
+                                bool(p.reward_alpha > 0.0 and x.deliveries > 0), float(p.reward_alpha), p.bcm_tau,
+                                1.0 - p.bcm_tau, float(p.bcm_gain), 1.0 - p.gamma, p.gamma, float(p.grace),
+                                float(p.credit_threshold), _EPS)
+        # R4b, then the structural step of the rows at a k-th update, then ageing
+        baseline = self.baseline[rows]
+        self.dhat[rows], self.eta[rows], _, theta_rows = neuromodulation_rows(p, self.dhat[rows], x.deliveries,
+                                                                             baseline, self.t[rows])
+        self.baseline[rows] = baseline + p.baseline_ema * (x.deliveries - baseline)
+        self.formed[rows] = 0
+        self.pruned[rows] = 0
+        due = self.t[rows] % p.k == 0
+        if due.any():
+            theta_adj = np.zeros(self.replicas)
+            theta_adj[rows] = theta_rows
+            self._structural(x, theta_adj, rows[due])
+        if every:
+            self.age = np.where(self.A > 0, self.age + 1.0, 0.0)
+        else:
+            self.age[rows] = np.where(self.A[rows] > 0, self.age[rows] + 1.0, 0.0)
 
     def _step(self, x: PaperInputs) -> None:
         p = self.params

@@ -127,6 +127,47 @@ def step_rows(rows, W, A, age, theta, j_prev, h, jaccard, alpha, credit_gain, bc
 
 
 @njit(cache=True)
+def paper_step_rows(rows, W, A, age, theta, jaccard, alpha, reward, owners, loader, delivered, credit_delivery,
+                    reward_alpha, bcm_tau, keep_tau, bcm_gain, keep_gamma, gamma, grace, credit_threshold, eps):
+    """The paper preset's element-wise update of the rows ``rows`` (``PaperState._step`` between the task history and
+    the neuromodulation): the BCM threshold, the retention that decays mature links above it, the Hebbian term on the
+    task-set Jaccard ``jaccard[k]`` above ``credit_threshold`` times the row's ``alpha[k]`` and ``reward[k]``, the
+    loader's credit for a delivered shelf (only when ``credit_delivery``: a delivery this step and reward_alpha > 0),
+    then W clipped to [0, 1] with the robot's own column at 0. ``jaccard``, ``alpha`` and ``reward`` are per row of
+    ``rows``."""
+    n = W.shape[1]
+    if credit_delivery:  # numpy adds the loader's credit only when some stepped row has a shelf it loaded delivered
+        credit_delivery = False
+        for k in range(rows.shape[0]):
+            own = owners[rows[k]]
+            for j in range(n):
+                if loader[j] == own and delivered[j]:
+                    credit_delivery = True
+    for k in range(rows.shape[0]):
+        b = rows[k]
+        own = owners[b]
+        a_eff = alpha[k]
+        r = reward[k]
+        for j in range(n):
+            w = W[b, j]
+            a = A[b, j]
+            th = theta[b, j] * bcm_tau + keep_tau * w
+            theta[b, j] = th
+            s = bcm_gain * _clip(w / (th + eps) - 1.0, 0.0, 3.0)
+            s = s * keep_gamma
+            s = s * (1.0 if age[b, j] > grace else 0.0)
+            w = w * _clip(gamma - s, 0.5, 1.0)
+            jac = jaccard[k, j]
+            w = w + a_eff * (jac if jac > credit_threshold else 0.0) * r * a
+            if credit_delivery:
+                w = w + reward_alpha * (1.0 if (loader[j] == own and delivered[j]) else 0.0) * a
+            w = _clip(w, 0.0, 1.0)
+            if j == own:
+                w = 0.0
+            W[b, j] = w
+
+
+@njit(cache=True)
 def _task_set(labels, mark, stamp, own_mark, own_stamp):
     """(the distinct tasks among ``labels``, how many of them own holds): a task is a label > 0, counted once by
     marking it with ``stamp`` in ``mark``; own's tasks are those marked ``own_stamp`` in ``own_mark``."""
