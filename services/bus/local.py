@@ -34,6 +34,7 @@ class LocalNetwork:
         return LocalBus(self, identity)
 
     def subscriptions_changed(self) -> None:
+        """A subscription came or went: every route is found afresh."""
         self._routes = {}
         self._shapes = None
 
@@ -181,8 +182,8 @@ class LocalBus(Bus):
 class _Shapes:
     """The subscriptions sorted by which concrete keys they can match, so that routing a key matches only those.
 
-    An expression without ``**`` matches only keys of as many chunks as it has (``*`` and ``$*`` stay within one
-    chunk), and one whose last chunk has no wildcard only keys ending in that chunk. So every subscription lies in
+    An expression without ``**`` matches only keys of as many chunks as it has (``*`` stands for one chunk),
+    and one whose last chunk has no wildcard only keys ending in that chunk. So every subscription lies in
     one of three places: by (chunks, last chunk), by chunks alone (a wildcard last chunk), or with ``**`` among the
     few that can match keys of any length. The candidates of a key are the union of its three places, in
     declaration order; :func:`matches` decides among them."""
