@@ -565,7 +565,7 @@ async def test_local_routes_are_every_matching_subscription_in_declaration_order
     for chunks in keys:
         key = "/".join(chunks)
         expected = [entry for entry in net.subscribers if intersects(entry[1].key_expr, key)]
-        assert net.routes_of(key) == expected, key
-        assert net.routes_of(key) == expected, key  # and again from the table
+        assert net.routes.reach(key) == expected, key
+        assert net.routes.reach(key) == expected, key  # and again from the table
     await bus.close()
-    assert all(not net.routes_of("/".join(chunks)) for chunks in keys)
+    assert all(not net.routes.reach("/".join(chunks)) for chunks in keys)

@@ -70,7 +70,6 @@ configure_runtime_env()
 import zenoh  # noqa: E402  (after the runtime environment is set)
 
 from schemas.base import Message  # noqa: E402
-from schemas.keys import intersects  # noqa: E402
 from schemas.limits import MAX_MESSAGE_BYTES  # noqa: E402
 from services.bus.base import (  # noqa: E402
     Bus,
@@ -85,6 +84,7 @@ from services.bus.base import (  # noqa: E402
     unpack_bundle,
     unpack_header,
 )
+from services.bus.routes import Routes  # noqa: E402
 
 log = logging.getLogger("morph_sim.bus.zenoh")
 
@@ -308,8 +308,7 @@ class ZenohBus(Bus):
         self._inline_lock = threading.RLock()
         self._pub_lock = threading.Lock()
         # the sample subscriptions of this session, and per key the ones it reaches: where a bundle's samples go
-        self._sample_subs: list[Subscription[Sample]] = []
-        self._routes: dict[str, list[Subscription[Sample]]] = {}
+        self._routes: Routes[Subscription[Sample]] = Routes(lambda sub: sub.key_expr)
         with _OPEN_LOCK:
             _OPEN_SESSIONS.add(session)
 
@@ -485,31 +484,18 @@ class ZenohBus(Bus):
                 post_sample(sub, sample)
 
         zsub = self.session.declare_subscriber(key_expr, on_sample)
-        self._sample_subs.append(sub)
-        self._routes = {}
+        self._routes.add(sub)
 
         def undeclare() -> None:
-            if sub in self._sample_subs:
-                self._sample_subs.remove(sub)
-                self._routes = {}
+            self._routes.remove(sub)
             zsub.undeclare()
         return undeclare
-
-    def _route(self, key: str) -> list[Subscription[Sample]]:
-        """This session's subscriptions that ``key`` reaches, in declaration order (cached per key)."""
-        routes = self._routes
-        subs = routes.get(key)
-        if subs is None:
-            if len(routes) >= 4096:  # keys nobody planned (a fuzzer's): the table stays bounded
-                routes.clear()
-            subs = routes[key] = [s for s in self._sample_subs if intersects(s.key_expr, key)]
-        return subs
 
     def _unbundle(self, sub: Subscription[Sample], carrier: Sample) -> None:
         """A bundle arrived for ``sub`` (Zenoh thread): each sample in it goes to every subscription of this session
         its own key reaches, as if it had come alone. Zenoh hands the carrier to each subscription that matches its
         key; the first of them in declaration order unpacks it, the others leave it."""
-        takers = self._route(carrier.key)
+        takers = self._routes.reach(carrier.key)
         if not takers or takers[0] is not sub or self._closed:
             return
         if len(carrier.payload) > MAX_MESSAGE_BYTES:
@@ -523,7 +509,7 @@ class ZenohBus(Bus):
             return
         ingress, post_sample = self._ingress, self._post_sample
         for sample in samples:
-            for target in self._route(sample.key):
+            for target in self._routes.reach(sample.key):
                 if target.inline:
                     ingress(target, sample)
                 else:
